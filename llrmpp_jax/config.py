@@ -1,0 +1,84 @@
+"""Frozen configuration dataclasses and presets.
+
+Every architectural number the paper's ablation tables vary is a field here, so a
+notebook changes one value with ``dataclasses.replace`` and gets a new model. Presets:
+
+* :func:`paper_dl3dv` -- Long-LRM++ on DL3DV (paper §4.1): D=768, 24 blocks ``{1T7M}x3``,
+  d_state 256, expand 2, headdim 64, p=8, K=16, F=32, r=2, decoder ``LLGGG`` E=256, S=2.
+* :func:`long_lrm` -- the predecessor (colour Gaussians, ``mmmmmmmt``, token merge).
+* :func:`tiny` -- a model that runs forward in well under a second on one CPU core.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Mamba2Config:
+    """Long-LRM's bidirectional Mamba2 block (reference facts §1.4)."""
+
+    d_state: int = 256
+    d_conv: int = 4
+    expand: int = 2
+    headdim: int = 64
+    ngroups: int = 1
+    chunk_size: int = 256
+    bidirectional: bool = True  # "bi": forward + reversed scan, outputs summed
+    norm_eps: float = 1e-5
+
+    def d_inner(self, d_model: int) -> int:
+        return self.expand * d_model
+
+    def nheads(self, d_model: int) -> int:
+        d_inner = self.d_inner(d_model)
+        if d_inner % self.headdim:
+            raise ValueError(
+                f"Mamba2Config: d_inner={d_inner} (expand*d_model) is not a multiple of "
+                f"headdim={self.headdim}"
+            )
+        return d_inner // self.headdim
+
+
+@dataclass(frozen=True)
+class TransformerConfig:
+    """Pre-LN transformer block: LayerNorm without bias, MLP ratio 4, exact GELU, no biases."""
+
+    head_dim: int = 64
+    mlp_ratio: int = 4
+    qk_norm: bool = True  # RMSNorm per head on q and k (LVSM); Long-LRM itself has none
+    norm_eps: float = 1e-5
+
+
+@dataclass(frozen=True)
+class BackboneConfig:
+    """Input tokenizer + block stack.
+
+    ``pattern`` uses ``T`` (transformer) and ``M`` (Mamba2), case-insensitive, with
+    ``{...}xN`` repetition: ``"{1T7M}x3"`` = T M M M M M M M, three times. A pattern
+    shorter than ``num_layers`` is tiled (Long-LRM's ``"mmmmmmmt"`` tiled to 24).
+    ``dims`` has one entry per stage; token merges (Long-LRM) happen before the block
+    indices in ``merge_layers`` and move to the next width.
+    """
+
+    dims: tuple[int, ...] = (768,)
+    pattern: str = "{1T7M}x3"
+    num_layers: int = 24
+    merge_layers: tuple[int, ...] = ()
+    num_global_tokens: int = 2
+    mamba: Mamba2Config = field(default_factory=Mamba2Config)
+    transformer: TransformerConfig = field(default_factory=TransformerConfig)
+    remat: bool = False  # jax.checkpoint each block (recompute activations in backward)
+
+    def __post_init__(self) -> None:
+        if len(self.dims) != len(self.merge_layers) + 1:
+            raise ValueError(
+                f"BackboneConfig: dims has {len(self.dims)} entries but merge_layers "
+                f"{self.merge_layers} needs {len(self.merge_layers) + 1}"
+            )
+
+
+def replace(cfg, **changes):
+    """``dataclasses.replace`` re-exported so notebooks need one import."""
+    return dataclasses.replace(cfg, **changes)

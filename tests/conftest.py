@@ -1,0 +1,50 @@
+"""Strict test configuration (equinox-style).
+
+* Two host CPU devices, so multi-device code (pmap, sharding) runs in CI. The flag must be
+  in the environment before jax is imported anywhere.
+* ``jax_numpy_dtype_promotion="strict"`` and ``jax_numpy_rank_promotion="raise"``: silent
+  float64 upcasts and accidental broadcasting are bugs here.
+* x64 is *enabled* so oracles can run in float64; library code must therefore state its
+  dtypes explicitly (it does: float32 by default).
+"""
+
+import os
+
+os.environ["XLA_FLAGS"] = (
+    os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+).strip()
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_default_matmul_precision", "highest")
+
+SHARED = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "shared"))
+GOLDEN = os.path.join(SHARED, "golden", "long_lrm_tiny")
+
+
+@pytest.fixture
+def key(request) -> jax.Array:
+    """A fresh PRNG key per test, derived from the test's name (reproducible, not shared)."""
+    seed = abs(hash(request.node.nodeid)) % (2**31)
+    return jax.random.key(seed)
+
+
+@pytest.fixture
+def rng(request) -> np.random.Generator:
+    """A NumPy generator seeded from the test's name, for oracle-side random data."""
+    seed = abs(hash(request.node.nodeid)) % (2**31)
+    return np.random.default_rng(seed)
+
+
+def shared_path(*parts: str) -> str:
+    """Path inside ``../shared``; skips the test if the folder is absent."""
+    p = os.path.join(SHARED, *parts)
+    if not os.path.exists(p):
+        pytest.skip(f"shared data not found: {p}")
+    return p
