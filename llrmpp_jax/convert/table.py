@@ -1,0 +1,164 @@
+"""Table-driven conversion of PyTorch ``state_dict`` tensors into nested JAX params.
+
+A :class:`Rule` maps every PyTorch key that fully matches its regular expression to a
+'/'-separated Flax parameter path (a template filled from the regex's named groups) and
+applies a layout transform (e.g. ``linear``: (out, in) -> (in, out)). Conversion is
+strict by default: every kept key must match exactly one rule, and when an expected
+parameter tree (``jax.eval_shape`` of the model's init) is given, every expected leaf
+must be produced with the expected shape. Errors list *all* offending keys at once.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+Transform = Callable[[np.ndarray], np.ndarray]
+
+
+def identity(w: np.ndarray) -> np.ndarray:
+    return w
+
+
+def linear(w: np.ndarray) -> np.ndarray:
+    """``nn.Linear.weight`` (out, in) -> Flax ``Dense.kernel`` (in, out)."""
+    return w.T
+
+
+def conv1d_depthwise(w: np.ndarray) -> np.ndarray:
+    """Depthwise ``nn.Conv1d.weight`` (C, 1, K) -> (K, C) taps, tap K-1 on the current token."""
+    return w[:, 0, :].T
+
+
+def conv2d(w: np.ndarray) -> np.ndarray:
+    """``nn.Conv2d.weight`` (out, in/groups, kh, kw) -> Flax ``Conv.kernel`` (kh, kw, in/groups, out)."""
+    return w.transpose(2, 3, 1, 0)
+
+
+@dataclass(frozen=True)
+class Rule:
+    """``pattern`` (full-match regex over torch keys) -> ``target`` path template."""
+
+    pattern: str
+    target: str
+    transform: Transform = identity
+
+    def match(self, key: str) -> str | None:
+        m = re.fullmatch(self.pattern, key)
+        return None if m is None else self.target.format(**m.groupdict())
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in tree.items():
+        path = f"{prefix}/{k}" if prefix else str(k)
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, path))
+        else:
+            out[path] = v
+    return out
+
+
+def _unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
+    tree: dict[str, Any] = {}
+    for path, v in flat.items():
+        node = tree
+        *parents, leaf = path.split("/")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = v
+    return tree
+
+
+def convert_state_dict(
+    state_dict: Mapping[str, Any],
+    rules: Iterable[Rule],
+    *,
+    expected: Mapping[str, Any] | None = None,
+    keep_prefixes: tuple[str, ...] | None = None,
+    dtype: np.dtype | type = np.float32,
+    source: str = "state_dict",
+) -> dict[str, Any]:
+    """Convert a PyTorch-named mapping of arrays into a nested parameter dict.
+
+    Args:
+      state_dict: torch key -> array (NumPy or torch tensor; converted with ``np.asarray``).
+      rules: the table; each key must match exactly one rule.
+      expected: optional nested dict of leaves with ``.shape`` (e.g. ``jax.eval_shape``
+        output); if given, missing/extra leaves and shape mismatches are errors.
+      keep_prefixes: if given, keys not starting with one of these are dropped first
+        (training checkpoints carry frozen loss networks that are not model params).
+      dtype: dtype of the produced arrays.
+      source: name used in error messages (e.g. the checkpoint file).
+
+    Returns:
+      Nested dict of NumPy arrays, ready for ``jax.device_put``.
+
+    Raises:
+      ValueError: listing every unmatched, doubly matched, missing, unexpected or
+        wrongly shaped entry.
+    """
+    rules = list(rules)
+    flat: dict[str, np.ndarray] = {}
+    problems: list[str] = []
+    for key, value in state_dict.items():
+        if keep_prefixes is not None and not key.startswith(keep_prefixes):
+            continue
+        targets = [t for t in (r.match(key) for r in rules) if t is not None]
+        if not targets:
+            problems.append(f"no rule for key {key!r}")
+            continue
+        if len(targets) > 1:
+            problems.append(f"key {key!r} matches several rules: {targets}")
+            continue
+        rule = next(r for r in rules if r.match(key) is not None)
+        arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value)
+        if targets[0] in flat:
+            problems.append(f"two keys map to {targets[0]!r} (second: {key!r})")
+        flat[targets[0]] = rule.transform(arr).astype(dtype)
+    if expected is not None:
+        want = _flatten(expected)
+        for path in sorted(set(want) - set(flat)):
+            problems.append(f"parameter {path!r} {tuple(want[path].shape)} not provided by {source}")
+        for path in sorted(set(flat) - set(want)):
+            problems.append(f"{source} provides {path!r} but the model has no such parameter")
+        for path in sorted(set(want) & set(flat)):
+            if tuple(want[path].shape) != flat[path].shape:
+                problems.append(
+                    f"parameter {path!r}: model expects shape {tuple(want[path].shape)}, "
+                    f"{source} gives {flat[path].shape}"
+                )
+    if problems:
+        raise ValueError(f"cannot convert {source}:\n  " + "\n  ".join(problems))
+    return _unflatten(flat)
+
+
+def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
+    """Read a ``.pt``/``.pth`` (torch, CPU) or ``.npz`` file into key -> NumPy array.
+
+    A training checkpoint ``{'model': state_dict, 'optimizer': ...}`` is unwrapped.
+    torch is imported lazily (the ``torch`` extra) and only for ``.pt``/``.pth``.
+    """
+    import os
+
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"checkpoint file not found: {path}")
+    if path.endswith(".npz"):
+        with np.load(path) as z:
+            return {k: z[k] for k in z.files}
+    try:
+        import torch
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            f"reading {path} needs torch: pip install 'llrmpp-jax[torch]'"
+        ) from e
+    obj = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(obj, Mapping) and "model" in obj and isinstance(obj["model"], Mapping):
+        obj = obj["model"]
+    if not isinstance(obj, Mapping):
+        raise ValueError(f"{path}: expected a state_dict (mapping of tensors), got {type(obj).__name__}")
+    return {k: v.detach().cpu().numpy() for k, v in obj.items() if hasattr(v, "detach")}
