@@ -1,4 +1,4 @@
-"""Normalisation layers as pure functions (computed in float32, cast back).
+"""Normalisation layers as pure functions (computed in at least float32, cast back).
 
 Both follow the PyTorch modules Long-LRM uses: ``nn.LayerNorm(dim, bias=False)`` and
 mamba_ssm's ``RMSNorm`` (weight only), eps 1e-5 by default.
@@ -10,20 +10,25 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float
 
 
+def _compute_dtype(x: Array) -> jnp.dtype:
+    # bf16 activations are normalised in float32; float64 (test oracles) stays float64.
+    return jnp.promote_types(x.dtype, jnp.float32)
+
+
 def rms_norm(
     x: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """``x / sqrt(mean(x**2) + eps) * scale`` over the last axis."""
-    xf = x.astype(jnp.float32)
+    xf = x.astype(_compute_dtype(x))
     inv = jax.lax.rsqrt(jnp.mean(jnp.square(xf), axis=-1, keepdims=True) + eps)
-    return (xf * inv * scale.astype(jnp.float32)).astype(x.dtype)
+    return (xf * inv * scale.astype(xf.dtype)).astype(x.dtype)
 
 
 def layer_norm(
     x: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """LayerNorm without bias over the last axis (biased variance, as PyTorch)."""
-    xf = x.astype(jnp.float32)
+    xf = x.astype(_compute_dtype(x))
     mean = jnp.mean(xf, axis=-1, keepdims=True)
     var = jnp.mean(jnp.square(xf - mean), axis=-1, keepdims=True)
-    return ((xf - mean) * jax.lax.rsqrt(var + eps) * scale.astype(jnp.float32)).astype(x.dtype)
+    return ((xf - mean) * jax.lax.rsqrt(var + eps) * scale.astype(xf.dtype)).astype(x.dtype)
