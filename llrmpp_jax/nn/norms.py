@@ -12,7 +12,12 @@ from llrmpp_jax.array_typing import Array, Float
 
 def _compute_dtype(x: Array) -> jnp.dtype:
     # bf16 activations are normalised in float32; float64 (test oracles) stays float64.
-    return jnp.promote_types(x.dtype, jnp.float32)
+    return jnp.dtype(jnp.float64) if x.dtype == jnp.float64 else jnp.dtype(jnp.float32)
+
+
+def _lead(scale: Array, x: Array) -> Array:
+    """Give ``scale [C]`` the rank of ``x`` (rank promotion is an error in our tests)."""
+    return scale.reshape((1,) * (x.ndim - 1) + scale.shape)
 
 
 def rms_norm(
@@ -21,7 +26,7 @@ def rms_norm(
     """``x / sqrt(mean(x**2) + eps) * scale`` over the last axis."""
     xf = x.astype(_compute_dtype(x))
     inv = jax.lax.rsqrt(jnp.mean(jnp.square(xf), axis=-1, keepdims=True) + eps)
-    return (xf * inv * scale.astype(xf.dtype)).astype(x.dtype)
+    return (xf * inv * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)
 
 
 def layer_norm(
@@ -31,4 +36,4 @@ def layer_norm(
     xf = x.astype(_compute_dtype(x))
     mean = jnp.mean(xf, axis=-1, keepdims=True)
     var = jnp.mean(jnp.square(xf - mean), axis=-1, keepdims=True)
-    return ((xf - mean) * jax.lax.rsqrt(var + eps) * scale.astype(xf.dtype)).astype(x.dtype)
+    return ((xf - mean) * jax.lax.rsqrt(var + eps) * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)
