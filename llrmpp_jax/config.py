@@ -82,3 +82,53 @@ class BackboneConfig:
 def replace(cfg, **changes):
     """``dataclasses.replace`` re-exported so notebooks need one import."""
     return dataclasses.replace(cfg, **changes)
+
+
+@dataclass(frozen=True)
+class GaussianHeadConfig:
+    """Per-token Gaussian prediction (paper §3.2; activations from Long-LRM, facts §1.6).
+
+    ``mode="feature"``: K Gaussians per token, each with an F-dim feature, a 2D pixel
+    offset from the patch centre, a distance along its ray, quaternion (wxyz), opacity
+    and log-scale. ``mode="color"`` (Long-LRM): one Gaussian per pixel with SH colour of
+    degree ``sh_degree``, positioned on its own pixel ray.
+    """
+
+    mode: str = "feature"  # "feature" | "color"
+    gaussians_per_token: int = 16  # K (feature mode)
+    feature_dim: int = 32  # F (feature mode)
+    sh_degree: int = 3  # color mode
+    # Offsets: offset_px = offset_scale * tanh(raw) * patch_size, i.e. at most offset_scale
+    # patch widths from the patch centre (our choice; the paper leaves it open).
+    offset_scale: float = 1.0
+    max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
+    scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
+    scale_max: float = -1.2
+    opacity_bias: float = -2.0  # opacity = sigmoid(raw + bias)
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("feature", "color"):
+            raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    """Target-frame decoder (paper §3.3): canvas (H/r, W/r) -> patchify to (H/8, W/8)."""
+
+    canvas_ratio: int = 2  # r
+    token_stride: int = 8  # q: tokens are (H/q, W/q); canvas patch = q / r
+    dim: int = 256  # E
+    blocks: str = "LLGGG"  # L = local k-NN attention, G = global attention
+    num_neighbours: int = 64  # k
+    partitions: int = 2  # S (1 = no partitioning)
+    transformer: TransformerConfig = field(default_factory=TransformerConfig)
+    remat: bool = False
+
+    def __post_init__(self) -> None:
+        if self.token_stride % self.canvas_ratio:
+            raise ValueError(
+                f"DecoderConfig: token_stride {self.token_stride} must be a multiple of "
+                f"canvas_ratio {self.canvas_ratio}"
+            )
+        if self.partitions < 1:
+            raise ValueError(f"DecoderConfig.partitions must be >= 1, got {self.partitions}")
