@@ -12,7 +12,10 @@ notebook changes one value with ``dataclasses.replace`` and gets a new model. Pr
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
+
+from llrmpp_jax.splat.config import SplatConfig
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,10 @@ class TransformerConfig:
     mlp_ratio: int = 4
     qk_norm: bool = True  # RMSNorm per head on q and k (LVSM); Long-LRM itself has none
     norm_eps: float = 1e-5
+    # Global-attention kernel for jax.nn.dot_product_attention: None/"xla" materialises
+    # [nh, L, L] logits (fine for the decoder and tests); "cudnn" is the flash kernel (GPU,
+    # bf16/fp16), needed at the paper's backbone sequence lengths (32k-261k tokens).
+    attention_impl: str | None = None
 
 
 @dataclass(frozen=True)
@@ -132,3 +139,71 @@ class DecoderConfig:
             )
         if self.partitions < 1:
             raise ValueError(f"DecoderConfig.partitions must be >= 1, got {self.partitions}")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The whole model. ``outputs`` lists the heads trained and rendered ("rgb", "depth")."""
+
+    patch_size: int = 8
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    head: GaussianHeadConfig = field(default_factory=GaussianHeadConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    splat: SplatConfig = field(default_factory=SplatConfig)
+    outputs: tuple[str, ...] = ("rgb",)
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour mode only (Long-LRM: white)
+
+    def __post_init__(self) -> None:
+        if self.head.mode == "color" and self.outputs != ("rgb",):
+            raise ValueError(f"ModelConfig: colour mode renders only ('rgb',), got outputs={self.outputs}")
+        if self.head.mode == "feature" and self.decoder.token_stride % self.patch_size and \
+                self.patch_size % self.decoder.token_stride:
+            raise ValueError(
+                f"ModelConfig: decoder token_stride {self.decoder.token_stride} and patch_size "
+                f"{self.patch_size} must divide one another"
+            )
+
+    @property
+    def token_stride(self) -> int:
+        """Input pixels per backbone token side after all merges."""
+        return self.patch_size * 2 ** len(self.backbone.merge_layers)
+
+    @property
+    def size_multiple(self) -> int:
+        """Image sides must be multiples of this (tokens, merges and decoder patches)."""
+        return math.lcm(self.token_stride, self.decoder.token_stride)
+
+
+def paper_dl3dv() -> ModelConfig:
+    """Long-LRM++ on DL3DV (paper §4.1): ~110M parameters (backbone ~104M, decoder ~4M)."""
+    return ModelConfig()
+
+
+def paper_scannet() -> ModelConfig:
+    """Long-LRM++ on ScanNetv2: the DL3DV architecture with colour and depth heads."""
+    return ModelConfig(outputs=("rgb", "depth"))
+
+
+def long_lrm() -> ModelConfig:
+    """Long-LRM (the predecessor, facts §1.1): colour Gaussians, dims [256, 1024], merge at 8."""
+    return ModelConfig(
+        backbone=BackboneConfig(
+            dims=(256, 1024), pattern="mmmmmmmt", num_layers=24, merge_layers=(8,),
+            transformer=TransformerConfig(qk_norm=False),
+        ),
+        head=GaussianHeadConfig(mode="color"),
+    )
+
+
+def tiny() -> ModelConfig:
+    """A feature-Gaussian model small enough for CPU tests and the demo (~0.3M params)."""
+    return ModelConfig(
+        backbone=BackboneConfig(
+            dims=(64,), pattern="{1T3M}x1", num_layers=4,
+            mamba=Mamba2Config(d_state=16, headdim=16, chunk_size=64),
+            transformer=TransformerConfig(head_dim=16),
+        ),
+        head=GaussianHeadConfig(gaussians_per_token=4, feature_dim=16),
+        decoder=DecoderConfig(dim=64, blocks="LG", num_neighbours=16,
+                              transformer=TransformerConfig(head_dim=16)),
+    )

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import Array, Bool, Float, Int
-from llrmpp_jax.nn.norms import rms_norm
+from llrmpp_jax.nn.norms import RMSNorm
 
 # Long-LRM ``_init_weights``: Linear weights ~ N(0, 0.02).
 DENSE_INIT = nn.initializers.normal(stddev=0.02)
@@ -200,17 +200,6 @@ def local_attention(
     return jnp.einsum("...lhk,...lkhd->...lhd", weights, vg)
 
 
-class _RMSNorm(nn.Module):
-    """Holds the ``scale`` of :func:`rms_norm` over the last axis (QK-norm)."""
-
-    eps: float = 1e-5
-
-    @nn.compact
-    def __call__(self, x: Float[Array, "... C"]) -> Float[Array, "... C"]:
-        scale = self.param("scale", nn.initializers.ones, (x.shape[-1],), jnp.float32)
-        return rms_norm(x, scale, self.eps)
-
-
 def _num_heads(dim: int, head_dim: int, who: str) -> int:
     if dim % head_dim:
         raise ValueError(f"{who}: dim={dim} is not a multiple of head_dim={head_dim}")
@@ -235,8 +224,8 @@ def _qkv_heads(
     qkv = qkv.reshape(*x.shape[:-1], 3, nh, head_dim)
     q, k, v = qkv[..., 0, :, :], qkv[..., 1, :, :], qkv[..., 2, :, :]
     if qk_norm:
-        q = _RMSNorm(eps, name="q_norm")(q)
-        k = _RMSNorm(eps, name="k_norm")(k)
+        q = RMSNorm(eps, name="q_norm")(q)
+        k = RMSNorm(eps, name="k_norm")(k)
     return q, k, v
 
 

@@ -1,9 +1,11 @@
-"""Normalisation layers as pure functions (computed in at least float32, cast back).
+"""Normalisation layers: pure functions (computed in at least float32, cast back) and
+the thin Flax modules that hold their ``scale``.
 
 Both follow the PyTorch modules Long-LRM uses: ``nn.LayerNorm(dim, bias=False)`` and
 mamba_ssm's ``RMSNorm`` (weight only), eps 1e-5 by default.
 """
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
@@ -37,3 +39,23 @@ def layer_norm(
     mean = jnp.mean(xf, axis=-1, keepdims=True)
     var = jnp.mean(jnp.square(xf - mean), axis=-1, keepdims=True)
     return ((xf - mean) * jax.lax.rsqrt(var + eps) * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)
+
+
+class LayerNorm(nn.Module):
+    """Holds the ``scale`` of :func:`layer_norm` (no bias) over the last axis."""
+
+    eps: float = 1e-5
+
+    @nn.compact
+    def __call__(self, x: Float[Array, "... C"]) -> Float[Array, "... C"]:
+        return layer_norm(x, self.param("scale", nn.initializers.ones, (x.shape[-1],), jnp.float32), self.eps)
+
+
+class RMSNorm(nn.Module):
+    """Holds the ``scale`` of :func:`rms_norm` over the last axis."""
+
+    eps: float = 1e-5
+
+    @nn.compact
+    def __call__(self, x: Float[Array, "... C"]) -> Float[Array, "... C"]:
+        return rms_norm(x, self.param("scale", nn.initializers.ones, (x.shape[-1],), jnp.float32), self.eps)

@@ -15,18 +15,7 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import TransformerConfig
 from llrmpp_jax.nn.attention import DENSE_INIT, Attention, LocalAttention
-from llrmpp_jax.nn.norms import layer_norm
-
-
-class _LayerNorm(nn.Module):
-    """Holds the ``scale`` of :func:`layer_norm` (no bias) over the last axis."""
-
-    eps: float = 1e-5
-
-    @nn.compact
-    def __call__(self, x: Float[Array, "... C"]) -> Float[Array, "... C"]:
-        scale = self.param("scale", nn.initializers.ones, (x.shape[-1],), jnp.float32)
-        return layer_norm(x, scale, self.eps)
+from llrmpp_jax.nn.norms import LayerNorm
 
 
 class Mlp(nn.Module):
@@ -48,7 +37,7 @@ class TransformerBlock(nn.Module):
 
     ``attention="global"`` attends over all L tokens; ``attention="local"`` needs
     ``grid=(h, w)`` with ``L = h*w`` (row-major) and attends to ``num_neighbours``
-    nearest grid tokens (:class:`LocalAttention`). ``implementation`` selects the
+    nearest grid tokens (:class:`LocalAttention`). ``cfg.attention_impl`` selects the
     global-attention kernel (``None``/``"xla"``, or ``"cudnn"`` on GPU with bf16/fp16).
     ``dtype`` is the compute dtype of the Dense layers (None: from input and params);
     the residual stream keeps the dtype of ``x``.
@@ -62,7 +51,6 @@ class TransformerBlock(nn.Module):
     attention: str = "global"
     grid: tuple[int, int] | None = None
     num_neighbours: int = 64
-    implementation: str | None = None
     dtype: jnp.dtype | None = None
 
     @nn.compact
@@ -70,7 +58,7 @@ class TransformerBlock(nn.Module):
         cfg = self.cfg
         if self.attention == "global":
             attn = Attention(
-                self.dim, cfg.head_dim, cfg.qk_norm, cfg.norm_eps, self.implementation, self.dtype,
+                self.dim, cfg.head_dim, cfg.qk_norm, cfg.norm_eps, cfg.attention_impl, self.dtype,
                 name="attn",
             )
         elif self.attention == "local":
@@ -84,6 +72,6 @@ class TransformerBlock(nn.Module):
             raise ValueError(
                 f"TransformerBlock: attention must be 'global' or 'local', got {self.attention!r}"
             )
-        x = x + attn(_LayerNorm(cfg.norm_eps, name="norm1")(x)).astype(x.dtype)
+        x = x + attn(LayerNorm(cfg.norm_eps, name="norm1")(x)).astype(x.dtype)
         mlp = Mlp(self.dim, cfg.mlp_ratio * self.dim, self.dtype, name="mlp")
-        return x + mlp(_LayerNorm(cfg.norm_eps, name="norm2")(x)).astype(x.dtype)
+        return x + mlp(LayerNorm(cfg.norm_eps, name="norm2")(x)).astype(x.dtype)
