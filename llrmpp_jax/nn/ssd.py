@@ -1,0 +1,258 @@
+"""Mamba2's selective scan (SSD, "state space duality"), three ways.
+
+All three compute, per head ``h`` (of ``nh``) and per batch element, with
+``g = h // (nh / ngroups)`` the group the head reads ``B``/``C`` from::
+
+    state_t = exp(dt_t * A_h) * state_{t-1} + dt_t * x_t B_t^T      state: [P, n], state_{-1} = 0
+    y_t     = state_t C_t + D_h * x_t                               y_t:   [P]
+
+* :func:`ssd_scan` -- the chunked SSD algorithm (Mamba-2 paper, ``ssd_minimal.py``):
+  intra-chunk outputs, per-chunk states, an inter-chunk recurrence over chunk states
+  (``lax.associative_scan`` by default, or ``lax.scan``) and state-to-output. Every
+  chunk computation is an einsum (batched matmul). O(L * Q) work for chunk size Q.
+* :func:`ssd_dense` -- the same chunks, but the inter-chunk step is the dense
+  O(chunks^2) einsum of ``ssd_minimal_discrete``; a second oracle for the scan.
+* :func:`ssd_sequential` -- the recurrence above as a ``lax.scan`` over time; the test
+  oracle (slow, and its backward stores one state per time step).
+
+Conventions shared by all three: ``dt`` is already ``softplus(dt_raw + dt_bias)``; ``A``
+is the (negative) continuous-time decay ``-exp(A_log)``. Exponents are never positive
+when ``dt >= 0`` and ``A <= 0``, so no ``exp`` can overflow. Accumulation is float32
+(float64 for float64 inputs); matmul operands keep the input dtype (so bf16 inputs run
+bf16 matmuls with float32 accumulation). The output has the dtype of ``x``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+
+from llrmpp_jax.array_typing import Array, Float
+
+InterChunk = Literal["associative", "sequential", "dense"]
+
+
+def _acc_dtype(dtype: jnp.dtype) -> jnp.dtype:
+    """Accumulation dtype: float64 for float64 inputs (oracles), float32 otherwise."""
+    return jnp.dtype(jnp.float64) if dtype == jnp.float64 else jnp.dtype(jnp.float32)
+
+
+def _check_inputs(x, dt, A, B, C, D) -> None:
+    """Raise ``ValueError`` naming the offending argument and the expected shape."""
+    if x.ndim < 3:
+        raise ValueError(f"ssd: x must be [..., L, nh, P], got shape {x.shape}")
+    *batch, L, nh, P = x.shape
+    batch = tuple(batch)
+    if dt.shape != (*batch, L, nh):
+        raise ValueError(f"ssd: dt has shape {dt.shape}, expected {(*batch, L, nh)} (x is {x.shape})")
+    if A.shape != (nh,):
+        raise ValueError(f"ssd: A has shape {A.shape}, expected {(nh,)}")
+    if D is not None and D.shape != (nh,):
+        raise ValueError(f"ssd: D has shape {D.shape}, expected {(nh,)}")
+    if B.ndim != x.ndim or B.shape[:-2] != (*batch, L):
+        raise ValueError(f"ssd: B has shape {B.shape}, expected {(*batch, L, 'g', 'n')}")
+    if C.shape != B.shape:
+        raise ValueError(f"ssd: C has shape {C.shape}, expected the shape of B {B.shape}")
+    g = B.shape[-2]
+    if g < 1 or nh % g:
+        raise ValueError(f"ssd: nh={nh} heads (x {x.shape}) is not a multiple of ngroups={g} (B {B.shape})")
+
+
+def segment_sum(a: Float[Array, "... T"]) -> Float[Array, "... T T"]:
+    """Segment sums ``out[..., i, j] = sum_{k=j+1..i} a[..., k]`` for ``j <= i``, ``-inf`` above.
+
+    ``exp(segment_sum(dt * A))`` is the decay from step ``j`` to step ``i`` (1 on the
+    diagonal, 0 above it). Built as a masked cumsum (``ssd_minimal.segsum``), not as a
+    difference of running sums, so no precision is lost to cancellation on long chunks.
+    """
+    T = a.shape[-1]
+    lead = (1,) * (a.ndim - 1)
+    rep = jnp.broadcast_to(a[..., :, None], (*a.shape, T))  # rep[..., k, j] = a_k
+    strictly_below = jnp.tril(jnp.ones((T, T), dtype=bool), -1).reshape(*lead, T, T)  # k > j
+    sums = jnp.cumsum(jnp.where(strictly_below, rep, 0.0), axis=-2)
+    on_or_below = jnp.tril(jnp.ones((T, T), dtype=bool), 0).reshape(*lead, T, T)  # i >= j
+    return jnp.where(on_or_below, sums, -jnp.inf)
+
+
+def _inter_chunk_states(
+    chunk_log_decay: Float[Array, "b c g h"],
+    chunk_states: Float[Array, "b c g h P n"],
+    method: InterChunk,
+) -> Float[Array, "b c g h P n"]:
+    """State entering each chunk: ``S_in[0] = 0``, ``S_in[c+1] = exp(a_c) S_in[c] + s_c``.
+
+    ``chunk_log_decay`` a_c is the sum of ``dt * A`` over chunk c; ``chunk_states`` s_c the
+    state chunk c produces from zero (step 2 of SSD).
+    """
+    if method == "sequential":
+
+        def step(carry, inputs):
+            a, s = inputs
+            return jnp.exp(a)[..., None, None] * carry + s, carry
+
+        _, s_in = jax.lax.scan(
+            step,
+            jnp.zeros_like(chunk_states[:, 0]),
+            (jnp.moveaxis(chunk_log_decay, 1, 0), jnp.moveaxis(chunk_states, 1, 0)),
+        )
+        return jnp.moveaxis(s_in, 0, 1)
+    if method == "associative":
+        # Elements (a, s) are affine maps S -> exp(a) S + s; composing them is associative.
+        # Log-decays add, so chunk-to-chunk decays are sums of exponents, not products.
+        def combine(first, second):
+            a1, s1 = first
+            a2, s2 = second
+            return a1 + a2, jnp.exp(a2)[..., None, None] * s1 + s2
+
+        _, s_out = jax.lax.associative_scan(combine, (chunk_log_decay, chunk_states), axis=1)
+    elif method == "dense":
+        # ssd_minimal's O(chunks^2) form: state after chunk z = sum_{c<=z} decay(c->z) s_c.
+        decay = jnp.exp(segment_sum(jnp.moveaxis(chunk_log_decay, 1, -1)))  # [b, g, h, z, c]
+        s_out = jnp.einsum("bghzc,bcghpn->bzghpn", decay.astype(chunk_states.dtype), chunk_states)
+    else:
+        raise ValueError(f"ssd: inter_chunk must be 'associative', 'sequential' or 'dense', got {method!r}")
+    # Exclusive: chunk c starts from the state after chunk c-1.
+    return jnp.concatenate([jnp.zeros_like(s_out[:, :1]), s_out[:, :-1]], axis=1)
+
+
+def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
+    _check_inputs(x, dt, A, B, C, D)
+    if not isinstance(chunk_size, int) or chunk_size < 1:
+        raise ValueError(f"ssd: chunk_size must be a positive int, got {chunk_size!r}")
+    *batch, L, nh, P = x.shape
+    g, n = B.shape[-2:]
+    hg = nh // g  # heads per group; head h reads group h // hg (mamba_ssm's repeat order)
+    acc, cd = _acc_dtype(x.dtype), x.dtype
+    Q = chunk_size
+    nc = -(-L // Q)
+    b = math.prod(batch)
+
+    # Zero padding at the end is causal-safe: dt = 0 means no input and decay exp(0) = 1.
+    def chunks(t: Array, tail: tuple[int, ...]) -> Array:
+        t = t.reshape(b, L, *tail)
+        t = jnp.pad(t, [(0, 0), (0, nc * Q - L)] + [(0, 0)] * len(tail))
+        return t.reshape(b, nc, Q, *tail)
+
+    xc = chunks(x, (g, hg, P))
+    dtc = chunks(dt, (g, hg)).astype(acc)
+    Bc = chunks(B, (g, n)).astype(cd)
+    Cc = chunks(C, (g, n)).astype(cd)
+    dA = dtc * A.reshape(g, hg).astype(acc)[None, None, None]  # [b, c, Q, g, hg], <= 0
+    xdt = xc.astype(acc) * dtc[..., None]  # [b, c, Q, g, hg, P]
+
+    # 1. Intra-chunk (diagonal blocks): y_l = sum_{s<=l} (C_l . B_s) decay(s->l) dt_s x_s.
+    decay = jnp.exp(segment_sum(jnp.moveaxis(dA, 2, -1)))  # [b, c, g, hg, l, s]
+    CB = jnp.einsum("bclgn,bcsgn->bcgls", Cc, Bc, preferred_element_type=acc)
+    scores = (CB[:, :, :, None] * decay).astype(cd)
+    y = jnp.einsum("bcghls,bcsghp->bclghp", scores, xdt.astype(cd), preferred_element_type=acc)
+
+    # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T. The exponent
+    #    sum_{k>l} dA_k is a reverse exclusive cumsum (no cancellation).
+    rev = jnp.flip(jnp.cumsum(jnp.flip(dA, axis=2), axis=2), axis=2)  # sum_{k>=l}
+    to_end = jnp.concatenate([rev[:, :, 1:], jnp.zeros_like(rev[:, :, :1])], axis=2)
+    xdt_end = (xdt * jnp.exp(to_end)[..., None]).astype(cd)
+    states = jnp.einsum("bclgn,bclghp->bcghpn", Bc, xdt_end, preferred_element_type=acc)
+
+    # 3. Inter-chunk recurrence over chunk states.
+    log_decay_from_start = jnp.cumsum(dA, axis=2)  # sum_{k<=l} dA_k, [b, c, Q, g, hg]
+    s_in = _inter_chunk_states(log_decay_from_start[:, :, -1], states, inter_chunk)
+
+    # 4. State to output: y_l += decay(start->l) C_l . S_in.
+    y_off = jnp.einsum("bclgn,bcghpn->bclghp", Cc, s_in.astype(cd), preferred_element_type=acc)
+    y = y + y_off * jnp.exp(log_decay_from_start)[..., None]
+
+    if D is not None:
+        y = y + D.reshape(g, hg).astype(acc)[None, None, None, :, :, None] * xc.astype(acc)
+    y = y.reshape(b, nc * Q, nh, P)[:, :L]
+    return y.reshape(*batch, L, nh, P).astype(x.dtype)
+
+
+def ssd_scan(
+    x: Float[Array, "... L nh P"],
+    dt: Float[Array, "... L nh"],
+    A: Float[Array, " nh"],
+    B: Float[Array, "... L g n"],
+    C: Float[Array, "... L g n"],
+    *,
+    chunk_size: int,
+    D: Float[Array, " nh"] | None = None,
+    inter_chunk: Literal["associative", "sequential"] = "associative",
+) -> Float[Array, "... L nh P"]:
+    """Chunked SSD scan (Mamba-2 Listing 1 with a linear-time inter-chunk step).
+
+    Args:
+      x: ``[..., L, nh, P]`` inputs per head.
+      dt: ``[..., L, nh]`` step sizes, already ``softplus``'ed (>= 0).
+      A: ``[nh]`` decay rates (``-exp(A_log)``, <= 0).
+      B, C: ``[..., L, g, n]`` input / output projections per group; ``nh % g == 0``.
+      chunk_size: Q, any positive int; L is zero-padded to a multiple of Q internally.
+      D: optional ``[nh]`` skip weight (``y += D * x``).
+      inter_chunk: ``"associative"`` (``lax.associative_scan``, log depth) or
+        ``"sequential"`` (``lax.scan`` over chunks).
+
+    Returns:
+      ``[..., L, nh, P]`` in the dtype of ``x``.
+    """
+    if inter_chunk not in ("associative", "sequential"):
+        raise ValueError(f"ssd_scan: inter_chunk must be 'associative' or 'sequential', got {inter_chunk!r}")
+    return _ssd_chunked(x, dt, A, B, C, chunk_size, D, inter_chunk)
+
+
+def ssd_dense(
+    x: Float[Array, "... L nh P"],
+    dt: Float[Array, "... L nh"],
+    A: Float[Array, " nh"],
+    B: Float[Array, "... L g n"],
+    C: Float[Array, "... L g n"],
+    *,
+    chunk_size: int,
+    D: Float[Array, " nh"] | None = None,
+) -> Float[Array, "... L nh P"]:
+    """Chunked SSD with ``ssd_minimal``'s dense O(chunks^2) inter-chunk einsum (an oracle).
+
+    Same arguments and result as :func:`ssd_scan`.
+    """
+    return _ssd_chunked(x, dt, A, B, C, chunk_size, D, "dense")
+
+
+def ssd_sequential(
+    x: Float[Array, "... L nh P"],
+    dt: Float[Array, "... L nh"],
+    A: Float[Array, " nh"],
+    B: Float[Array, "... L g n"],
+    C: Float[Array, "... L g n"],
+    *,
+    D: Float[Array, " nh"] | None = None,
+) -> Float[Array, "... L nh P"]:
+    """The SSM recurrence as a ``lax.scan`` over time (the oracle; no chunking).
+
+    ``state_t = exp(dt_t A) state_{t-1} + dt_t x_t B_t^T``, ``y_t = state_t C_t + D x_t``.
+    Same arguments and result as :func:`ssd_scan` (without ``chunk_size``).
+    """
+    _check_inputs(x, dt, A, B, C, D)
+    *batch, L, nh, P = x.shape
+    g, n = B.shape[-2:]
+    hg = nh // g
+    acc = _acc_dtype(x.dtype)
+    b = math.prod(batch)
+    xs = jnp.moveaxis(x.reshape(b, L, g, hg, P).astype(acc), 1, 0)
+    dts = jnp.moveaxis(dt.reshape(b, L, g, hg).astype(acc), 1, 0)
+    Bs = jnp.moveaxis(B.reshape(b, L, g, n).astype(acc), 1, 0)
+    Cs = jnp.moveaxis(C.reshape(b, L, g, n).astype(acc), 1, 0)
+    Ag = A.reshape(g, hg).astype(acc)[None]
+
+    def step(state, inputs):  # state: [b, g, hg, P, n]
+        x_t, dt_t, B_t, C_t = inputs
+        decay = jnp.exp(dt_t * Ag)[..., None, None]
+        inject = (dt_t[..., None] * x_t)[..., None] * B_t[:, :, None, None, :]
+        state = decay * state + inject
+        return state, jnp.einsum("bghpn,bgn->bghp", state, C_t)
+
+    _, ys = jax.lax.scan(step, jnp.zeros((b, g, hg, P, n), acc), (xs, dts, Bs, Cs))
+    y = jnp.moveaxis(ys, 0, 1)  # [b, L, g, hg, P]
+    if D is not None:
+        y = y + D.reshape(g, hg).astype(acc)[None, None, :, :, None] * jnp.moveaxis(xs, 0, 1)
+    return y.reshape(*batch, L, nh, P).astype(x.dtype)
