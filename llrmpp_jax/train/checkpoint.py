@@ -1,0 +1,270 @@
+"""Orbax checkpoints of a :class:`TrainState` with a verified manifest.
+
+Layout: ``directory/<step>/`` is one orbax ``CheckpointManager`` step (written to a
+temporary folder and renamed when complete, so a kill mid-save leaves no half step)
+with two items -- ``state`` (every state leaf, keyed ``leaf_00000``...) and ``meta``
+(JSON: leaf paths/shapes/dtypes, the data-iterator position, the run config) -- plus
+``llrmpp_manifest.json``: size and SHA-256 of every file of the step, written
+atomically once orbax has finished. A step without a manifest (killed between the two)
+or whose files no longer match it (truncated, bit-flipped, deleted) is rejected with a
+warning and the previous step is restored instead. The last ``keep`` steps are kept.
+
+Saving is synchronous: the manifest can only be computed from complete files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import warnings
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+from jax.experimental import multihost_utils
+
+from llrmpp_jax.train.state import TrainState
+
+MANIFEST = "llrmpp_manifest.json"
+_FORMAT = 1
+
+
+class CorruptCheckpointError(RuntimeError):
+    """A checkpoint step whose files are missing, truncated or altered."""
+
+
+class IncompatibleCheckpointError(ValueError):
+    """A checkpoint whose state tree (paths, shapes, dtypes) differs from the model's."""
+
+
+class Restored(NamedTuple):
+    """What :func:`restore_checkpoint` returns."""
+
+    state: TrainState
+    step: int
+    data_state: dict
+    config: Any
+
+
+def _flatten(state: TrainState) -> tuple[list[str], list[Any], Any]:
+    """Leaf path strings, leaves and treedef of ``state``."""
+    with_path, treedef = jax.tree_util.tree_flatten_with_path(state)
+    paths = [jax.tree_util.keystr(p) for p, _ in with_path]
+    return paths, [leaf for _, leaf in with_path], treedef
+
+
+def _leaf_name(i: int) -> str:
+    return f"leaf_{i:05d}"
+
+
+def _manager(directory: Path) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(
+        enable_async_checkpointing=False,
+        cleanup_tmp_directories=True,
+        create=True,
+    )
+    return ocp.CheckpointManager(directory, options=options)
+
+
+def _file_digest(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def _step_files(step_dir: Path) -> list[Path]:
+    return sorted(p for p in step_dir.rglob("*") if p.is_file() and p.name != MANIFEST)
+
+
+def _write_manifest(step_dir: Path) -> None:
+    """Record size and SHA-256 of every file under ``step_dir`` (atomic replace)."""
+    files = {
+        str(p.relative_to(step_dir)): {"size": p.stat().st_size, "sha256": _file_digest(p)}
+        for p in _step_files(step_dir)
+    }
+    tmp = step_dir / (MANIFEST + ".tmp")
+    with open(tmp, "w") as f:
+        json.dump({"format": _FORMAT, "files": files}, f, indent=1)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, step_dir / MANIFEST)
+
+
+def verify_checkpoint(directory: str | os.PathLike, step: int) -> None:
+    """Raise :class:`CorruptCheckpointError` unless every file of ``step`` matches its
+    manifest (present, same size, same SHA-256)."""
+    step_dir = Path(directory) / str(step)
+    manifest = step_dir / MANIFEST
+    if not manifest.is_file():
+        raise CorruptCheckpointError(
+            f"checkpoint {step_dir} has no {MANIFEST}: the save did not complete"
+        )
+    try:
+        files = json.loads(manifest.read_text())["files"]
+    except (json.JSONDecodeError, KeyError) as err:
+        raise CorruptCheckpointError(f"checkpoint {step_dir}: unreadable {MANIFEST} ({err})")
+    for rel, expect in files.items():
+        path = step_dir / rel
+        if not path.is_file():
+            raise CorruptCheckpointError(f"checkpoint {step_dir}: file {rel} is missing")
+        size = path.stat().st_size
+        if size != expect["size"]:
+            raise CorruptCheckpointError(
+                f"checkpoint {step_dir}: file {rel} has {size} bytes, expected "
+                f"{expect['size']} (truncated or overwritten)"
+            )
+        if _file_digest(path) != expect["sha256"]:
+            raise CorruptCheckpointError(
+                f"checkpoint {step_dir}: file {rel} fails its SHA-256 check (corrupted)"
+            )
+
+
+def _config_json(config: Any) -> Any:
+    """``config`` as JSON data (dataclasses via ``asdict``); raise if not serialisable."""
+    data = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else config
+    try:
+        return json.loads(json.dumps(data))
+    except TypeError as err:
+        raise ValueError(f"save_checkpoint: config is not JSON-serialisable ({err})") from None
+
+
+def save_checkpoint(
+    directory: str | os.PathLike,
+    state: TrainState,
+    *,
+    data_state: dict | None = None,
+    config: Any = None,
+    keep: int = 3,
+) -> Path:
+    """Save ``state`` as step ``int(state.step)``; return the step folder.
+
+    ``state`` is unreplicated (host arrays, or global arrays replicated on a mesh; for a
+    pmap state pass ``sharding.unreplicate(state)``). ``data_state``: JSON mapping that
+    restarts the data iterator (e.g. ``{"position": 1200}``). ``config``: the run config
+    (dataclass or JSON data). ``keep``: how many most recent steps to keep. A step
+    already present (e.g. one rejected on restore) is replaced.
+    """
+    if keep < 1:
+        raise ValueError(f"save_checkpoint: keep={keep} must be >= 1")
+    if not isinstance(state, TrainState):
+        raise ValueError(f"save_checkpoint: state must be a TrainState, got {type(state)}")
+    if np.ndim(state.step) != 0:
+        raise ValueError(
+            f"save_checkpoint: state.step has shape {np.shape(state.step)}, expected (); "
+            f"unreplicate a pmap state first"
+        )
+    directory = Path(directory).absolute()
+    step = int(state.step)
+    paths, leaves, _ = _flatten(state)
+    meta = {
+        "format": _FORMAT,
+        "step": step,
+        "leaves": [[p, list(np.shape(x)), str(np.dtype(x.dtype))] for p, x in zip(paths, leaves)],
+        "data_state": json.loads(json.dumps(data_state or {})),
+        "config": _config_json(config),
+    }
+    items = {_leaf_name(i): x for i, x in enumerate(leaves)}
+    step_dir = directory / str(step)
+    with _manager(directory) as mngr:
+        if step in mngr.all_steps():
+            mngr.delete(step)
+        mngr.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(items), meta=ocp.args.JsonSave(meta)
+            ),
+        )
+        mngr.wait_until_finished()
+        if jax.process_index() == 0:
+            _write_manifest(step_dir)
+        if jax.process_count() > 1:
+            multihost_utils.sync_global_devices(f"llrmpp_manifest_{step}")
+        # Prune only now that the new step is verifiable (orbax's own max_to_keep would
+        # delete the previous good step before the manifest exists).
+        for old in sorted(mngr.all_steps(), reverse=True)[keep:]:
+            mngr.delete(old)
+    return step_dir
+
+
+def _check_compatible(step_dir: Path, saved: list, paths: list[str], leaves: list) -> None:
+    """Raise :class:`IncompatibleCheckpointError` (one line) if the trees differ."""
+    ours = {p: (list(np.shape(x)), str(np.dtype(x.dtype))) for p, x in zip(paths, leaves)}
+    theirs = {p: (shape, dtype) for p, shape, dtype in saved}
+    problems = [f"{p} missing from the checkpoint" for p in ours if p not in theirs]
+    problems += [f"{p} is in the checkpoint but not the model" for p in theirs if p not in ours]
+    problems += [
+        f"{p} is {tuple(theirs[p][0])} {theirs[p][1]} in the checkpoint, "
+        f"{tuple(ours[p][0])} {ours[p][1]} in the model"
+        for p in ours
+        if p in theirs and theirs[p] != ours[p]
+    ]
+    if problems:
+        raise IncompatibleCheckpointError(
+            f"checkpoint {step_dir} does not fit this model (different config?): "
+            f"{len(problems)} leaf mismatch(es), first: {problems[0]}"
+        )
+
+
+def _restore_step(mngr: ocp.CheckpointManager, directory: Path, step: int, template) -> Restored:
+    paths, leaves, treedef = _flatten(template)
+    meta = mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
+    _check_compatible(directory / str(step), meta["leaves"], paths, leaves)
+    abstract = {
+        _leaf_name(i): jax.ShapeDtypeStruct(
+            np.shape(x), x.dtype, sharding=getattr(x, "sharding", None)
+        )
+        for i, x in enumerate(leaves)
+    }
+    items = mngr.restore(
+        step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
+    ).state
+    restored = [items[_leaf_name(i)] for i in range(len(leaves))]
+    return Restored(
+        state=jax.tree_util.tree_unflatten(treedef, restored),
+        step=step,
+        data_state=meta["data_state"],
+        config=meta["config"],
+    )
+
+
+def restore_checkpoint(
+    directory: str | os.PathLike, template: TrainState, *, step: int | None = None
+) -> Restored | None:
+    """Restore a verified checkpoint into the structure, dtypes and shardings of
+    ``template`` (a fresh state, or its ``jax.eval_shape``).
+
+    ``step=None``: the newest step that passes :func:`verify_checkpoint`; each newer
+    step that fails is reported with a ``UserWarning`` and skipped. Returns ``None`` if
+    ``directory`` holds no checkpoint; raises :class:`CorruptCheckpointError` if none
+    passes, or if the requested ``step`` fails, and
+    :class:`IncompatibleCheckpointError` if the state tree differs from ``template``.
+    """
+    directory = Path(directory).absolute()
+    if not directory.is_dir():
+        return None
+    with _manager(directory) as mngr:
+        steps = sorted(mngr.all_steps(), reverse=True)
+        if step is not None:
+            if step not in steps:
+                raise ValueError(
+                    f"restore_checkpoint: no step {step} in {directory} (steps: {sorted(steps)})"
+                )
+            verify_checkpoint(directory, step)
+            return _restore_step(mngr, directory, step, template)
+        if not steps:
+            return None
+        rejected = []
+        for candidate in steps:
+            try:
+                verify_checkpoint(directory, candidate)
+            except CorruptCheckpointError as err:
+                rejected.append(str(err))
+                warnings.warn(f"{err}; falling back to an earlier checkpoint", stacklevel=2)
+                continue
+            return _restore_step(mngr, directory, candidate, template)
+    raise CorruptCheckpointError(
+        f"no valid checkpoint in {directory}: " + "; ".join(rejected)
+    )

@@ -1,0 +1,154 @@
+"""The data-parallel train step: ``(state, batch) -> (state, metrics)``, written per device.
+
+The step sees its device's shard of the batch and averages the gradients, the loss and
+the loss's metrics over the named axis ``"batch"`` with ``lax.pmean``, so the same
+function runs under ``jax.pmap`` (:func:`pmap_train_step`) and under ``jax.jit`` of a
+``shard_map`` over a device mesh (:func:`sharded_train_step`). With equal per-device
+shards the averaged gradient is the gradient of the global-batch mean loss, so the
+update does not depend on the device count.
+
+Long-LRM's guard (reference facts §2.1): a step whose loss or gradient norm is not
+finite is skipped -- parameters and optimizer state are returned bitwise unchanged,
+``skipped`` is incremented, ``step`` still advances (the data iterator and PRNG move on).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from jax import lax
+from jax.sharding import Mesh, PartitionSpec
+
+from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.train.state import TrainState, step_key
+
+AXIS = "batch"
+LossFn = Callable[[Any, Any, KeyArray], tuple[Float[Array, ""], dict[str, Array]]]
+StepFn = Callable[[TrainState, Any], tuple[TrainState, dict[str, Array]]]
+_RESERVED = ("loss", "grad_norm", "lr", "skipped", "skipped_total")
+
+
+def _cast_floating(tree, dtype: jnp.dtype):
+    """Cast every floating leaf of ``tree`` to ``dtype`` (integer leaves untouched)."""
+    return jax.tree.map(
+        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree
+    )
+
+
+def make_train_step(
+    loss_fn: LossFn,
+    optimizer: optax.GradientTransformation,
+    schedule: optax.Schedule,
+    *,
+    compute_dtype: jnp.dtype = jnp.float32,
+    skip_grad_norm_above: float | None = None,
+) -> StepFn:
+    """Build the per-device train step (to be wrapped by pmap or shard_map over ``"batch"``).
+
+    ``loss_fn(params, batch, key) -> (loss [], metrics {name: []})`` is the mean loss of
+    this device's batch shard. With ``compute_dtype=jnp.bfloat16`` the float32 parameters
+    are cast to bf16 before ``loss_fn`` (gradients, parameters and optimizer stay float32).
+    ``schedule`` is the optimizer's learning-rate schedule; it is only reported.
+    ``skip_grad_norm_above`` also skips steps whose (pre-clip) gradient norm exceeds it
+    (Long-LRM's ``grad_clip_norm * allowed_gradnorm_factor`` = 50); ``None`` skips only
+    non-finite steps.
+
+    Metrics (float32 ``[]``, identical on every device): ``loss``, ``grad_norm``, ``lr``
+    (rate of this step's update), ``skipped`` (1.0 if this step was skipped),
+    ``skipped_total``, plus ``loss_fn``'s metrics averaged over devices.
+    """
+    compute_dtype = jnp.dtype(compute_dtype)
+    if compute_dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.bfloat16)):
+        raise ValueError(
+            f"make_train_step: compute_dtype={compute_dtype}, expected float32 or bfloat16"
+        )
+
+    def loss_and_metrics(params, batch, key):
+        loss, metrics = loss_fn(_cast_floating(params, compute_dtype), batch, key)
+        if jnp.shape(loss) != ():
+            raise ValueError(
+                f"loss_fn returned a loss of shape {jnp.shape(loss)}, expected a scalar ()"
+            )
+        clash = sorted(set(metrics) & set(_RESERVED))
+        if clash:
+            raise ValueError(f"loss_fn metrics use reserved names {clash}; rename them")
+        return loss.astype(jnp.float32), metrics
+
+    def train_step(state: TrainState, batch: Any) -> tuple[TrainState, dict[str, Array]]:
+        key = step_key(state, lax.axis_index(AXIS))
+        # Mark the replicated parameters as device-varying so that, under shard_map's
+        # varying-axes typing, their gradient stays per device (its transpose would
+        # otherwise psum it) and the pmean below is the only reduction, as under pmap.
+        params = lax.pcast(state.params, AXIS, to="varying")
+        (loss, metrics), grads = jax.value_and_grad(loss_and_metrics, has_aux=True)(
+            params, batch, key
+        )
+        grads = lax.pmean(grads, AXIS)
+        loss = lax.pmean(loss, AXIS)
+        metrics = lax.pmean(_cast_floating(metrics, jnp.float32), AXIS)
+        grad_norm = optax.tree.norm(grads).astype(jnp.float32)
+        ok = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+        if skip_grad_norm_above is not None:
+            ok = ok & (grad_norm <= skip_grad_norm_above)
+
+        def apply(_):
+            # optax mixes Python floats with its int32 count (``b1 ** count``), which
+            # strict promotion rejects; its outputs keep the parameters' float32.
+            with jax.numpy_dtype_promotion("standard"):
+                updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+            return optax.apply_updates(state.params, updates), opt_state
+
+        def keep(_):
+            return state.params, state.opt_state
+
+        params, opt_state = lax.cond(ok, apply, keep, None)
+        skipped_now = (~ok).astype(jnp.int32)
+        new_state = TrainState(
+            step=state.step + 1,
+            params=params,
+            opt_state=opt_state,
+            skipped=state.skipped + skipped_now,
+            rng=state.rng,
+        )
+        # Updates applied before this one = optax's schedule count.
+        lr = schedule(state.step - state.skipped)
+        metrics = dict(
+            metrics,
+            loss=loss,
+            grad_norm=grad_norm,
+            lr=jnp.asarray(lr, jnp.float32),
+            skipped=skipped_now.astype(jnp.float32),
+            skipped_total=new_state.skipped.astype(jnp.float32),
+        )
+        return new_state, metrics
+
+    return train_step
+
+
+def pmap_train_step(step_fn: StepFn, *, donate: bool = False) -> StepFn:
+    """``jax.pmap`` over local devices: state replicated ``[n_dev, ...]``, batch
+    ``[n_dev, B/n_dev, ...]`` (see ``sharding.replicate_for_pmap`` / ``shard_for_pmap``);
+    metrics come back ``[n_dev]`` (identical rows). ``donate`` reuses the state buffers."""
+    return jax.pmap(step_fn, axis_name=AXIS, donate_argnums=(0,) if donate else ())
+
+
+def sharded_train_step(step_fn: StepFn, mesh: Mesh, *, donate: bool = False) -> StepFn:
+    """``jax.jit`` of ``shard_map`` over ``mesh``'s ``"batch"`` axis: state replicated
+    (``sharding.replicate_on_mesh``), batch a global ``[B, ...]`` array split over
+    ``"batch"`` (``sharding.shard_for_mesh``); metrics are replicated scalars.
+    Multi-host: every process calls it with its process-local batch shard."""
+    if AXIS not in mesh.axis_names:
+        raise ValueError(
+            f"sharded_train_step: mesh axes {mesh.axis_names} lack the data axis {AXIS!r}"
+        )
+    mapped = jax.shard_map(
+        step_fn,
+        mesh=mesh,
+        in_specs=(PartitionSpec(), PartitionSpec(AXIS)),
+        out_specs=(PartitionSpec(), PartitionSpec()),
+    )
+    return jax.jit(mapped, donate_argnums=(0,) if donate else ())

@@ -1,0 +1,238 @@
+"""The data-parallel train step on a toy MLP regression, against a plain single-device
+update written out here (value_and_grad of the global-batch loss + optax update)."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from llrmpp_jax.train.optimizer import OptimizerConfig, make_optimizer, make_schedule
+from llrmpp_jax.train.sharding import (
+    make_data_mesh,
+    replicate_for_pmap,
+    replicate_on_mesh,
+    shard_for_mesh,
+    shard_for_pmap,
+    unreplicate,
+)
+from llrmpp_jax.train.state import TrainState, init_train_state
+from llrmpp_jax.train.step import make_train_step, pmap_train_step, sharded_train_step
+
+CFG = OptimizerConfig(lr=1e-2, warmup_steps=2, total_steps=20)
+
+
+def toy_params(key, width: int = 16) -> dict:
+    """2-layer MLP ``[B, 3] -> [B]`` parameters (float32)."""
+    k1, k2 = jax.random.split(key)
+    return {
+        "dense1": {
+            "kernel": jax.random.normal(k1, (3, width), jnp.float32),
+            "bias": jnp.full((width,), 0.1, jnp.float32),
+        },
+        "dense2": {
+            "kernel": jax.random.normal(k2, (width, 1), jnp.float32) / width,
+            "bias": jnp.zeros((1,), jnp.float32),
+        },
+    }
+
+
+def toy_loss(params, batch, key):
+    """Mean squared error of the MLP on ``batch = {"image": [B, 3], "target": [B]}``."""
+    del key
+    dtype = params["dense1"]["kernel"].dtype
+    h = jnp.tanh(batch["image"].astype(dtype) @ params["dense1"]["kernel"]
+                 + params["dense1"]["bias"][None, :])
+    pred = (h @ params["dense2"]["kernel"] + params["dense2"]["bias"][None, :])[:, 0]
+    err = pred.astype(jnp.float32) - batch["target"]
+    return jnp.mean(jnp.square(err)), {"mae": jnp.mean(jnp.abs(err))}
+
+
+def toy_batch(rng, n: int = 8) -> dict:
+    return {
+        "image": rng.normal(size=(n, 3)).astype(np.float32),
+        "target": rng.normal(size=(n,)).astype(np.float32),
+    }
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _oracle_update(tx, loss, params, opt_state, batch):
+    (value, aux), grads = jax.value_and_grad(lambda p: loss(p, batch, None), has_aux=True)(params)
+    with jax.numpy_dtype_promotion("standard"):
+        updates, opt_state = tx.update(grads, opt_state, params)
+    return optax.apply_updates(params, updates), opt_state, value, aux
+
+
+def oracle_steps(params, tx, batches, loss=toy_loss):
+    """Plain full-batch AdamW steps on one device (no collectives).
+
+    Returns the final params and, per step, the loss and metrics before the update.
+    """
+    opt_state = tx.init(params)
+    history = []
+    for batch in batches:
+        params, opt_state, value, aux = _oracle_update(tx, loss, params, opt_state, batch)
+        history.append((value, aux))
+    return params, history
+
+
+def assert_tree_close(a, b, atol):
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(a), jax.tree.leaves(b)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=atol,
+                                   err_msg=jax.tree_util.keystr(path))
+
+
+def assert_tree_equal(a, b):
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(a), jax.tree.leaves(b)):
+        assert np.array_equal(np.asarray(x), np.asarray(y)), jax.tree_util.keystr(path)
+
+
+def test_two_devices_equal_one_device(key, rng):
+    """3 steps with pmap (2 devices), jit+shard_map (2 and 1 devices) == plain oracle."""
+    assert jax.local_device_count() == 2
+    tx, schedule = make_optimizer(CFG), make_schedule(CFG)
+    k_init, k_run = jax.random.split(key)
+    state0 = init_train_state(toy_params(k_init), tx, k_run)
+    batches = [toy_batch(rng) for _ in range(3)]
+    want, history = oracle_steps(state0.params, tx, batches)
+    step = make_train_step(toy_loss, tx, schedule)
+
+    pstep = pmap_train_step(step)
+    pstate = replicate_for_pmap(state0)
+    for b in batches:
+        pstate, pmetrics = pstep(pstate, shard_for_pmap(b))
+    assert_tree_close(unreplicate(pstate).params, want, atol=1e-5)
+
+    for devices in (jax.devices(), jax.devices()[:1]):
+        mesh = make_data_mesh(devices)
+        sstep = sharded_train_step(step, mesh)
+        sstate = replicate_on_mesh(state0, mesh)
+        for b in batches:
+            sstate, smetrics = sstep(sstate, shard_for_mesh(b, mesh))
+        assert_tree_close(sstate.params, want, atol=1e-5)
+        assert int(sstate.step) == 3 and int(sstate.skipped) == 0
+
+    # Metrics are global-batch means, the same under both wrappers.
+    loss, aux = history[-1]
+    for m in (unreplicate(pmetrics), smetrics):
+        assert float(m["loss"]) == pytest.approx(float(loss), rel=1e-5)
+        assert float(m["mae"]) == pytest.approx(float(aux["mae"]), rel=1e-5)
+        assert float(m["lr"]) == pytest.approx(float(schedule(2)), rel=1e-6)
+
+
+def test_nan_image_step_is_skipped(key, rng):
+    """A NaN image: params and opt state bitwise unchanged, counted; the schedule does
+    not advance, so the next good step equals one plain update from the start."""
+    tx = make_optimizer(CFG)
+    state0 = init_train_state(toy_params(key), tx, jax.random.fold_in(key, 1))
+    mesh = make_data_mesh()
+    sstep = sharded_train_step(make_train_step(toy_loss, tx, make_schedule(CFG)), mesh)
+    bad, good = toy_batch(rng), toy_batch(rng)
+    bad["image"][5, 1] = np.nan
+
+    state = replicate_on_mesh(state0, mesh)
+    state1, m1 = sstep(state, shard_for_mesh(bad, mesh))
+    assert_tree_equal(state1.params, state0.params)
+    assert_tree_equal(state1.opt_state, state0.opt_state)
+    assert (int(state1.step), int(state1.skipped)) == (1, 1)
+    assert float(m1["skipped"]) == 1.0 and not np.isfinite(float(m1["loss"]))
+
+    state2, m2 = sstep(state1, shard_for_mesh(good, mesh))
+    assert (int(state2.step), int(state2.skipped), float(m2["skipped"])) == (2, 1, 0.0)
+    assert_tree_close(state2.params, oracle_steps(state0.params, tx, [good])[0], atol=1e-6)
+
+
+def test_large_grad_norm_skip(key, rng):
+    """``skip_grad_norm_above``: a step whose gradient norm exceeds it is skipped too."""
+    tx = make_optimizer(CFG)
+    state0 = init_train_state(toy_params(key), tx, key)
+    huge = toy_batch(rng)
+    huge["target"] = huge["target"] * 1e4
+    grad_norm = jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, huge, None)[0])(p)))(
+        state0.params)
+    step = make_train_step(toy_loss, tx, make_schedule(CFG),
+                           skip_grad_norm_above=float(grad_norm) / 2)
+    pstate, m = pmap_train_step(step)(replicate_for_pmap(state0), shard_for_pmap(huge))
+    assert float(m["grad_norm"][0]) == pytest.approx(float(grad_norm), rel=1e-5)
+    assert int(pstate.skipped[0]) == 1
+    assert_tree_equal(unreplicate(pstate).params, state0.params)
+
+
+def test_step_key_per_device(key, rng):
+    """The loss sees fold_in(fold_in(base, step), device): checked through a metric."""
+    tx = make_optimizer(CFG)
+    base = jax.random.fold_in(key, 7)
+    state0 = init_train_state(toy_params(key), tx, base)
+
+    def noisy_loss(params, batch, k):
+        loss, _ = toy_loss(params, batch, k)
+        return loss, {"u": jax.random.uniform(k, (), jnp.float32)}
+
+    pstep = pmap_train_step(make_train_step(noisy_loss, tx, make_schedule(CFG)))
+    pstate = replicate_for_pmap(state0)
+    for s in range(2):
+        pstate, m = pstep(pstate, shard_for_pmap(toy_batch(rng)))
+        want = np.mean([float(jax.random.uniform(
+            jax.random.fold_in(jax.random.fold_in(base, s), d), (), jnp.float32)) for d in (0, 1)])
+        assert float(m["u"][0]) == pytest.approx(want, rel=1e-6)
+
+
+def test_bf16_compute(key, rng):
+    """bf16 compute: the loss sees bf16 params, state stays float32, the update equals a
+    plain update whose loss casts the params to bf16."""
+    tx = make_optimizer(CFG)
+    state0 = init_train_state(toy_params(key), tx, key)
+    batch = toy_batch(rng)
+    seen = []
+
+    def loss(params, b, k):
+        seen.append({x.dtype for x in jax.tree.leaves(params)})
+        return toy_loss(params, b, k)
+
+    step = make_train_step(loss, tx, make_schedule(CFG), compute_dtype=jnp.bfloat16)
+    mesh = make_data_mesh()
+    state1, m = sharded_train_step(step, mesh)(replicate_on_mesh(state0, mesh),
+                                                shard_for_mesh(batch, mesh))
+    assert seen and all(s == {jnp.dtype(jnp.bfloat16)} for s in seen)
+    assert {x.dtype for x in jax.tree.leaves((state1.params, state1.opt_state))} <= {
+        jnp.dtype(jnp.float32), jnp.dtype(jnp.int32)}
+
+    def bf16_loss(p, b, k):
+        return toy_loss(jax.tree.map(lambda x: x.astype(jnp.bfloat16), p), b, k)
+
+    assert_tree_close(state1.params, oracle_steps(state0.params, tx, [batch], bf16_loss)[0], atol=1e-5)
+    f32_loss = float(toy_loss(state0.params, batch, None)[0])
+    assert abs(float(m["loss"]) - f32_loss) < 2e-2 * f32_loss
+
+
+def test_bad_inputs(key, rng):
+    tx = make_optimizer(CFG)
+    params = toy_params(key)
+    with pytest.raises(ValueError, match=r"params\['dense1'\]\['bias'\] has dtype bfloat16"):
+        bad = {**params, "dense1": {**params["dense1"],
+                                    "bias": params["dense1"]["bias"].astype(jnp.bfloat16)}}
+        init_train_state(bad, tx, key)
+    with pytest.raises(ValueError, match="typed PRNG key"):
+        init_train_state(params, tx, jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="batch size 7 does not divide over 2 devices"):
+        shard_for_pmap(toy_batch(rng, 7))
+    with pytest.raises(ValueError, match="batch size 5 does not divide over 2 devices"):
+        shard_for_mesh(toy_batch(rng, 5), make_data_mesh())
+    with pytest.raises(ValueError, match="share a leading batch axis"):
+        shard_for_pmap({"image": np.zeros((4, 3)), "target": np.zeros((6,))})
+    with pytest.raises(ValueError, match="compute_dtype=float16"):
+        make_train_step(toy_loss, tx, make_schedule(CFG), compute_dtype=jnp.float16)
+
+    state = replicate_for_pmap(init_train_state(params, tx, key))
+    batch = shard_for_pmap(toy_batch(rng))
+    vector_loss = make_train_step(lambda p, b, k: (jnp.zeros((2,), jnp.float32), {}), tx,
+                                  make_schedule(CFG))
+    with pytest.raises(ValueError, match=r"loss of shape \(2,\), expected a scalar"):
+        pmap_train_step(vector_loss)(state, batch)
+    reserved = make_train_step(lambda p, b, k: (toy_loss(p, b, k)[0], {"lr": jnp.zeros(())}),
+                               tx, make_schedule(CFG))
+    with pytest.raises(ValueError, match=r"reserved names \['lr'\]"):
+        pmap_train_step(reserved)(state, batch)
+    assert isinstance(unreplicate(state), TrainState)
