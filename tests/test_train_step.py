@@ -90,7 +90,8 @@ def assert_tree_equal(a, b):
 
 
 def test_two_devices_equal_one_device(key, rng):
-    """3 steps with pmap (2 devices), jit+shard_map (2 and 1 devices) == plain oracle."""
+    """3 steps with pmap (2 devices), jit+shard_map (2 and 1 devices) == plain oracle
+    (with and without donating the state buffers)."""
     assert jax.local_device_count() == 2
     tx, schedule = make_optimizer(CFG), make_schedule(CFG)
     k_init, k_run = jax.random.split(key)
@@ -99,15 +100,15 @@ def test_two_devices_equal_one_device(key, rng):
     want, history = oracle_steps(state0.params, tx, batches)
     step = make_train_step(toy_loss, tx, schedule)
 
-    pstep = pmap_train_step(step)
+    pstep = pmap_train_step(step, donate=True)
     pstate = replicate_for_pmap(state0)
     for b in batches:
         pstate, pmetrics = pstep(pstate, shard_for_pmap(b))
     assert_tree_close(unreplicate(pstate).params, want, atol=1e-5)
 
-    for devices in (jax.devices(), jax.devices()[:1]):
+    for devices, donate in ((jax.devices(), False), (jax.devices()[:1], True)):
         mesh = make_data_mesh(devices)
-        sstep = sharded_train_step(step, mesh)
+        sstep = sharded_train_step(step, mesh, donate=donate)
         sstate = replicate_on_mesh(state0, mesh)
         for b in batches:
             sstate, smetrics = sstep(sstate, shard_for_mesh(b, mesh))

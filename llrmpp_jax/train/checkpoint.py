@@ -105,7 +105,9 @@ def verify_checkpoint(directory: str | os.PathLike, step: int) -> None:
     try:
         files = json.loads(manifest.read_text())["files"]
     except (json.JSONDecodeError, KeyError) as err:
-        raise CorruptCheckpointError(f"checkpoint {step_dir}: unreadable {MANIFEST} ({err})")
+        raise CorruptCheckpointError(
+            f"checkpoint {step_dir}: unreadable {MANIFEST} ({err})"
+        ) from None
     for rel, expect in files.items():
         path = step_dir / rel
         if not path.is_file():

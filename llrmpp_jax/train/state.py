@@ -13,8 +13,9 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jaxtyping import UInt32
 
-from llrmpp_jax.array_typing import Array, Int, KeyArray, Shaped
+from llrmpp_jax.array_typing import Array, Int, KeyArray
 
 
 @struct.dataclass
@@ -31,7 +32,7 @@ class TrainState:
     params: Any
     opt_state: optax.OptState
     skipped: Int[Array, ""]
-    rng: Shaped[Array, "..."]
+    rng: UInt32[Array, " 2"]
 
 
 def _check_float32(params) -> None:

@@ -55,7 +55,11 @@ def make_train_step(
     ``schedule`` is the optimizer's learning-rate schedule; it is only reported.
     ``skip_grad_norm_above`` also skips steps whose (pre-clip) gradient norm exceeds it
     (Long-LRM's ``grad_clip_norm * allowed_gradnorm_factor`` = 50); ``None`` skips only
-    non-finite steps.
+    non-finite steps. Every skip leaves the schedule where it was (Long-LRM still steps
+    its scheduler on a large-norm skip).
+
+    The loss's key is ``fold_in(fold_in(base, step), device)``: deterministic per
+    (step, device), so a random loss draws different noise on 1 and on 2 devices.
 
     Metrics (float32 ``[]``, identical on every device): ``loss``, ``grad_norm``, ``lr``
     (rate of this step's update), ``skipped`` (1.0 if this step was skipped),
@@ -89,7 +93,7 @@ def make_train_step(
         )
         grads = lax.pmean(grads, AXIS)
         loss = lax.pmean(loss, AXIS)
-        metrics = lax.pmean(_cast_floating(metrics, jnp.float32), AXIS)
+        metrics = lax.pmean(jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), metrics), AXIS)
         grad_norm = optax.tree.norm(grads).astype(jnp.float32)
         ok = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
         if skip_grad_norm_above is not None:
