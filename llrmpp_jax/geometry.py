@@ -70,18 +70,41 @@ def pixel_rays(
             f"{tuple(c2w.shape)}, got {tuple(intrinsics.shape)}"
         )
     dtype = _float_dtype(c2w)
+    nb = len(batch)
+    x = xp.broadcast_to(xp.arange(width, dtype=dtype)[None, :] + 0.5, (height, width))
+    y = xp.broadcast_to(xp.arange(height, dtype=dtype)[:, None] + 0.5, (height, width))
+    uv = xp.reshape(xp.stack([x, y], axis=-1), (1,) * nb + (height, width, 2))
+    return rays_through_pixels(c2w[..., None, None, :, :], intrinsics[..., None, None, :], uv)
+
+
+def rays_through_pixels(
+    c2w: Float[ArrayLike, "... 4 4"], intrinsics: Float[ArrayLike, "... 4"], uv: Float[ArrayLike, "... 2"]
+) -> tuple[Float[ArrayLike, "... 3"], Float[ArrayLike, "... 3"]]:
+    """Ray origin and unit direction through continuous pixel coordinates ``uv = (x, y)``.
+
+    ``d = normalize(R @ [(x - cx) / fx, (y - cy) / fy, 1])``; pixel (i, j)'s centre is
+    ``(j + 0.5, i + 0.5)``. The leading dims of ``c2w``, ``intrinsics`` and ``uv`` must have
+    the same rank and broadcast against each other (size-1 axes stretch).
+    """
+    xp = _xp(c2w, intrinsics, uv)
+    _check_trailing(c2w, (4, 4), "c2w", "4, 4")
+    _check_trailing(intrinsics, (4,), "intrinsics", "4")
+    _check_trailing(uv, (2,), "uv", "2")
+    if not (c2w.ndim - 2 == intrinsics.ndim - 1 == uv.ndim - 1):
+        raise ValueError(
+            f"rays_through_pixels: leading ranks differ: c2w {tuple(c2w.shape)}, "
+            f"intrinsics {tuple(intrinsics.shape)}, uv {tuple(uv.shape)}"
+        )
+    dtype = _float_dtype(c2w)
     c2w = xp.asarray(c2w, dtype=dtype)
-    intrinsics = xp.asarray(intrinsics, dtype=dtype)
-    ones_b = (1,) * len(batch)
-    x = xp.reshape(xp.arange(width, dtype=dtype) + 0.5, ones_b + (1, width))
-    y = xp.reshape(xp.arange(height, dtype=dtype) + 0.5, ones_b + (height, 1))
-    fx, fy, cx, cy = (xp.reshape(intrinsics[..., i], batch + (1, 1)) for i in range(4))
-    u = xp.broadcast_to((x - cx) / fx, batch + (height, width))
-    v = xp.broadcast_to((y - cy) / fy, batch + (height, width))
+    k = xp.asarray(intrinsics, dtype=dtype)
+    uv = xp.asarray(uv, dtype=dtype)
+    u = (uv[..., 0] - k[..., 2]) / k[..., 0]
+    v = (uv[..., 1] - k[..., 3]) / k[..., 1]
     cam = xp.stack([u, v, xp.ones_like(u)], axis=-1)
-    directions = xp.einsum("...ij,...hwj->...hwi", c2w[..., :3, :3], cam)
+    directions = xp.sum(c2w[..., :3, :3] * cam[..., None, :], axis=-1)
     directions = directions / xp.linalg.norm(directions, axis=-1, keepdims=True)
-    origins = xp.broadcast_to(c2w[..., None, None, :3, 3], directions.shape)
+    origins = xp.broadcast_to(c2w[..., :3, 3], directions.shape)
     return origins, directions
 
 
