@@ -1,0 +1,212 @@
+"""Fixed-shape, deterministic, prefetched training batches.
+
+**The batch layout** (the one place it is defined; the model consumes exactly this dict of
+NumPy arrays, after Long-LRM scene normalisation computed from the input cameras):
+
+=====================  =====================  ==========================================
+key                    shape                  content
+=====================  =====================  ==========================================
+``input_images``       ``[B, V, H, W, 3]``    float32 RGB in [0, 1]
+``input_c2w``          ``[B, V, 4, 4]``       float32 OpenCV camera-to-world
+``input_intrinsics``   ``[B, V, 4]``          float32 ``(fx, fy, cx, cy)`` in pixels
+``target_images``      ``[B, T, H, W, 3]``    float32 RGB in [0, 1]
+``target_c2w``         ``[B, T, 4, 4]``       float32
+``target_intrinsics``  ``[B, T, 4]``          float32
+``target_depth``       ``[B, T, H, W]``       float32 z-depth in normalised scene units
+                                              (metres times the scene scale); 0 = invalid.
+                                              Only with ``BatchConfig.with_depth``.
+=====================  =====================  ==========================================
+
+Determinism: batch ``step`` is a pure function of ``(seed, step)``: element ``b`` of the
+*global* batch draws its scene, views and augmentation from ``default_rng([seed, step, b,
+attempt])``. A resumed run that restarts at ``start_step`` therefore sees the same batches,
+whatever the number of workers. Each process builds only its slice of the global batch
+(``process_index`` of ``process_count``), sized to split evenly over its local devices.
+
+Bad scenes (missing or corrupt files, bad poses, too few frames) are skipped: the element
+retries with the next ``attempt`` (a different scene), a warning is issued and
+``iterator.skipped`` counts it. Only ``max_attempts`` consecutive failures raise.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import warnings
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
+from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.data.selection import training_views
+from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
+
+
+class SceneSource(Protocol):
+    """Indexable collection of scenes: ``len(source)`` and ``source.load(i) -> Scene``."""
+
+    def __len__(self) -> int: ...
+
+    def load(self, index: int) -> Scene: ...
+
+
+@dataclass(frozen=True)
+class ProceduralSource:
+    """Endless procedural scenes: index i is the scene of seed i."""
+
+    config: ProceduralConfig = field(default_factory=ProceduralConfig)
+    size: int = 2**31 - 1
+
+    def __len__(self) -> int:
+        return self.size
+
+    def load(self, index: int) -> Scene:
+        return procedural_scene(index, self.config)
+
+
+@dataclass(frozen=True)
+class FileSource:
+    """Scenes on disk: ``reader(paths[i])``, e.g. ``FileSource(paths, read_long_lrm_scene)``."""
+
+    paths: Sequence[str]
+    reader: Callable[[str], Scene]
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def load(self, index: int) -> Scene:
+        return self.reader(self.paths[index])
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """Global batch size, view counts, frame-window and image geometry.
+
+    ``min_span`` / ``max_span``: training window length in frames (None = whole scene;
+    Long-LRM stages 1-2 use 64-128). ``input_weight``: target-draw weight of input frames
+    (Long-LRM++: 0.1). ``scene_scale``: Long-LRM's ``data.scene_scale``.
+    """
+
+    global_batch: int
+    num_inputs: int
+    num_targets: int
+    geometry: ViewGeometry = field(default_factory=ViewGeometry)
+    min_span: int | None = None
+    max_span: int | None = None
+    input_weight: float = 0.1
+    with_depth: bool = False
+    scene_scale: float = 1.0
+    max_attempts: int = 16
+
+
+def build_sample(source: SceneSource, cfg: BatchConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """One training sample drawn with ``rng``: a scene, a view split, an augmentation."""
+    scene = source.load(int(rng.integers(len(source))))
+    inputs, targets = training_views(
+        rng, len(scene), cfg.num_inputs, cfg.num_targets, cfg.min_span, cfg.max_span, cfg.input_weight
+    )
+    return make_sample(scene, inputs, targets, cfg.geometry, rng=rng, with_depth=cfg.with_depth, scene_scale=cfg.scene_scale)
+
+
+def shard(batch: dict[str, np.ndarray], num_devices: int) -> dict[str, np.ndarray]:
+    """Split the leading batch axis over devices: ``[B, ...] -> [num_devices, B / num_devices, ...]``."""
+    b = next(iter(batch.values())).shape[0]
+    if b % num_devices:
+        raise ValueError(f"shard: batch of {b} does not split evenly over {num_devices} devices")
+    return {k: v.reshape((num_devices, b // num_devices) + v.shape[1:]) for k, v in batch.items()}
+
+
+class BatchIterator:
+    """Iterator of fixed-shape batches (see the module docstring for the layout).
+
+    Args:
+      source: where scenes come from. cfg: what a batch holds. seed: the run's data seed.
+      start_step: first step to produce (resume from ``state()["step"]`` of a checkpoint).
+      num_devices: local devices the local batch must split over evenly.
+      process_index, process_count: this host's slice of the global batch.
+      num_workers: background threads building batches. prefetch: batches kept in flight.
+    """
+
+    def __init__(
+        self,
+        source: SceneSource,
+        cfg: BatchConfig,
+        seed: int,
+        start_step: int = 0,
+        num_devices: int = 1,
+        process_index: int = 0,
+        process_count: int = 1,
+        num_workers: int = 2,
+        prefetch: int = 2,
+    ):
+        if cfg.global_batch % process_count:
+            raise ValueError(f"global_batch {cfg.global_batch} does not split over {process_count} processes")
+        local = cfg.global_batch // process_count
+        if local % num_devices:
+            raise ValueError(f"local batch {local} (global {cfg.global_batch} / {process_count} processes) "
+                             f"does not split over {num_devices} devices")
+        if len(source) < 1:
+            raise ValueError("BatchIterator: the scene source is empty")
+        self.source, self.cfg, self.seed = source, cfg, int(seed)
+        self.local_batch = local
+        self.offset = process_index * local
+        self.step = int(start_step)
+        self.skipped = 0
+        self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=max(1, num_workers))
+        self._prefetch = max(1, prefetch)
+        self._pending: collections.deque[tuple[int, Future]] = collections.deque()
+
+    def state(self) -> dict[str, int]:
+        """Checkpointable position: ``{"seed", "step"}`` of the next batch to be returned."""
+        return {"seed": self.seed, "step": self.step}
+
+    def batch_at(self, step: int) -> dict[str, np.ndarray]:
+        """The local batch of ``step`` (pure in ``(seed, step)``; safe from any thread)."""
+        samples = [self._element(step, self.offset + b) for b in range(self.local_batch)]
+        return {k: np.stack([s[k] for s in samples]) for k in samples[0]}
+
+    def _element(self, step: int, b: int) -> dict[str, np.ndarray]:
+        errors = []
+        for attempt in range(self.cfg.max_attempts):
+            rng = np.random.default_rng([self.seed, step, b, attempt])
+            try:
+                return build_sample(self.source, self.cfg, rng)
+            except (OSError, ValueError) as e:
+                errors.append(str(e))
+                with self._lock:
+                    self.skipped += 1
+                warnings.warn(f"data: skipped a scene (step {step}, element {b}, attempt {attempt}): {e}", stacklevel=2)
+        raise RuntimeError(
+            f"data: {self.cfg.max_attempts} scenes in a row failed for step {step}, element {b}; last error: {errors[-1]}"
+        )
+
+    def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
+        return self
+
+    def __next__(self) -> dict[str, np.ndarray]:
+        # Keep `prefetch` later batches building while the caller works on this one.
+        while len(self._pending) < self._prefetch + 1:
+            nxt = self._pending[-1][0] + 1 if self._pending else self.step
+            self._pending.append((nxt, self._pool.submit(self.batch_at, nxt)))
+        step, fut = self._pending.popleft()
+        batch = fut.result()
+        self.step = step + 1
+        return batch
+
+    def close(self) -> None:
+        """Stop the workers (pending batches are dropped)."""
+        for _, fut in self._pending:
+            fut.cancel()
+        self._pending.clear()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> BatchIterator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
