@@ -349,6 +349,7 @@ __all__ = [
     "pixel_rays",
     "plucker",
     "project_points",
+    "rays_through_pixels",
     "resize_intrinsics",
     "unproject_depth",
     "validate_cameras",

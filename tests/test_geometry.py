@@ -55,6 +55,19 @@ def test_pixel_rays_match_loop(rng):
             np.testing.assert_allclose(d[a, b], ld, atol=1e-12)
 
 
+def test_rays_through_arbitrary_pixels_match_loop(rng):
+    c2w = random_c2w(rng, (2,))
+    k = random_intrinsics(rng, (2,), 10, 10)
+    uv = rng.uniform(0, 10, size=(2, 5, 2))
+    o, d = G.rays_through_pixels(c2w[:, None], k[:, None], uv)
+    for v in range(2):
+        for p in range(5):
+            cam = np.array([(uv[v, p, 0] - k[v, 2]) / k[v, 0], (uv[v, p, 1] - k[v, 3]) / k[v, 1], 1.0])
+            ray = c2w[v, :3, :3] @ cam
+            np.testing.assert_allclose(d[v, p], ray / np.linalg.norm(ray), atol=1e-12)
+            np.testing.assert_allclose(o[v, p], c2w[v, :3, 3], atol=1e-12)
+
+
 def test_pixel_rays_and_plucker_jit_float32(rng):
     h, w = 6, 4
     c2w = random_c2w(rng, (3,))
