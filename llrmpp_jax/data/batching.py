@@ -151,6 +151,8 @@ class BatchIterator:
                              f"does not split over {num_devices} devices")
         if len(source) < 1:
             raise ValueError("BatchIterator: the scene source is empty")
+        if seed < 0 or start_step < 0:
+            raise ValueError(f"BatchIterator: seed and start_step must be >= 0, got {seed}, {start_step}")
         self.source, self.cfg, self.seed = source, cfg, int(seed)
         self.local_batch = local
         self.offset = process_index * local

@@ -9,7 +9,8 @@ Per frame, in Long-LRM's order (reference facts §3.3):
    sample, shared by all its views) that is resized back to the pre-zoom size.
 
 Each step updates ``(fx, fy, cx, cy)`` exactly through :mod:`llrmpp_jax.geometry` (unlike
-Long-LRM's zoom, which leaves ``cx, cy`` unchanged). Then the Long-LRM scene normalisation
+Long-LRM's zoom, which leaves ``cx, cy`` unchanged). Depth maps are not blended: each output
+pixel takes the stored sample under its centre, found through the composed mapping. Then the Long-LRM scene normalisation
 is applied to inputs and targets together, and depth is scaled with the scene.
 """
 
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
-from llrmpp_jax.data.resample import resize_depth, resize_image
+from llrmpp_jax.data.resample import remap, resize_image
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.geometry import crop_intrinsics, normalize_scene, resize_intrinsics
 
@@ -98,17 +99,23 @@ def load_views(
     with_depth: bool,
 ) -> tuple[Float[np.ndarray, "K H W 3"], Float[np.ndarray, "K 4"], Float[np.ndarray, "K H W"] | None]:
     """Load frames ``indices`` resized to ``resized_hw``, cropped to ``box`` and resized to
-    ``out_hw``: ``(images, intrinsics, depth or None)``."""
+    ``out_hw``: ``(images, intrinsics, depth or None)``. Depth is not resampled twice: each
+    output pixel takes the stored depth sample under its centre (nearest), found through
+    the output and stored intrinsics (the same camera ray)."""
     top, left, ch, cw = box
     images, intr, depths = [], [], []
     for i in indices:
         img = scene.image(int(i), resized_hw)[top : top + ch, left : left + cw]
         images.append(resize_image(img, out_hw))
         k = resize_intrinsics(scene.intrinsics[i], tuple(scene.hw[i]), resized_hw)
-        intr.append(resize_intrinsics(crop_intrinsics(k, top, left), (ch, cw), out_hw))
+        k = resize_intrinsics(crop_intrinsics(k, top, left), (ch, cw), out_hw)
+        intr.append(k)
         if with_depth:
-            d = scene.depth(int(i), resized_hw)[top : top + ch, left : left + cw]
-            depths.append(resize_depth(d, out_hw))
+            k0 = scene.intrinsics[i]
+            x = k0[2] + k0[0] * (np.arange(out_hw[1]) + 0.5 - k[2]) / k[0]
+            y = k0[3] + k0[1] * (np.arange(out_hw[0]) + 0.5 - k[3]) / k[1]
+            src = np.stack(np.meshgrid(x, y, indexing="xy"), axis=-1)
+            depths.append(remap(scene.depth(int(i)), src, nearest=True))
     return (
         np.stack(images).astype(np.float32),
         np.stack(intr),

@@ -11,6 +11,8 @@ colour is a mip-mapped texture lookup at the surface UV times a view-independent
 from __future__ import annotations
 
 import functools
+import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,9 +73,10 @@ class Rendered:
     normal: Float[np.ndarray, "N H W 3"]
 
 
-# Ray batches are stored transposed, ``[3, R]`` (one contiguous row per axis): every
-# operation below is then an elementwise pass over contiguous memory, with no small-matrix
-# BLAS calls (which are slow and oversubscribe threads for R x 3 inputs).
+# Ray batches are stored transposed, ``[3, R]`` (one contiguous row per axis), and cast in
+# chunks of _CHUNK rays: every operation below is then an elementwise pass over a little
+# contiguous memory, with no small-matrix BLAS calls (slow, and they oversubscribe threads
+# for R x 3 inputs).
 
 
 def _dot(a: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -81,8 +84,7 @@ def _dot(a: np.ndarray, v: np.ndarray) -> np.ndarray:
     return a[0] * v[0] + a[1] * v[1] + a[2] * v[2]
 
 
-def _hit_boxes(lay: Layout, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
-    out = []
+def _hit_boxes(lay: Layout, o: np.ndarray, d: np.ndarray) -> Iterator[np.ndarray]:
     for c, rot, half in zip(lay.box_center, lay.box_rot, lay.box_half):
         oc = o - c[:, None]
         tmin = np.full(o.shape[1], -np.inf)
@@ -96,24 +98,20 @@ def _hit_boxes(lay: Layout, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
             tmin = np.fmax(tmin, np.fmin(t1, t2))
             tmax = np.fmin(tmax, np.fmax(t1, t2))
         t = np.where(tmin > _EPS, tmin, tmax)
-        out.append(np.where((tmax >= tmin) & (t > _EPS), t, np.inf))
-    return out
+        yield np.where((tmax >= tmin) & (t > _EPS), t, np.inf)
 
 
-def _hit_spheres(lay: Layout, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
-    out = []
+def _hit_spheres(lay: Layout, o: np.ndarray, d: np.ndarray) -> Iterator[np.ndarray]:
     for c, r in zip(lay.sphere_center, lay.sphere_radius):
         oc = o - c[:, None]
         b = (oc * d).sum(axis=0)
         disc = b * b - ((oc * oc).sum(axis=0) - r * r)
         root = np.sqrt(np.maximum(disc, 0.0))
         t = np.where(-b - root > _EPS, -b - root, -b + root)
-        out.append(np.where((disc >= 0) & (t > _EPS), t, np.inf))
-    return out
+        yield np.where((disc >= 0) & (t > _EPS), t, np.inf)
 
 
-def _hit_quads(lay: Layout, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
-    out = []
+def _hit_quads(lay: Layout, o: np.ndarray, d: np.ndarray) -> Iterator[np.ndarray]:
     for c, u, v, half in zip(lay.quad_center, lay.quad_u, lay.quad_v, lay.quad_half):
         n = np.cross(u, v)
         oc = o - c[:, None]
@@ -121,8 +119,20 @@ def _hit_quads(lay: Layout, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
             t = -_dot(oc, n) / _dot(d, n)
         p = oc + t[None, :] * d
         inside = (np.abs(_dot(p, u)) <= half[0]) & (np.abs(_dot(p, v)) <= half[1])
-        out.append(np.where(inside & (t > _EPS) & np.isfinite(t), t, np.inf))
-    return out
+        yield np.where(inside & (t > _EPS) & np.isfinite(t), t, np.inf)
+
+
+def _nearest_hit(lay: Layout, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance along the ray ``[R]`` (inf = miss) and index ``[R]`` of the nearest primitive
+    (boxes, spheres, quads order; -1 = miss), as a running minimum over primitives."""
+    best = np.full(o.shape[1], np.inf)
+    prim = np.full(o.shape[1], -1, dtype=np.int64)
+    hits = itertools.chain(_hit_boxes(lay, o, d), _hit_spheres(lay, o, d), _hit_quads(lay, o, d))
+    for k, t in enumerate(hits):
+        closer = t < best
+        best = np.where(closer, t, best)
+        prim = np.where(closer, k, prim)
+    return best, prim
 
 
 def _surface(lay: Layout, k: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -163,47 +173,57 @@ def _surface(lay: Layout, k: int, p: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return normal, 0.5 + 0.5 * a / half[0], 0.5 - 0.5 * b / half[1], np.full(count, tex_w / (2 * half[0]))
 
 
+_CHUNK = 1 << 14  # rays per pass: keeps every temporary (~128 KiB) in cache
+
+
 def render_views(
     lay: Layout, c2w: Float[np.ndarray, "N 4 4"], intrinsics: Float[np.ndarray, "N 4"], height: int, width: int
 ) -> Rendered:
     """Ray-cast ``N`` views of ``lay`` at ``height x width`` (pixel centres, OpenCV cameras)."""
     c2w = np.asarray(c2w, dtype=np.float64)
     intrinsics = np.asarray(intrinsics, dtype=np.float64)
-    n = c2w.shape[0]
-    origins, dirs = pixel_rays(c2w, intrinsics, height, width)
-    o = np.ascontiguousarray(origins.reshape(-1, 3).T)
-    d = np.ascontiguousarray(dirs.reshape(-1, 3).T)
-    ts = np.stack(_hit_boxes(lay, o, d) + _hit_spheres(lay, o, d) + _hit_quads(lay, o, d), axis=0)
-    prim = np.argmin(ts, axis=0)
-    t = np.take_along_axis(ts, prim[None, :], axis=0)[0]
-    hit = np.isfinite(t)
-    prim = np.where(hit, prim, -1)
-    pixels = height * width
-    zdot = (d.reshape(3, n, pixels) * c2w[:, :3, 2].T[:, :, None]).sum(axis=0).reshape(-1)
-    focal = np.repeat(intrinsics[:, 0], pixels)
-    rgb = np.zeros((o.shape[1], 3), dtype=np.float32)
-    normals = np.zeros((o.shape[1], 3), dtype=np.float32)
+    n, pixels = c2w.shape[0], height * width
+    rgb = np.zeros((n * pixels, 3), dtype=np.float32)
+    normals = np.zeros((n * pixels, 3), dtype=np.float32)
+    depth = np.zeros(n * pixels, dtype=np.float32)
+    prims = np.full(n * pixels, -1, dtype=np.int32)
     bank = texture_bank()
-    for k in np.unique(prim[hit]):
-        sel = np.flatnonzero(prim == k)
-        ds = d[:, sel]
-        p = o[:, sel] + t[sel][None, :] * ds
-        normal, u, v, texels_per_m = _surface(lay, int(k), p)
-        # Mip level: texels under one pixel ~ (metres per pixel) * texels per metre, with a
-        # mild allowance for oblique viewing (geometric mean of the two footprint axes).
-        ndotd = (normal * ds).sum(axis=0)
-        metres_per_px = t[sel] * zdot[sel] / focal[sel] / np.sqrt(np.maximum(np.abs(ndotd), 0.1))
-        lod = np.log2(np.maximum(metres_per_px * texels_per_m, 1e-6))
-        color = sample_texture(bank[lay.texture[k]], u, v, lod) * lay.tint[k][None, :].astype(np.float32)
-        facing = normal * -np.sign(ndotd)[None, :]  # normal turned towards the viewer
-        shade = 0.55 + 0.45 * _dot(facing, lay.light_dir)
-        rgb[sel] = np.clip(color * shade[:, None].astype(np.float32), 0.0, 1.0)
-        normals[sel] = facing.T
-    depth = np.where(hit, t * zdot, 0.0)
+    for view in range(n):
+        origins, dirs = pixel_rays(c2w[view], intrinsics[view], height, width)
+        o_all = np.ascontiguousarray(origins.reshape(-1, 3).T)
+        d_all = np.ascontiguousarray(dirs.reshape(-1, 3).T)
+        fwd, focal = c2w[view, :3, 2], intrinsics[view, 0]
+        for start in range(0, pixels, _CHUNK):
+            o, d = o_all[:, start : start + _CHUNK], d_all[:, start : start + _CHUNK]
+            out = slice(view * pixels + start, view * pixels + start + o.shape[1])
+            t, prim = _nearest_hit(lay, o, d)
+            zdot = _dot(d, fwd)
+            hit = prim >= 0
+            prims[out] = prim
+            depth[out] = np.where(hit, t * zdot, 0.0)
+            chunk_rgb = np.zeros((o.shape[1], 3), dtype=np.float32)
+            chunk_normal = np.zeros((o.shape[1], 3), dtype=np.float32)
+            for k in np.unique(prim[hit]):
+                sel = np.flatnonzero(prim == k)
+                ds = d[:, sel]
+                p = o[:, sel] + t[sel][None, :] * ds
+                normal, u, v, texels_per_m = _surface(lay, int(k), p)
+                # Mip level: texels under one pixel ~ (metres per pixel) * texels per metre, with
+                # a mild allowance for oblique viewing (geometric mean of the two footprint axes).
+                ndotd = (normal * ds).sum(axis=0)
+                metres_per_px = t[sel] * zdot[sel] / focal / np.sqrt(np.maximum(np.abs(ndotd), 0.1))
+                lod = np.log2(np.maximum(metres_per_px * texels_per_m, 1e-6))
+                color = sample_texture(bank[lay.texture[k]], u, v, lod) * lay.tint[k][None, :].astype(np.float32)
+                facing = normal * -np.sign(ndotd)[None, :]  # normal turned towards the viewer
+                shade = 0.55 + 0.45 * _dot(facing, lay.light_dir)
+                chunk_rgb[sel] = np.clip(color * shade[:, None].astype(np.float32), 0.0, 1.0)
+                chunk_normal[sel] = facing.T
+            rgb[out] = chunk_rgb
+            normals[out] = chunk_normal
     return Rendered(
         rgb=rgb.reshape(n, height, width, 3),
-        depth=depth.astype(np.float32).reshape(n, height, width),
-        primitive=prim.astype(np.int32).reshape(n, height, width),
+        depth=depth.reshape(n, height, width),
+        primitive=prims.reshape(n, height, width),
         normal=normals.reshape(n, height, width, 3),
     )
 
