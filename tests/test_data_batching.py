@@ -121,3 +121,16 @@ def test_all_scenes_bad_raises():
         with pytest.raises(RuntimeError, match="3 scenes in a row failed"), warnings.catch_warnings():
             warnings.simplefilter("ignore")
             next(it)
+
+
+def test_input_order_augmentations_keep_the_same_views():
+    """Reversed / shuffled inputs are a permutation of the sorted draw: same set of cameras
+    (normalisation uses means and max, which do not depend on the order)."""
+    plain = BatchConfig(global_batch=1, num_inputs=4, num_targets=2)
+    aug = BatchConfig(global_batch=1, num_inputs=4, num_targets=2, reverse_prob=1.0, shuffle_prob=0.5)
+    a = build_sample(SRC, plain, np.random.default_rng([1, 2]))
+    b = build_sample(SRC, aug, np.random.default_rng([1, 2]))
+    key = lambda c2w: sorted(map(tuple, np.round(c2w[:, :3, 3], 5)))  # noqa: E731
+    assert key(a["input_c2w"]) == key(b["input_c2w"])
+    np.testing.assert_array_equal(a["target_images"], b["target_images"])
+    assert not np.array_equal(a["input_c2w"], b["input_c2w"])

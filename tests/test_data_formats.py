@@ -254,3 +254,49 @@ def test_colmap_truncated_and_unsupported(tmp_path, source):
     open(os.path.join(sparse, "cameras.txt"), "w").write(txt)
     with pytest.raises(ValueError, match=r"cameras.txt: camera 1 has unsupported model 'FISHEYE'"):
         read_colmap_model(sparse)
+
+
+@pytest.mark.parametrize("model,params", [
+    ("SIMPLE_PINHOLE", [100.0, 30.0, 20.0]),
+    ("PINHOLE", [100.0, 90.0, 30.0, 20.0]),
+    ("SIMPLE_RADIAL", [100.0, 30.0, 20.0, 0.08]),
+    ("RADIAL", [100.0, 30.0, 20.0, 0.08, -0.03]),
+    ("OPENCV", [100.0, 90.0, 30.0, 20.0, 0.08, -0.03, 0.002, -0.001]),
+])
+def test_colmap_camera_models_match_colmap_equations(rng, model, params):
+    """Projection of normalised points with COLMAP's own model equations (written out
+    here) equals pinhole intrinsics + OpenCV distortion from ``pinhole_and_distortion``."""
+    from llrmpp_jax.data.distortion import distort_pixels
+    from llrmpp_jax.data.formats.colmap import ColmapCamera
+
+    p = np.array(params)
+    xy = rng.uniform(-0.3, 0.3, size=(20, 2))
+    u, v = xy[:, 0], xy[:, 1]
+    r2 = u * u + v * v
+    if model == "SIMPLE_PINHOLE":
+        expect = np.stack([p[0] * u + p[1], p[0] * v + p[2]], 1)
+    elif model == "PINHOLE":
+        expect = np.stack([p[0] * u + p[2], p[1] * v + p[3]], 1)
+    elif model == "SIMPLE_RADIAL":
+        expect = np.stack([p[0] * u * (1 + p[3] * r2) + p[1], p[0] * v * (1 + p[3] * r2) + p[2]], 1)
+    elif model == "RADIAL":
+        rad = 1 + p[3] * r2 + p[4] * r2 * r2
+        expect = np.stack([p[0] * u * rad + p[1], p[0] * v * rad + p[2]], 1)
+    else:
+        k1, k2, p1, p2 = p[4:]
+        rad = 1 + k1 * r2 + k2 * r2 * r2
+        du = 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+        dv = 2 * p2 * u * v + p1 * (r2 + 2 * v * v)
+        expect = np.stack([p[0] * (u * rad + du) + p[2], p[1] * (v * rad + dv) + p[3]], 1)
+    k, dist = ColmapCamera(1, model, 64, 48, p).pinhole_and_distortion()
+    pinhole = xy * k[:2] + k[2:]
+    np.testing.assert_allclose(distort_pixels(pinhole, k, dist), expect, atol=1e-10)
+
+
+def test_subset_reindexes_loaders(source):
+    sub = source.subset([3, 1])
+    np.testing.assert_array_equal(sub.image(0), source.image(3))
+    np.testing.assert_array_equal(sub.depth(1), source.depth(1))
+    np.testing.assert_array_equal(sub.c2w, source.c2w[[3, 1]])
+    with pytest.raises(ValueError, match=r"subset indices"):
+        source.subset([4])

@@ -88,7 +88,9 @@ class BatchConfig:
 
     ``min_span`` / ``max_span``: training window length in frames (None = whole scene;
     Long-LRM stages 1-2 use 64-128). ``input_weight``: target-draw weight of input frames
-    (Long-LRM++: 0.1). ``scene_scale``: Long-LRM's ``data.scene_scale``.
+    (Long-LRM++: 0.1). ``reverse_prob`` / ``shuffle_prob``: Long-LRM's input-order
+    augmentations (0.5 each in its configs; 0 = keep the sorted order).
+    ``scene_scale``: Long-LRM's ``data.scene_scale``.
     """
 
     global_batch: int
@@ -98,6 +100,8 @@ class BatchConfig:
     min_span: int | None = None
     max_span: int | None = None
     input_weight: float = 0.1
+    reverse_prob: float = 0.0
+    shuffle_prob: float = 0.0
     with_depth: bool = False
     scene_scale: float = 1.0
     max_attempts: int = 16
@@ -109,6 +113,11 @@ def build_sample(source: SceneSource, cfg: BatchConfig, rng: np.random.Generator
     inputs, targets = training_views(
         rng, len(scene), cfg.num_inputs, cfg.num_targets, cfg.min_span, cfg.max_span, cfg.input_weight
     )
+    # Draw only for enabled augmentations, so the default stream does not depend on them.
+    if cfg.reverse_prob > 0 and rng.random() < cfg.reverse_prob:
+        inputs = inputs[::-1]
+    if cfg.shuffle_prob > 0 and rng.random() < cfg.shuffle_prob:
+        inputs = rng.permutation(inputs)
     return make_sample(scene, inputs, targets, cfg.geometry, rng=rng, with_depth=cfg.with_depth, scene_scale=cfg.scene_scale)
 
 
