@@ -4,10 +4,10 @@ All three functions map continuous image coordinates exactly as the intrinsics h
 :mod:`llrmpp_jax.geometry` assume: resizing (H, W) -> (H', W') maps the image extent onto
 the new extent, so pixel centre ``x`` moves to ``x * W'/W``.
 
-* :func:`resize_image` -- separable: Gaussian anti-aliasing prefilter when shrinking
-  (``sigma = (scale - 1) / 2``, scikit-image's choice) centred on the input pixels, then
-  linear interpolation at the mapped centres. Both steps reproduce linear functions
-  exactly, so image content moves exactly as the intrinsics say (OpenImageIO's and
+* :func:`resize_image` -- separable: when shrinking a lot, first averages of whole groups
+  of k pixels (k dividing the side); then a Gaussian anti-aliasing prefilter
+  (``sigma = (scale - 1) / 2``, scikit-image's choice) centred on the pixels, then linear
+  interpolation at the mapped centres. Every step reproduces linear functions exactly, so image content moves exactly as the intrinsics say (OpenImageIO's and
   similar windowed filters shift content by up to ~0.4 px when the scale is not an integer).
 * :func:`resize_depth` -- nearest sample (never blends depths across an occlusion edge).
 * :func:`remap` -- sample at arbitrary continuous coordinates (SciPy ``map_coordinates``),
@@ -22,10 +22,28 @@ import scipy.ndimage
 from llrmpp_jax.array_typing import Float
 
 
+def _box_reduce(x: np.ndarray, factor: int, axis: int) -> np.ndarray:
+    """Average non-overlapping groups of ``factor`` pixels along ``axis`` (which it divides):
+    output centre j + 0.5 is input position (j + 0.5) * factor, exactly as a resize maps it."""
+    shape = x.shape[:axis] + (x.shape[axis] // factor, factor) + x.shape[axis + 1 :]
+    groups = x.reshape(shape)
+    pick = [slice(None)] * len(shape)
+    total = np.zeros(shape[: axis + 1] + shape[axis + 2 :], dtype=np.float32)
+    for j in range(factor):  # strided adds: much faster than mean() over a short middle axis
+        pick[axis + 1] = j
+        total += groups[tuple(pick)]
+    return total * np.float32(1.0 / factor)
+
+
 def _resize_axis(x: np.ndarray, n_out: int, axis: int) -> np.ndarray:
     n_in = x.shape[axis]
     if n_in == n_out:
         return x
+    # Large reductions: first average exact groups of k pixels (cheap, and the Gaussian
+    # that follows becomes narrow); k divides the length so no content moves.
+    k = next((k for k in range(int(n_in / n_out / 2), 1, -1) if n_in % k == 0), 1)
+    if k > 1:
+        x, n_in = _box_reduce(x, k, axis), n_in // k
     scale = n_in / n_out
     if scale > 1:
         x = scipy.ndimage.gaussian_filter1d(x, sigma=(scale - 1) / 2, axis=axis, mode="nearest")
