@@ -1,0 +1,151 @@
+"""The Gaussian head: backbone tokens -> a set of 3D Gaussians (feature or colour).
+
+Feature mode (Long-LRM++, paper §3.2): each image token predicts K Gaussians through a
+bias-free LayerNorm + linear. Per Gaussian, channels in this order:
+``[feature F | offset 2 | distance 1 | quaternion 4 (wxyz) | opacity 1 | log-scale 3]``.
+The centre is ``o + distance * d`` where ``d`` is the unit ray of the token's view through
+the pixel position ``patch centre + offset``; ``offset = offset_scale * tanh(raw) * p``
+pixels (bounded so a Gaussian stays near its patch; our choice, the paper leaves it open).
+
+Colour mode (Long-LRM, facts §1.6): the head predicts ``p_out**2`` Gaussians per token, one
+per pixel, channels ``[xyz 3 | SH (deg+1)^2*3 | log-scale 3 | quaternion 4 | opacity 1]``;
+the distance is ``sigmoid(mean(xyz_raw)) * max_dist`` along the pixel's own ray (centre
+``+0.5``), SH coefficients are used raw (gsplat adds 0.5 when evaluating).
+
+Activations (both modes, Long-LRM defaults): distance ``sigmoid(raw) * max_dist``,
+log-scale ``min(raw + scale_bias, scale_max)`` (hard clamp, zero gradient above),
+opacity ``sigmoid(raw + opacity_bias)``, quaternion normalised (a zero quaternion maps
+to the identity rotation).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.config import GaussianHeadConfig
+from llrmpp_jax.geometry import rays_through_pixels
+from llrmpp_jax.nn.norms import LayerNorm
+
+
+class Gaussians(NamedTuple):
+    """A batch of render-ready Gaussians (scene units, OpenCV world frame).
+
+    ``features`` is ``[B, N, F]`` in feature mode and the flattened SH coefficients
+    ``[B, N, (deg+1)^2 * 3]`` (coefficient-major, RGB fastest) in colour mode.
+    """
+
+    means: Float[Array, "B N 3"]
+    quats: Float[Array, "B N 4"]  # unit, wxyz
+    scales: Float[Array, "B N 3"]  # linear (exp of the clamped log-scale)
+    opacities: Float[Array, "B N"]  # in (0, 1)
+    features: Float[Array, "B N F"]
+
+
+def _channels(cfg: GaussianHeadConfig) -> int:
+    if cfg.mode == "color":
+        return 3 + 3 * (cfg.sh_degree + 1) ** 2 + 3 + 4 + 1
+    return cfg.feature_dim + 2 + 1 + 4 + 1 + 3
+
+
+def gaussians_per_token(cfg: GaussianHeadConfig, token_stride: int) -> int:
+    """K: Gaussians per token (one per pixel of the token's patch in colour mode)."""
+    return token_stride**2 if cfg.mode == "color" else cfg.gaussians_per_token
+
+
+def _unit_quat(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    n2 = jnp.sum(jnp.square(q), axis=-1, keepdims=True)
+    ident = jnp.zeros_like(q).at[..., 0].set(1.0)
+    safe = jnp.where(n2 > 1e-24, q, ident)
+    return safe * jax.lax.rsqrt(jnp.sum(jnp.square(safe), axis=-1, keepdims=True))
+
+
+def decode_gaussians(
+    raw: Float[Array, "B V h w K C"],
+    c2w: Float[Array, "B V 4 4"],
+    intrinsics: Float[Array, "B V 4"],
+    token_stride: int,
+    cfg: GaussianHeadConfig,
+) -> Gaussians:
+    """Turn raw head outputs into Gaussians (pure; the activations listed in the module doc).
+
+    ``token_stride`` is the pixel size of one token (p, or p * 2^merges for Long-LRM).
+    In colour mode ``K == token_stride**2``, Gaussian ``k`` of a token sits on pixel
+    ``(k // token_stride, k % token_stride)`` of its patch, and the output is in pixel
+    raster order (view, row, column); in feature mode the order is (view, token row,
+    token column, k).
+    """
+    b, v, h, w, k, _ = raw.shape
+    s = token_stride
+    # Patch top-left corners in pixels, shaped [1, 1, h, w, 1] to meet [B, V, h, w, K].
+    rows = (jnp.arange(h, dtype=raw.dtype) * s).reshape(1, 1, h, 1, 1)
+    cols = (jnp.arange(w, dtype=raw.dtype) * s).reshape(1, 1, 1, w, 1)
+    if cfg.mode == "color":
+        nsh = 3 * (cfg.sh_degree + 1) ** 2
+        xyz, feat, logs, quat, opac = jnp.split(raw, [3, 3 + nsh, 6 + nsh, 10 + nsh], axis=-1)
+        dist_raw = jnp.mean(xyz, axis=-1)
+        sub = jnp.arange(k, dtype=raw.dtype).reshape(1, 1, 1, 1, k)
+        u = jnp.broadcast_to(cols + sub % s + 0.5, (b, v, h, w, k))  # pixel centres
+        vv = jnp.broadcast_to(rows + sub // s + 0.5, (b, v, h, w, k))
+    else:
+        f = cfg.feature_dim
+        feat, off, dist_raw, quat, opac, logs = jnp.split(
+            raw, [f, f + 2, f + 3, f + 7, f + 8], axis=-1
+        )
+        dist_raw = dist_raw[..., 0]
+        off = cfg.offset_scale * s * jnp.tanh(off)
+        u = cols + s / 2 + off[..., 0]
+        vv = rows + s / 2 + off[..., 1]
+    uv = jnp.stack([u, vv], axis=-1)  # [B, V, h, w, K, 2]
+    cam = lambda a: a[:, :, None, None, None]  # noqa: E731  broadcast cameras over h, w, K
+    origins, dirs = rays_through_pixels(cam(c2w), cam(intrinsics), uv)
+    dist = jax.nn.sigmoid(dist_raw) * cfg.max_dist
+    means = origins + dist[..., None] * dirs
+    log_scale = jnp.minimum(logs + cfg.scale_bias, cfg.scale_max)
+    n = v * h * w * k
+
+    def flat(a: Array) -> Array:  # [B, V, h, w, K, C] -> [B, N, C]
+        if cfg.mode == "color":  # pixel raster order (v, row, col), as Long-LRM's unpatchify
+            a = a.reshape(b, v, h, w, s, s, -1).transpose(0, 1, 2, 4, 3, 5, 6)
+        return a.reshape(b, n, -1)
+
+    return Gaussians(
+        means=flat(means),
+        quats=flat(_unit_quat(quat)),
+        scales=flat(jnp.exp(log_scale)),
+        opacities=flat(jax.nn.sigmoid(opac + cfg.opacity_bias))[..., 0],
+        features=flat(feat),
+    )
+
+
+class GaussianHead(nn.Module):
+    """Bias-free LayerNorm + bias-free linear per token -> :func:`decode_gaussians`.
+
+    Parameter names mirror Long-LRM's ``tokenDecoder`` (``norm`` = index 0, ``proj`` = 1).
+    """
+
+    cfg: GaussianHeadConfig
+    token_stride: int
+
+    @nn.compact
+    def __call__(
+        self,
+        tokens: Float[Array, "B L D"],
+        grid: tuple[int, int],
+        c2w: Float[Array, "B V 4 4"],
+        intrinsics: Float[Array, "B V 4"],
+    ) -> Gaussians:
+        b, l, d = tokens.shape
+        h, w = grid
+        v = c2w.shape[1]
+        if l != v * h * w:
+            raise ValueError(f"GaussianHead: {l} tokens != V*h*w = {v}*{h}*{w} from cameras and grid")
+        k = gaussians_per_token(self.cfg, self.token_stride)
+        x = LayerNorm(name="norm")(tokens)
+        raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj",
+                       kernel_init=nn.initializers.normal(0.02))(x)
+        return decode_gaussians(raw.reshape(b, v, h, w, k, -1), c2w, intrinsics, self.token_stride, self.cfg)

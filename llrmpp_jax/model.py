@@ -1,0 +1,154 @@
+"""Long-LRM++: images + cameras -> Gaussians -> RGB or depth at any target camera.
+
+The pure API (``cfg`` is a static :class:`~llrmpp_jax.config.ModelConfig`):
+
+* :func:`init_params` -- parameters for ``V`` input views of ``H x W``.
+* :func:`reconstruct` -- ``(params, images, c2w, intrinsics) -> Gaussians`` (paper §3.1-3.2).
+* :func:`render` -- ``(params, gaussians, target cameras) -> RenderOutput`` (§3.2-3.3):
+  feature mode splats the S partition copies to ``(H/r, W/r)`` canvases and decodes them;
+  colour mode (Long-LRM) splats SH colours directly over ``cfg.background``.
+
+Cameras are OpenCV c2w ``[..., 4, 4]`` and pixel intrinsics ``[..., 4]`` = (fx, fy, cx, cy),
+in the normalised scene frame (see ``geometry.normalize_scene``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.decoder import TargetDecoder, partition_opacities
+from llrmpp_jax.gaussians import GaussianHead, Gaussians
+from llrmpp_jax.geometry import pixel_rays, plucker
+from llrmpp_jax.nn.backbone import Backbone
+from llrmpp_jax.splat import render_feature_copies, render_sh
+
+
+class RenderOutput(NamedTuple):
+    images: dict[str, Float[Array, "B T H W C"]]  # "rgb" [.., 3] and/or "depth" [.., 1]
+    dropped: Array  # int32 [B]: Gaussian-tile intersections dropped by the splatter's capacity (0 = exact)
+
+
+def input_features(
+    images: Float[Array, "B V H W 3"], c2w: Float[Array, "B V 4 4"], intrinsics: Float[Array, "B V 4"]
+) -> Float[Array, "B V H W 9"]:
+    """Per-pixel ``[rgb*2-1, o x d, d]`` (Long-LRM / LVSM order; d through pixel centres)."""
+    h, w = images.shape[2:4]
+    o, d = pixel_rays(c2w, intrinsics, h, w)
+    return jnp.concatenate([images * 2.0 - 1.0, plucker(o, d)], axis=-1)
+
+
+def _check_views(images, c2w, intrinsics) -> None:
+    if images.ndim != 5 or images.shape[-1] != 3:
+        raise ValueError(f"images must be [B, V, H, W, 3], got shape {images.shape}")
+    b, v = images.shape[:2]
+    if c2w.shape != (b, v, 4, 4):
+        raise ValueError(f"c2w must be [B, V, 4, 4] = {(b, v, 4, 4)} to match images, got {c2w.shape}")
+    if intrinsics.shape != (b, v, 4):
+        raise ValueError(f"intrinsics must be [B, V, 4] = {(b, v, 4)} to match images, got {intrinsics.shape}")
+
+
+class LongLRMPP(nn.Module):
+    """Parameter holder; the maths lives in the pure functions of each submodule."""
+
+    cfg: ModelConfig
+
+    def setup(self) -> None:
+        cfg = self.cfg
+        self.backbone = Backbone(cfg.backbone, cfg.patch_size)
+        self.head = GaussianHead(cfg.head, cfg.token_stride)
+        if cfg.head.mode == "feature":
+            self.partition = nn.Dense(cfg.decoder.partitions, use_bias=False,
+                                      kernel_init=nn.initializers.normal(0.02))
+            self.decoder = TargetDecoder(cfg.decoder)
+
+    def reconstruct(self, images, c2w, intrinsics) -> Gaussians:
+        out = self.backbone(input_features(images, c2w, intrinsics))
+        return self.head(out.tokens, out.grid, c2w, intrinsics)
+
+    def render(self, gaussians: Gaussians, c2w, intrinsics, height: int, width: int,
+               outputs: tuple[str, ...]) -> RenderOutput:
+        cfg = self.cfg
+        per_target = lambda f: jax.vmap(jax.vmap(f, (None, 0, 0)), (0, 0, 0))  # noqa: E731  over B, T
+        if cfg.head.mode == "color":
+            if outputs != ("rgb",):
+                raise ValueError(f"colour mode renders only ('rgb',), asked for {outputs}")
+            bg = jnp.asarray(cfg.background, jnp.float32)
+
+            def one(g, cam, k):
+                rgb, out = render_sh(g.means, g.quats, g.scales, g.opacities,
+                                     g.features.reshape(g.features.shape[0], -1, 3),
+                                     cam, k, height, width, cfg.splat, bg)
+                return rgb, out.stats.num_dropped
+
+            rgb, dropped = per_target(one)(gaussians, c2w, intrinsics)
+            return RenderOutput({"rgb": rgb}, jnp.sum(dropped, axis=1))
+
+        r = cfg.decoder.canvas_ratio
+        if height % cfg.decoder.token_stride or width % cfg.decoder.token_stride:
+            raise ValueError(f"target size {height}x{width} must be a multiple of {cfg.decoder.token_stride}")
+        hc, wc = height // r, width // r
+        copies = jax.vmap(partition_opacities)(gaussians.opacities, self.partition(gaussians.features))
+
+        def one(g, opac_s, cam, k):  # one scene, one target camera, all S copies
+            out = render_feature_copies(g.means, g.quats, g.scales, opac_s, g.features,
+                                        cam, k / r, hc, wc, cfg.splat)
+            return out.features, out.stats.num_dropped
+
+        canvas, dropped = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, 0, 0))(
+            gaussians, copies, c2w, intrinsics)  # [B, T, S, hc, wc, F]
+        b, t, s = canvas.shape[:3]
+        rays = plucker(*pixel_rays(c2w, intrinsics / r, hc, wc))  # [B, T, hc, wc, 6]
+        rays = jnp.broadcast_to(rays[:, :, None], (b, t, s, hc, wc, 6)).astype(canvas.dtype)
+        canvas = jnp.concatenate([canvas, rays], axis=-1)
+        images = self.decoder(canvas.reshape(b * t, s, hc, wc, -1), outputs)
+        images = {k: v.reshape(b, t, height, width, -1) for k, v in images.items()}
+        return RenderOutput(images, jnp.sum(dropped, axis=1))
+
+    def __call__(self, images, c2w, intrinsics, target_c2w, target_intrinsics,
+                 outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
+        g = self.reconstruct(images, c2w, intrinsics)
+        return self.render(g, target_c2w, target_intrinsics, images.shape[2], images.shape[3], outputs)
+
+
+def init_params(key: KeyArray, cfg: ModelConfig, num_views: int, height: int, width: int,
+                num_targets: int = 1) -> dict:
+    """Parameters for the model (every output head of ``cfg.outputs`` included).
+
+    Runs one jitted forward pass on a dummy scene (Flax initialises lazily); wrap the call
+    in ``jax.eval_shape`` to get shapes only.
+    """
+    images = jnp.full((1, num_views, height, width, 3), 0.5, jnp.float32)
+    eye = jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (1, num_views, 4, 4))
+    intr = jnp.broadcast_to(jnp.array([width, width, width / 2, height / 2], jnp.float32), (1, num_views, 4))
+
+    def init(k):
+        return LongLRMPP(cfg).init(k, images, eye, intr, eye[:, :num_targets], intr[:, :num_targets],
+                                   cfg.outputs)["params"]
+
+    return jax.jit(init)(key)
+
+
+def reconstruct(params: dict, cfg: ModelConfig, images: Float[Array, "B V H W 3"],
+                c2w: Float[Array, "B V 4 4"], intrinsics: Float[Array, "B V 4"]) -> Gaussians:
+    """Images in [0, 1] + input cameras -> Gaussians (``N = V * h * w * K`` per scene)."""
+    _check_views(images, c2w, intrinsics)
+    return LongLRMPP(cfg).apply({"params": params}, images, c2w, intrinsics, method="reconstruct")
+
+
+def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Array, "B T 4 4"],
+           intrinsics: Float[Array, "B T 4"], height: int, width: int,
+           outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
+    """Render ``outputs`` ("rgb" and/or "depth") at T target cameras of size ``height x width``."""
+    b = gaussians.means.shape[0]
+    if c2w.ndim != 4 or c2w.shape[0] != b or c2w.shape[2:] != (4, 4):
+        raise ValueError(f"target c2w must be [B={b}, T, 4, 4], got {c2w.shape}")
+    if intrinsics.shape != (*c2w.shape[:2], 4):
+        raise ValueError(f"target intrinsics must be {(*c2w.shape[:2], 4)}, got {intrinsics.shape}")
+    return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
+                                tuple(outputs), method="render")

@@ -1,0 +1,156 @@
+"""The input-processing backbone: tokenizer, global tokens, a Mamba2/transformer stack.
+
+Long-LRM++ (paper §3.1): patchify (p=8) -> bias-free linear to D -> two learned global
+tokens prepended -> bias-free LayerNorm -> 24 blocks ``{1T7M}x3``. Long-LRM (the
+predecessor) additionally merges tokens once (before block 8) with a grouped 2x2
+stride-2 convolution on the image tokens and a linear on the global tokens; that path
+is kept so official Long-LRM checkpoints convert and run.
+
+Token order is view-major, then row-major over patches, global tokens first (the
+bidirectional Mamba2 scans this order forwards and backwards).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.config import BackboneConfig
+from llrmpp_jax.nn.mamba2 import Mamba2Block
+from llrmpp_jax.nn.norms import LayerNorm
+from llrmpp_jax.nn.patchify import patchify
+from llrmpp_jax.nn.transformer import TransformerBlock
+
+_GROUP = re.compile(r"\{([^{}]*)\}x(\d+)")
+_RUN = re.compile(r"(\d*)([A-Za-z])")
+
+
+def parse_block_pattern(pattern: str, allowed: str, num_layers: int | None = None) -> str:
+    """Expand a block pattern into one upper-case letter per block.
+
+    ``"{1T7M}x3"`` -> ``"TMMMMMMM" * 3``; ``"2L3G"`` -> ``"LLGGG"``; a plain string such
+    as Long-LRM's ``"mmmmmmmt"`` is upper-cased and, when ``num_layers`` is given and the
+    expansion is shorter, tiled to that length (Long-LRM's rule). ``allowed`` lists the
+    legal letters, e.g. ``"TM"``.
+    """
+    expanded = _GROUP.sub(lambda m: m.group(1) * int(m.group(2)), pattern.replace(" ", ""))
+    out, pos = [], 0
+    for m in _RUN.finditer(expanded):
+        if m.start() != pos:
+            break
+        out.append(m.group(2).upper() * (int(m.group(1)) if m.group(1) else 1))
+        pos = m.end()
+    layout = "".join(out)
+    if pos != len(expanded) or not layout:
+        raise ValueError(f"block pattern {pattern!r}: cannot parse near {expanded[pos:]!r}")
+    bad = sorted(set(layout) - set(allowed.upper()))
+    if bad:
+        raise ValueError(f"block pattern {pattern!r}: letters {bad} not in {allowed!r}")
+    if num_layers is not None:
+        if len(layout) > num_layers:
+            raise ValueError(
+                f"block pattern {pattern!r} expands to {len(layout)} blocks > num_layers={num_layers}"
+            )
+        layout = (layout * (num_layers // len(layout) + 1))[:num_layers]
+    return layout
+
+
+class TokenMerge(nn.Module):
+    """Long-LRM token merge: 2x2 stride-2 grouped conv (groups = d_in) + linear for globals.
+
+    Output channel ``o`` reads input channel ``o // (d_out // d_in)``, as PyTorch's
+    ``Conv2d(groups=d_in)``; parameter layout matches the converter's ``conv2d`` rule.
+    """
+
+    d_in: int
+    d_out: int
+
+    @nn.compact
+    def __call__(
+        self,
+        global_tokens: Float[Array, "B G Din"],
+        tokens: Float[Array, "B L Din"],
+        views: int,
+        grid: tuple[int, int],
+    ) -> tuple[Float[Array, "B G Dout"], Float[Array, "B Lm Dout"], tuple[int, int]]:
+        h, w = grid
+        if h % 2 or w % 2:
+            raise ValueError(f"TokenMerge: token grid {grid} must have even sides")
+        b = tokens.shape[0]
+        g = nn.Dense(self.d_out, name="resize")(global_tokens)
+        img = tokens.reshape(b * views, h, w, self.d_in)
+        img = nn.Conv(
+            self.d_out, (2, 2), strides=(2, 2), padding="VALID",
+            feature_group_count=self.d_in, name="conv",
+        )(img)
+        return g, img.reshape(b, views * (h // 2) * (w // 2), self.d_out), (h // 2, w // 2)
+
+
+class BackboneOutput(NamedTuple):
+    global_tokens: Float[Array, "B G D"]
+    tokens: Float[Array, "B L D"]  # L = V*h*w, view-major then row-major
+    grid: tuple[int, int]  # (h, w) of the final token grid per view
+
+
+class Backbone(nn.Module):
+    """Tokenizer + global tokens + block stack.
+
+    ``__call__(pixels)`` takes per-pixel input features ``[B, V, H, W, C]`` (C=9 for
+    ``[rgb*2-1, o x d, d]``) with H, W multiples of ``patch_size`` (times 2 per merge).
+    """
+
+    cfg: BackboneConfig
+    patch_size: int
+
+    def layout(self) -> str:
+        return parse_block_pattern(self.cfg.pattern, "TM", self.cfg.num_layers)
+
+    @nn.compact
+    def __call__(self, pixels: Float[Array, "B V H W C"]) -> BackboneOutput:
+        cfg, p = self.cfg, self.patch_size
+        if pixels.ndim != 5:
+            raise ValueError(f"Backbone: pixels must be [B, V, H, W, C], got shape {pixels.shape}")
+        b, v, hh, ww, _ = pixels.shape
+        mult = p * 2 ** len(cfg.merge_layers)
+        if hh % mult or ww % mult:
+            raise ValueError(
+                f"Backbone: image size {hh}x{ww} must be a multiple of {mult} "
+                f"(patch {p} x 2^{len(cfg.merge_layers)} merges)"
+            )
+        grid = (hh // p, ww // p)
+        x = nn.Dense(cfg.dims[0], use_bias=False, name="tokenizer")(patchify(pixels, p))
+        g = self.param(
+            "global_tokens",
+            nn.initializers.truncated_normal(0.02),
+            (cfg.num_global_tokens, cfg.dims[0]),
+        )
+        x = jnp.concatenate([jnp.broadcast_to(g[None].astype(x.dtype), (b, *g.shape)), x], axis=1)
+        x = LayerNorm(name="input_norm")(x)
+
+        mamba_cls = nn.remat(Mamba2Block) if cfg.remat else Mamba2Block
+        attn_cls = nn.remat(TransformerBlock) if cfg.remat else TransformerBlock
+        stage, ng = 0, cfg.num_global_tokens
+        for i, kind in enumerate(self.layout()):
+            if i in cfg.merge_layers:
+                gt, it, grid = TokenMerge(cfg.dims[stage], cfg.dims[stage + 1], name=f"merge_{stage}")(
+                    x[:, :ng], x[:, ng:], v, grid
+                )
+                x = jnp.concatenate([gt, it], axis=1)
+                stage += 1
+            d = cfg.dims[stage]
+            if kind == "M":
+                x = mamba_cls(d_model=d, cfg=cfg.mamba, name=f"blocks_{i}")(x)
+            else:
+                x = attn_cls(dim=d, cfg=cfg.transformer, attention="global", name=f"blocks_{i}")(x)
+        return BackboneOutput(x[:, :ng], x[:, ng:], grid)
+
+
+def count_params(params) -> int:
+    """Number of scalars in a parameter pytree (works on ``jax.eval_shape`` output)."""
+    return sum(math.prod(leaf.shape) for leaf in jax.tree.leaves(params))
