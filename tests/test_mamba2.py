@@ -119,7 +119,9 @@ def test_block_matches_golden_fixture():
         _assert_golden(name, ours, z[name], f32_err[name]["max_abs_diff"])
 
 
-@pytest.mark.parametrize("block, input_key", [(0, "processor_input"), (1, "block0_out"), (3, "merge_out"), (4, "block3_out")])
+@pytest.mark.parametrize(
+    "block, input_key", [(0, "processor_input"), (1, "block0_out"), (3, "merge_out"), (4, "block3_out")]
+)
 def test_backbone_blocks_match_golden(block, input_key):
     """outputs.npz Mamba blocks (headdim 16, d_state 16) given the previous block's output;
     blocks 3/4 run at d_model 64 after the merge. Chunk 8 pads L = 50 -> 56 and 14 -> 16."""
@@ -135,6 +137,19 @@ def test_backbone_blocks_match_golden(block, input_key):
         _assert_golden(key, ours, out[key], f32_err[key]["max_abs_diff"])
 
 
+def test_block_bf16_activations_track_golden():
+    """bf16 activations (float32 params, float32 accumulation): the output stays within
+    bf16 rounding of the float64 golden, 2e-2 * max|golden|."""
+    z = np.load(shared_path("golden", "long_lrm_tiny", "mamba2_block.npz"))
+    cfg = Mamba2Config(d_state=16, headdim=64, chunk_size=8)
+    x = jnp.asarray(z["input"], jnp.bfloat16)
+    module, params = _load_block(z, "", 64, cfg, x)
+    out = jax.jit(module.apply)({"params": params}, x)
+    assert out.dtype == jnp.bfloat16
+    err = np.abs(np.asarray(out.astype(jnp.float32), np.float64) - z["output"]).max()
+    assert err <= 2e-2 * np.abs(z["output"]).max()
+
+
 def test_rules_with_named_group_prefix():
     """A backbone-style table (``processor.blocks.{i}.`` -> ``blocks_{i}/``) converts all four
     Mamba blocks of state_dict.npz at once, each leaf equal to the transformed tensor."""
@@ -143,20 +158,22 @@ def test_rules_with_named_group_prefix():
     mamba_keys = tuple(f"processor.blocks.{i}.{part}" for i in (0, 1, 3, 4) for part in ("norm.", "mamba."))
     params = convert_state_dict(sd, rules, keep_prefixes=mamba_keys)
     assert sorted(params) == ["blocks_0", "blocks_1", "blocks_3", "blocks_4"]
-    blk = params["blocks_3"]
-    np.testing.assert_array_equal(blk["in_proj"]["kernel"], sd["processor.blocks.3.mamba.in_proj.weight"].T)
-    np.testing.assert_array_equal(
-        blk["mamba_scans_1"]["conv_kernel"], sd["processor.blocks.3.mamba.mamba_scans.1.conv1d.weight"][:, 0].T
-    )
-    np.testing.assert_array_equal(blk["mamba_scans_0"]["A_log"], sd["processor.blocks.3.mamba.mamba_scans.0.A_log"])
-    np.testing.assert_array_equal(blk["mamba_scans_0"]["norm_scale"], sd["processor.blocks.3.mamba.mamba_scans.0.norm.weight"])
+    blk, torch_key = params["blocks_3"], "processor.blocks.3.mamba.{}".format
+    np.testing.assert_array_equal(blk["in_proj"]["kernel"], sd[torch_key("in_proj.weight")].T)
+    conv_w = sd[torch_key("mamba_scans.1.conv1d.weight")]
+    np.testing.assert_array_equal(blk["mamba_scans_1"]["conv_kernel"], conv_w[:, 0].T)
+    np.testing.assert_array_equal(blk["mamba_scans_0"]["A_log"], sd[torch_key("mamba_scans.0.A_log")])
+    norm_w = sd[torch_key("mamba_scans.0.norm.weight")]
+    np.testing.assert_array_equal(blk["mamba_scans_0"]["norm_scale"], norm_w)
 
 
 def test_unidirectional_block_is_forward_half_of_golden():
     """bidirectional=False: x + out_proj(scan0), with scan0 and out_proj from the golden fixture."""
     z = np.load(shared_path("golden", "long_lrm_tiny", "mamba2_block.npz"))
     cfg = Mamba2Config(d_state=16, headdim=64, chunk_size=8, bidirectional=False)
-    forward_only = {k: z[k] for k in z.files if "mamba_scans.1." not in k and k.startswith(("norm.", "mamba."))}
+    forward_only = {
+        k: z[k] for k in z.files if "mamba_scans.1." not in k and k.startswith(("norm.", "mamba."))
+    }
     module = Mamba2Block(d_model=64, cfg=cfg)
     x = jnp.asarray(z["input"], jnp.float32)
     expected = jax.eval_shape(module.init, jax.random.key(0), x)["params"]
@@ -170,7 +187,8 @@ def test_unidirectional_block_is_forward_half_of_golden():
 def test_parameter_count_matches_long_lrm(d_model, count):
     """Measured Long-LRM Mamba block sizes (facts §1.1), d_state 256, headdim 64."""
     module = Mamba2Block(d_model=d_model, cfg=Mamba2Config())
-    shapes = jax.eval_shape(module.init, jax.random.key(0), jax.ShapeDtypeStruct((1, 8, d_model), jnp.float32))
+    x = jax.ShapeDtypeStruct((1, 8, d_model), jnp.float32)
+    shapes = jax.eval_shape(module.init, jax.random.key(0), x)
     assert sum(int(np.prod(s.shape)) for s in jax.tree_util.tree_leaves(shapes)) == count
 
 
@@ -182,9 +200,16 @@ def test_init_distributions(key):
     p = jax.tree_util.tree_map(np.asarray, jax.jit(init_mamba2_params, static_argnums=(1, 2))(key, d, cfg))
     scan = p["mamba_scans_0"]
     dt = np.log(np.logaddexp(0.0, scan["dt_bias"].astype(np.float64)))
-    assert scipy.stats.kstest(dt, scipy.stats.uniform(np.log(1e-3), np.log(1e-1) - np.log(1e-3)).cdf).pvalue > 1e-3
+    log_uniform = scipy.stats.uniform(np.log(1e-3), np.log(1e-1) - np.log(1e-3))
+    assert scipy.stats.kstest(dt, log_uniform.cdf).pvalue > 1e-3
     assert scipy.stats.kstest(np.exp(scan["A_log"]), scipy.stats.uniform(1, 15).cdf).pvalue > 1e-3
-    for w, fan_in in [(p["in_proj"]["kernel"], d), (p["out_proj"]["kernel"], 2 * d), (scan["conv_kernel"], 4), (scan["conv_bias"], 4)]:
+    fans = [
+        (p["in_proj"]["kernel"], d),
+        (p["out_proj"]["kernel"], 2 * d),
+        (scan["conv_kernel"], 4),
+        (scan["conv_bias"], 4),
+    ]
+    for w, fan_in in fans:
         bound = fan_in**-0.5
         assert scipy.stats.kstest(w.ravel()[:20000], scipy.stats.uniform(-bound, 2 * bound).cdf).pvalue > 1e-3
     for ones in (scan["D"], scan["norm_scale"], p["norm"]["scale"]):

@@ -104,11 +104,12 @@ def test_chunked_matches_sequential(rng, chunk_size, methods):
         assert _rel(got, want) <= 1e-5, method
 
 
-@pytest.mark.parametrize("batch", [(), (2, 3)])
-def test_ssd_scan_groups_and_batch_dims(rng, batch):
-    """ngroups 2 (heads 0-2 read group 0, heads 3-5 group 1), no D, 0 or 2 batch dims."""
+@pytest.mark.parametrize("batch, chunk_size", [((), 32), ((2, 3), 5)])
+def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size):
+    """ngroups 2 (heads 0-2 read group 0, heads 3-5 group 1), no D, 0 or 2 batch dims;
+    chunk 32 > L = 19 is a single padded chunk."""
     x, dt, A, B, C, _ = _inputs(rng, batch, 19, 6, 4, 2, 3)
-    got = jax.jit(functools.partial(ssd_scan, chunk_size=5))(x, dt, A, B, C)
+    got = jax.jit(functools.partial(ssd_scan, chunk_size=chunk_size))(x, dt, A, B, C)
     want = _numpy_recurrence(
         x.reshape(-1, *x.shape[-3:]), dt.reshape(-1, *dt.shape[-2:]), A,
         B.reshape(-1, *B.shape[-3:]), C.reshape(-1, *C.shape[-3:]), np.zeros(6),

@@ -1,0 +1,217 @@
+"""Benchmark the SSD scans: chunked (associative / sequential inter-chunk step), dense
+inter-chunk form and the sequential reference, forward and forward+backward.
+
+Defaults are the paper's per-block sizes (D=768 -> d_inner 1536, headdim 64 -> 24 heads,
+d_state 256, chunk 256, ngroups 1, batch 1) at L in {4096, 16384, 65536}: the full sweep,
+for accelerators. On a small CPU box use the reduced preset::
+
+    python experiments/bench_scan.py --preset cpu          # ~ a few minutes on 2 cores
+    python experiments/bench_scan.py --out /tmp/scan.json  # full sweep (GPU/TPU)
+
+Writes JSON (``--out``): device, sizes, a jitted matmul's GFLOP/s measured in the same run,
+and per (L, method, pass) the median/min wall time, compile time, analytic GFLOP and
+achieved GFLOP/s (also as a fraction of the matmul rate). Runs predicted to need more
+than ``--mem-limit-gb`` of activations are skipped and recorded as such.
+
+FLOP model (multiply-add = 2 FLOP, matmuls only; elementwise work is not counted): per
+chunk of Q tokens, ``C.B`` 2*Q^2*g*n, scores@x 2*Q^2*nh*P, chunk states and state->output
+2*Q*nh*P*n each; the dense inter-chunk step adds 2*c^2*nh*P*n for c chunks. The
+sequential recurrence is counted as 6*L*nh*P*n (decay, outer product, add, read-out).
+Forward+backward is counted as 3x forward (the usual two matmuls per forward matmul).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from llrmpp_jax.nn.ssd import ssd_dense, ssd_scan, ssd_sequential
+
+# name -> f(x, dt, A, B, C, D, chunk_size)
+METHODS = {
+    "chunked": lambda x, dt, A, B, C, D, Q: ssd_scan(x, dt, A, B, C, chunk_size=Q, D=D),
+    "chunked_scan_states": lambda x, dt, A, B, C, D, Q: ssd_scan(
+        x, dt, A, B, C, chunk_size=Q, D=D, inter_chunk="sequential"
+    ),
+    "dense": lambda x, dt, A, B, C, D, Q: ssd_dense(x, dt, A, B, C, chunk_size=Q, D=D),
+    "sequential": lambda x, dt, A, B, C, D, Q: ssd_sequential(x, dt, A, B, C, D=D),
+}
+PRESETS = {
+    "full": dict(lengths=[4096, 16384, 65536], repeats=5, mem_limit_gb=60.0, matmul_n=8192),
+    # 2-core CPU: paper widths, the two shorter lengths, sequential forward only at 4096.
+    "cpu": dict(lengths=[4096, 16384], repeats=2, mem_limit_gb=3.0, matmul_n=2048),
+}
+
+
+def _flops(method: str, L: int, b: int, nh: int, P: int, g: int, n: int, Q: int) -> float:
+    """Analytic forward matmul FLOPs (see module docstring)."""
+    if method == "sequential":
+        return 6.0 * b * L * nh * P * n
+    c = -(-L // Q)
+    per_chunk = 2 * Q * Q * g * n + 2 * Q * Q * nh * P + 2 * 2 * Q * nh * P * n
+    total = b * c * per_chunk
+    if method == "dense":
+        total += b * 2.0 * c * c * nh * P * n
+    return float(total)
+
+
+def _activation_bytes(
+    method: str, backward: bool, L: int, b: int, nh: int, P: int, g: int, n: int, Q: int
+) -> float:
+    """Rough peak activation bytes (float32) used to skip runs that cannot fit."""
+    c = -(-L // Q)
+    if method == "sequential":
+        # the backward of lax.scan keeps one [nh, P, n] state per time step
+        return 4.0 * b * (L * nh * P * n if backward else 4 * nh * P * n + 4 * L * nh * P)
+    # decay, scores (and their cotangents) [c, nh, Q, Q]; states [c, nh, P, n] (x log c levels
+    # in the associative scan's backward)
+    quad = b * c * nh * Q * Q
+    states = b * c * nh * P * n * (2 + (np.log2(max(c, 2)) if backward else 0))
+    return 4.0 * (quad * (4 if backward else 2) + states)
+
+
+def _time(fn, args, repeats: int) -> dict:
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(*args))  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - t0)
+    return {
+        "seconds_median": statistics.median(times),
+        "seconds_min": min(times),
+        "compile_seconds": compile_s,
+    }
+
+
+def _matmul_gflops(n: int, dtype, repeats: int) -> dict:
+    key_a, key_b = jax.random.split(jax.random.key(1))
+    a = jax.random.normal(key_a, (n, n), dtype)
+    b = jax.random.normal(key_b, (n, n), dtype)
+    t = _time(lambda x, y: x @ y, (a, b), repeats)
+    return {"n": n, **t, "gflops": 2.0 * n**3 / t["seconds_min"] / 1e9}
+
+
+def _inputs(L: int, b: int, nh: int, P: int, g: int, n: int, dtype):
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((b, L, nh, P))
+    dt = np.exp(rng.uniform(np.log(1e-3), np.log(1e-1), (b, L, nh)))
+    B = rng.standard_normal((b, L, g, n))
+    C = rng.standard_normal((b, L, g, n))
+    A = -rng.uniform(1.0, 16.0, nh).astype(np.float32)
+    cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    return cast(x), cast(dt), jnp.asarray(A), cast(B), cast(C), jnp.ones((nh,), jnp.float32)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default=os.path.join("experiments", "results", "bench_scan.json"))
+    ap.add_argument("--preset", choices=sorted(PRESETS), default="full")
+    ap.add_argument("--lengths", type=int, nargs="+", help="override the preset's sequence lengths")
+    ap.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(METHODS))
+    ap.add_argument("--d-model", type=int, default=768)
+    ap.add_argument("--expand", type=int, default=2)
+    ap.add_argument("--headdim", type=int, default=64)
+    ap.add_argument("--d-state", type=int, default=256)
+    ap.add_argument("--ngroups", type=int, default=1)
+    ap.add_argument("--chunk", type=int, default=256)
+    ap.add_argument("--batch", type=int, default=1)
+    ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
+    ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")
+    ap.add_argument("--mem-limit-gb", type=float, help="override the preset's activation budget")
+    ap.add_argument("--no-backward", action="store_true", help="forward only")
+    args = ap.parse_args()
+
+    preset = PRESETS[args.preset]
+    lengths = args.lengths or preset["lengths"]
+    repeats = args.repeats or preset["repeats"]
+    mem_limit = (args.mem_limit_gb or preset["mem_limit_gb"]) * 2**30
+    dtype = jnp.dtype(args.dtype)
+    d_inner = args.expand * args.d_model
+    nh, P, g, n = d_inner // args.headdim, args.headdim, args.ngroups, args.d_state
+    Q, b = args.chunk, args.batch
+
+    matmul = _matmul_gflops(preset["matmul_n"], dtype, repeats)
+    print(f"matmul {matmul['n']}^3 {args.dtype}: {matmul['gflops']:.1f} GFLOP/s", flush=True)
+    results = []
+    for L in lengths:
+        x, dt, A, B, C, D = _inputs(L, b, nh, P, g, n, dtype)
+        w = jnp.asarray(np.random.default_rng(1).standard_normal(x.shape), dtype)
+        for method in args.methods:
+            fwd = functools.partial(METHODS[method], Q=Q)
+
+            def loss(x, dt, A, B, C, D, w, fwd=fwd):
+                return jnp.sum(fwd(x, dt, A, B, C, D).astype(jnp.float32) * w.astype(jnp.float32))
+
+            # the cotangent w is an argument, not a closed-over constant (XLA would fold it)
+            passes = [("fwd", fwd, (x, dt, A, B, C, D))]
+            if not args.no_backward:
+                passes.append(("fwd+bwd", jax.grad(loss, argnums=(0, 1, 2, 3, 4)), (x, dt, A, B, C, D, w)))
+            for name, fn, fn_args in passes:
+                row = {"L": L, "method": method, "pass": name}
+                need = _activation_bytes(method, name == "fwd+bwd", L, b, nh, P, g, n, Q)
+                if args.preset == "cpu" and method == "sequential" and L > 4096:
+                    row["skipped"] = "cpu preset: sequential reference only at L <= 4096"
+                elif need > mem_limit:
+                    row["skipped"] = (
+                        f"predicted activations {need / 2**30:.1f} GiB > limit {mem_limit / 2**30:.1f} GiB"
+                    )
+                else:
+                    try:
+                        row.update(_time(fn, fn_args, repeats))
+                    except Exception as e:  # noqa: BLE001 - out-of-memory etc. are recorded, not fatal
+                        row["skipped"] = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
+                if "seconds_min" in row:
+                    gflop = _flops(method, L, b, nh, P, g, n, Q) * (3 if name == "fwd+bwd" else 1) / 1e9
+                    row["gflop"] = gflop
+                    row["gflops_achieved"] = gflop / row["seconds_min"]
+                    row["fraction_of_matmul"] = row["gflops_achieved"] / matmul["gflops"]
+                    print(
+                        f"L={L:6d} {method:20s} {name:8s} {row['seconds_min'] * 1e3:10.1f} ms "
+                        f"{row['gflops_achieved']:8.1f} GFLOP/s (compile {row['compile_seconds']:.1f} s)",
+                        flush=True,
+                    )
+                else:
+                    print(f"L={L:6d} {method:20s} {name:8s} skipped: {row['skipped']}", flush=True)
+                results.append(row)
+        del x, dt, B, C, w
+
+    report = {
+        "benchmark": "ssd_scan",
+        "device": str(jax.devices()[0]),
+        "platform": jax.default_backend(),
+        "device_count": jax.device_count(),
+        "host": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "load_average_1min_at_end": os.getloadavg()[0],  # shared boxes make timings noisy
+        "jax_version": jax.__version__,
+        "preset": args.preset,
+        "sizes": {
+            "d_model": args.d_model, "d_inner": d_inner, "nheads": nh, "headdim": P, "d_state": n,
+            "ngroups": g, "chunk_size": Q, "batch": b, "dtype": args.dtype,
+        },
+        "repeats": repeats,
+        "matmul_reference": matmul,
+        "flop_model": "matmul FLOPs only (see bench_scan.py docstring); fwd+bwd = 3x fwd",
+        "results": results,
+    }
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    with open(args.out, "w") as f:
+        json.dump(report, f, indent=2)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
