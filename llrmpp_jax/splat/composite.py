@@ -1,0 +1,333 @@
+"""Front-to-back alpha compositing of binned Gaussians that carry feature vectors.
+
+Per pixel p and its tile's depth-sorted list, gsplat's rule: with the Mahalanobis
+half-distance ``sigma = 0.5 (a (dx + q dy)^2 + s dy^2)`` (d = mean2d - pixel centre; the
+conic with its square completed, see :mod:`.projection`; ``sigma >= 0``, so gsplat's
+``sigma < 0`` skip never applies), ``alpha = min(alpha_max, o exp(-sigma))``; entries with
+``alpha < alpha_min`` are skipped; the pixel stops at the first entry whose
+``T (1 - alpha) <= t_min`` (that entry is not used). Outputs: ``sum_i w_i f_i`` with
+``w_i = alpha_i T_i`` and the final transmittance T.
+
+Work layout: tiles are sorted by list length and cut into groups of ``tiles_per_group``;
+``lax.map`` runs one group at a time and each group runs a ``while_loop`` over chunks of
+``chunk_size`` list entries until its longest list is exhausted or all its pixels have
+stopped. A chunk evaluates alphas for ``[G, K, P]`` (group tiles x chunk x 256 pixels),
+makes in-chunk transmittances by a cumulative product and adds ``weights @ features``
+(one matmul per chunk, so the feature width F costs a contraction, not sequential steps).
+
+Gradients: a ``custom_vjp`` (the transmittance chain is not differentiated by autodiff,
+which would store every chunk's state). The backward pass walks each group's chunks back
+to front, recovers ``T`` before each entry by dividing the pixel's transmittance after the
+chunk by a reverse cumulative product of ``1 - alpha`` (``1 - alpha >= 1 - alpha_max``),
+and carries ``S = sum_{j later} w_j (f_j . g) + g_T T_final``, which gives
+``dL/dalpha_i = T_i (f_i . g) - S_i / (1 - alpha_i)`` without cancellation. Memory of the
+backward pass is O(N + pixels), independent of the number of chunks.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from llrmpp_jax.array_typing import Array, Bool, Float, Int
+from llrmpp_jax.splat.binning import TileBins
+from llrmpp_jax.splat.config import SplatConfig
+
+_HIGHEST = lax.Precision.HIGHEST
+
+
+class _Groups(NamedTuple):
+    """Tiles in processing order, ``[num_groups, G]`` each."""
+
+    tile_ids: Int[Array, "g G"]  # tile index (num_tiles for padding)
+    starts: Int[Array, "g G"]
+    counts: Int[Array, "g G"]
+
+
+class _Chunk(NamedTuple):
+    """One chunk of K list entries evaluated on the P pixels of G tiles."""
+
+    gid: Int[Array, "G K"]  # Gaussian index (0 where the slot is past the list)
+    valid: Bool[Array, "G K"]  # slot inside the tile's list
+    dx: Float[Array, "G K P"]
+    dy: Float[Array, "G K P"]
+    quad: Float[Array, "G K 3"]  # (a, q, s) of the quadratic form
+    opacity: Float[Array, "G K"]
+    vis: Float[Array, "G K P"]  # exp(-sigma)
+    alpha: Float[Array, "G K P"]  # min(alpha_max, o exp(-sigma))
+    active: Bool[Array, "G K P"]  # valid and alpha >= alpha_min
+
+
+def _make_groups(bins: TileBins, cfg: SplatConfig) -> _Groups:
+    num_tiles = bins.tile_count.shape[0]
+    g = min(cfg.tiles_per_group, num_tiles)
+    num_groups = -(-num_tiles // g)
+    order = jnp.argsort(-bins.tile_count, stable=True).astype(jnp.int32)
+    pad = jnp.full((num_groups * g - num_tiles,), num_tiles, jnp.int32)
+    tile_ids = jnp.concatenate([order, pad])
+    zero = jnp.zeros((1,), jnp.int32)
+    starts = jnp.concatenate([bins.tile_start, zero])[tile_ids]
+    counts = jnp.concatenate([bins.tile_count, zero])[tile_ids]
+    shape = (num_groups, g)
+    return _Groups(tile_ids.reshape(shape), starts.reshape(shape), counts.reshape(shape))
+
+
+def _pixels(
+    tile_ids: Int[Array, "G"], height: int, width: int, cfg: SplatConfig, dtype: jnp.dtype
+) -> tuple[Float[Array, "G P"], Float[Array, "G P"], Bool[Array, "G P"]]:
+    """Pixel centres (x, y) of each tile (row-major inside the tile) and in-canvas mask."""
+    ts = cfg.tile_size
+    tiles_x = cfg.tile_grid(height, width)[1]
+    local = jnp.arange(ts * ts, dtype=jnp.int32)
+    ix = (tile_ids % tiles_x * ts)[:, None] + (local % ts)[None, :]
+    iy = (tile_ids // tiles_x * ts)[:, None] + (local // ts)[None, :]
+    live = (ix < width) & (iy < height)  # padding tiles have iy >= height
+    return ix.astype(dtype) + 0.5, iy.astype(dtype) + 0.5, live
+
+
+def _eval_chunk(
+    c: Int[Array, ""],
+    starts: Int[Array, "G"],
+    counts: Int[Array, "G"],
+    gaussian_ids: Int[Array, "C"],
+    geometry: Float[Array, "N 5"],
+    opacities: Float[Array, "N"],
+    px: Float[Array, "G P"],
+    py: Float[Array, "G P"],
+    cfg: SplatConfig,
+) -> _Chunk:
+    k = cfg.chunk_size
+    offs = c * k + jnp.arange(k, dtype=jnp.int32)
+    valid = offs[None, :] < counts[:, None]
+    slot = jnp.minimum(starts[:, None] + offs[None, :], gaussian_ids.shape[0] - 1)
+    gid = jnp.where(valid, gaussian_ids[slot], 0)
+    geo = geometry[gid]
+    opacity = opacities[gid]
+    dx = geo[:, :, 0, None] - px[:, None, :]
+    dy = geo[:, :, 1, None] - py[:, None, :]
+    quad = geo[:, :, 2:]
+    u = dx + quad[:, :, 1, None] * dy
+    sigma = 0.5 * (quad[:, :, 0, None] * u * u + quad[:, :, 2, None] * dy * dy)
+    vis = jnp.exp(-sigma)
+    alpha = jnp.minimum(cfg.alpha_max, opacity[:, :, None] * vis)
+    active = valid[:, :, None] & (alpha >= cfg.alpha_min)
+    return _Chunk(gid, valid, dx, dy, quad, opacity, vis, alpha, active)
+
+
+def _exclusive_cumprod(x: Float[Array, "G K P"]) -> Float[Array, "G K P"]:
+    ones = jnp.ones_like(x[:, :1])
+    return jnp.concatenate([ones, lax.cumprod(x[:, :-1], axis=1)], axis=1)
+
+
+def _forward_group(
+    geometry: Float[Array, "N 5"],
+    opacities: Float[Array, "N"],
+    features: Float[Array, "N C"],
+    gaussian_ids: Int[Array, "C"],
+    group: tuple[Int[Array, "G"], Int[Array, "G"], Int[Array, "G"]],
+    height: int,
+    width: int,
+    cfg: SplatConfig,
+) -> tuple[Float[Array, "G P C"], Float[Array, "G P"], Int[Array, "G P"]]:
+    """Composite one tile group: features, final T and ``last`` (1 + last used entry)."""
+    tile_ids, starts, counts = group
+    k = cfg.chunk_size
+    dtype = geometry.dtype
+    px, py, live = _pixels(tile_ids, height, width, cfg, dtype)
+    num_chunks = (jnp.max(counts) + k - 1) // k
+    g, p = px.shape
+    karange = jnp.arange(1, k + 1, dtype=jnp.int32)[None, :, None]
+
+    def cond(state):
+        c, _, done, _, _ = state
+        return (c < num_chunks) & jnp.any(~done)
+
+    def body(state):
+        c, trans, done, acc, last = state
+        ch = _eval_chunk(c, starts, counts, gaussian_ids, geometry, opacities, px, py, cfg)
+        a = jnp.where(ch.active, ch.alpha, 0.0)
+        om = 1.0 - a
+        t_in = trans[:, None, :] * _exclusive_cumprod(om)
+        stop = ch.active & (t_in * om <= cfg.t_min)
+        incl = ch.active & ~stop & ~done[:, None, :]
+        w = jnp.where(incl, a * t_in, 0.0)
+        acc = acc + jnp.einsum("gkp,gkc->gpc", w, features[ch.gid], precision=_HIGHEST)
+        trans = trans * jnp.prod(jnp.where(incl, om, 1.0), axis=1)
+        done = done | jnp.any(stop, axis=1)
+        used = jnp.max(jnp.where(incl, karange, 0), axis=1)
+        last = jnp.where(used > 0, c * k + used, last)
+        return c + 1, trans, done, acc, last
+
+    init = (
+        jnp.zeros((), jnp.int32),
+        jnp.ones((g, p), dtype),
+        ~live,
+        jnp.zeros((g, p, features.shape[1]), dtype),
+        jnp.zeros((g, p), jnp.int32),
+    )
+    _, trans, _, acc, last = lax.while_loop(cond, body, init)
+    return acc, trans, last
+
+
+def _backward_group(
+    geometry: Float[Array, "N 5"],
+    opacities: Float[Array, "N"],
+    features: Float[Array, "N C"],
+    gaussian_ids: Int[Array, "C"],
+    group: tuple[Int[Array, "G"], Int[Array, "G"], Int[Array, "G"]],
+    trans_final: Float[Array, "G P"],
+    last: Int[Array, "G P"],
+    g_feat: Float[Array, "G P C"],
+    g_trans: Float[Array, "G P"],
+    grads: tuple[Float[Array, "N 5"], Float[Array, "N"], Float[Array, "N C"]],
+    height: int,
+    width: int,
+    cfg: SplatConfig,
+) -> tuple[Float[Array, "N 5"], Float[Array, "N"], Float[Array, "N C"]]:
+    """Add one tile group's contribution to the gradients of geometry, opacity, features."""
+    tile_ids, starts, counts = group
+    k = cfg.chunk_size
+    n = geometry.shape[0]
+    px, py, _ = _pixels(tile_ids, height, width, cfg, geometry.dtype)
+    num_chunks = (jnp.max(last) + k - 1) // k
+
+    def body(state):
+        c, t_end, s_after, (d_geo, d_op, d_feat) = state
+        ch = _eval_chunk(c, starts, counts, gaussian_ids, geometry, opacities, px, py, cfg)
+        offs = c * k + jnp.arange(k, dtype=jnp.int32)
+        incl = ch.active & (offs[None, :, None] < last[:, None, :])
+        a = jnp.where(incl, ch.alpha, 0.0)
+        om = 1.0 - a
+        t_in = t_end[:, None, :] / lax.cumprod(om, axis=1, reverse=True)
+        w = a * t_in
+        f = features[ch.gid]
+        fg = jnp.einsum("gkc,gpc->gkp", f, g_feat, precision=_HIGHEST)
+        wfg = w * fg
+        suffix = lax.cumsum(wfg, axis=1, reverse=True)
+        later = jnp.concatenate([suffix[:, 1:], jnp.zeros_like(suffix[:, :1])], axis=1)
+        d_alpha = jnp.where(incl, t_in * fg - (s_after[:, None, :] + later) / om, 0.0)
+        unclamped = ch.opacity[:, :, None] * ch.vis <= cfg.alpha_max
+        d_sigma = jnp.where(unclamped, -ch.alpha * d_alpha, 0.0)
+        d_opacity = jnp.sum(jnp.where(unclamped, ch.vis * d_alpha, 0.0), axis=2)
+        qa, qq, qs = ch.quad[:, :, 0, None], ch.quad[:, :, 1, None], ch.quad[:, :, 2, None]
+        u = ch.dx + qq * ch.dy
+        d_u = d_sigma * qa * u  # dL/du, u = dx + q dy
+        d_geo_chunk = jnp.stack(
+            [
+                jnp.sum(d_u, axis=2),
+                jnp.sum(d_u * qq + d_sigma * qs * ch.dy, axis=2),
+                jnp.sum(0.5 * d_sigma * u * u, axis=2),
+                jnp.sum(d_u * ch.dy, axis=2),
+                jnp.sum(0.5 * d_sigma * ch.dy * ch.dy, axis=2),
+            ],
+            axis=-1,
+        )
+        d_feat_chunk = jnp.einsum("gkp,gpc->gkc", w, g_feat, precision=_HIGHEST)
+        idx = jnp.where(ch.valid, ch.gid, n).reshape(-1)
+        d_geo = d_geo.at[idx].add(d_geo_chunk.reshape(-1, 5), mode="drop")
+        d_op = d_op.at[idx].add(d_opacity.reshape(-1), mode="drop")
+        d_feat = d_feat.at[idx].add(d_feat_chunk.reshape(-1, f.shape[-1]), mode="drop")
+        return c - 1, t_in[:, 0, :], s_after + suffix[:, 0, :], (d_geo, d_op, d_feat)
+
+    init = (num_chunks - 1, trans_final, g_trans * trans_final, grads)
+    _, _, _, grads = lax.while_loop(lambda s: s[0] >= 0, body, init)
+    return grads
+
+
+def _to_canvas(tiles: Float[Array, "T P ..."], height: int, width: int, cfg: SplatConfig) -> Array:
+    """``[T, P, ...]`` tile-major values to a ``[H, W, ...]`` canvas."""
+    ts = cfg.tile_size
+    tiles_y, tiles_x = cfg.tile_grid(height, width)
+    rest = tiles.shape[2:]
+    x = tiles.reshape((tiles_y, tiles_x, ts, ts) + rest)
+    x = jnp.swapaxes(x, 1, 2).reshape((tiles_y * ts, tiles_x * ts) + rest)
+    return x[:height, :width]
+
+
+def _from_canvas(canvas: Array, height: int, width: int, cfg: SplatConfig) -> Array:
+    """Inverse of :func:`_to_canvas` (padding filled with zeros), plus one zero tile."""
+    ts = cfg.tile_size
+    tiles_y, tiles_x = cfg.tile_grid(height, width)
+    rest = canvas.shape[2:]
+    pad = [(0, tiles_y * ts - height), (0, tiles_x * ts - width)] + [(0, 0)] * len(rest)
+    x = jnp.pad(canvas, pad).reshape((tiles_y, ts, tiles_x, ts) + rest)
+    x = jnp.swapaxes(x, 1, 2).reshape((tiles_y * tiles_x, ts * ts) + rest)
+    return jnp.concatenate([x, jnp.zeros_like(x[:1])], axis=0)
+
+
+def _composite_groups(height, width, cfg, geometry, opacities, features, gaussian_ids, groups):
+    def one(group):
+        return _forward_group(geometry, opacities, features, gaussian_ids, group, height, width, cfg)
+
+    acc, trans, last = lax.map(one, tuple(groups))
+    num_tiles = cfg.tile_grid(height, width)[0] * cfg.tile_grid(height, width)[1]
+    flat_ids = groups.tile_ids.reshape(-1)
+    # Position of every real tile in processing order (the inverse permutation).
+    where_tile = jnp.argsort(flat_ids, stable=True)[:num_tiles]
+    p = acc.shape[2]
+    feat = _to_canvas(acc.reshape(-1, p, acc.shape[-1])[where_tile], height, width, cfg)
+    t_canvas = _to_canvas(trans.reshape(-1, p)[where_tile], height, width, cfg)
+    return (feat, t_canvas), (trans, last)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
+def _composite(height, width, cfg, geometry, opacities, features, gaussian_ids, groups):
+    out, _ = _composite_groups(height, width, cfg, geometry, opacities, features, gaussian_ids, groups)
+    return out
+
+
+def _composite_fwd(height, width, cfg, geometry, opacities, features, gaussian_ids, groups):
+    out, (trans, last) = _composite_groups(
+        height, width, cfg, geometry, opacities, features, gaussian_ids, groups
+    )
+    return out, (geometry, opacities, features, gaussian_ids, groups, trans, last)
+
+
+def _composite_bwd(height, width, cfg, res, cotangents):
+    geometry, opacities, features, gaussian_ids, groups, trans, last = res
+    g_feat, g_trans = cotangents
+    flat_ids = groups.tile_ids.reshape(-1)
+    gf = _from_canvas(g_feat, height, width, cfg)[flat_ids].reshape(trans.shape + g_feat.shape[-1:])
+    gt = _from_canvas(g_trans, height, width, cfg)[flat_ids].reshape(trans.shape)
+
+    def step(grads, xs):
+        group, t_fin, lst, gfe, gtr = xs
+        new = _backward_group(
+            geometry, opacities, features, gaussian_ids, group, t_fin, lst, gfe, gtr, grads,
+            height, width, cfg,
+        )
+        return new, None
+
+    zeros = (jnp.zeros_like(geometry), jnp.zeros_like(opacities), jnp.zeros_like(features))
+    grads, _ = lax.scan(step, zeros, (tuple(groups), trans, last, gf, gt))
+    d_geo, d_op, d_feat = grads
+    none_groups = _Groups(None, None, None)
+    return d_geo, d_op, d_feat, None, none_groups
+
+
+_composite.defvjp(_composite_fwd, _composite_bwd)
+
+
+def composite(
+    means2d: Float[Array, "N 2"],
+    quad_form: Float[Array, "N 3"],
+    opacities: Float[Array, "N"],
+    features: Float[Array, "N C"],
+    bins: TileBins,
+    height: int,
+    width: int,
+    cfg: SplatConfig = SplatConfig(),
+) -> tuple[Float[Array, "H W C"], Float[Array, "H W"]]:
+    """Composite binned Gaussians front to back onto an ``height x width`` canvas.
+
+    Returns ``(sum_i w_i f_i [H, W, C], final transmittance [H, W])``; no background is
+    added. ``quad_form`` is :attr:`ProjectedGaussians.quad_form`. Differentiable w.r.t.
+    ``means2d``, ``quad_form``, ``opacities`` and ``features``.
+    """
+    geometry = jnp.concatenate([means2d, quad_form], axis=-1)
+    groups = _make_groups(bins, cfg)
+    return _composite(height, width, cfg, geometry, opacities, features, bins.gaussian_ids, groups)

@@ -1,0 +1,220 @@
+"""Plain NumPy float64 oracle of gsplat's classic rasterisation, plus tests of the oracle.
+
+The oracle follows gsplat's PyTorch reference (``_fully_fused_projection``,
+``_isect_tiles``, the CUDA blend rules) literally: full covariances, per-pixel loop over
+depth-sorted Gaussians. Other ``test_splat_*`` files import it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+TILE = 16
+
+
+def oracle_rotmat(quats: np.ndarray) -> np.ndarray:
+    """[N, 3, 3] from (w, x, y, z) quaternions, normalised (zero -> identity)."""
+    q = quats / np.maximum(np.linalg.norm(quats, axis=-1, keepdims=True), 1e-12)
+    w, x, y, z = q.T
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y**2 + z**2), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x**2 + z**2), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x**2 + y**2)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def oracle_project(means, quats, scales, c2w, intr, height, width, eps2d=0.3, near=0.01, far=1e6):
+    """gsplat ``_fully_fused_projection`` (pinhole, v1.4 3-sigma radius), float64."""
+    means, quats, scales, c2w, intr = (np.asarray(a, np.float64) for a in (means, quats, scales, c2w, intr))
+    view = np.linalg.inv(c2w)
+    rot_w, t_w = view[:3, :3], view[:3, 3]
+    rot = oracle_rotmat(quats)
+    cov = rot @ (scales[:, :, None] ** 2 * np.swapaxes(rot, 1, 2))
+    mc = means @ rot_w.T + t_w
+    cov_c = rot_w @ cov @ rot_w.T
+    fx, fy, cx, cy = intr
+    tx, ty, tz = mc.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+        txc = tz * np.clip(tx / tz, -(cx / fx + 0.3 * tan_fovx), (width - cx) / fx + 0.3 * tan_fovx)
+        tyc = tz * np.clip(ty / tz, -(cy / fy + 0.3 * tan_fovy), (height - cy) / fy + 0.3 * tan_fovy)
+        jac = np.zeros((len(means), 2, 3))
+        jac[:, 0, 0] = fx / tz
+        jac[:, 0, 2] = -fx * txc / tz**2
+        jac[:, 1, 1] = fy / tz
+        jac[:, 1, 2] = -fy * tyc / tz**2
+        cov2d = jac @ cov_c @ np.swapaxes(jac, 1, 2) + eps2d * np.eye(2)
+        det = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] * cov2d[:, 1, 0]
+        conics = np.stack([cov2d[:, 1, 1] / det, -cov2d[:, 0, 1] / det, cov2d[:, 0, 0] / det], -1)
+        b = 0.5 * (cov2d[:, 0, 0] + cov2d[:, 1, 1])
+        radius = np.ceil(3.0 * np.sqrt(b + np.sqrt(np.maximum(b * b - det, 0.01))))
+        means2d = np.stack([fx * tx / tz + cx, fy * ty / tz + cy], -1)
+        visible = (det > 0) & (tz > near) & (tz < far)
+        visible &= (means2d[:, 0] + radius > 0) & (means2d[:, 0] - radius < width)
+        visible &= (means2d[:, 1] + radius > 0) & (means2d[:, 1] - radius < height)
+    return dict(means2d=means2d, conics=conics, depths=tz, radii=np.where(visible, radius, 0.0), visible=visible)
+
+
+def oracle_tile_boxes(proj, height, width):
+    """gsplat ``_isect_tiles`` box per Gaussian: half-open [x0, x1) x [y0, y1) tiles."""
+    tw, th = -(-width // TILE), -(-height // TILE)
+    r = proj["radii"] / TILE
+    m = proj["means2d"] / TILE
+    x0 = np.clip(np.floor(m[:, 0] - r), 0, tw).astype(int)
+    x1 = np.clip(np.ceil(m[:, 0] + r), 0, tw).astype(int)
+    y0 = np.clip(np.floor(m[:, 1] - r), 0, th).astype(int)
+    y1 = np.clip(np.ceil(m[:, 1] + r), 0, th).astype(int)
+    vis = proj["visible"]
+    return x0, np.where(vis, x1, x0), y0, np.where(vis, y1, y0)
+
+
+def oracle_tile_lists(proj, height, width, capacity=None):
+    """Per tile (row-major), the depth-sorted Gaussian ids; with ``capacity``, the entries of
+    the farthest Gaussians beyond that many are dropped (emission in depth order, each
+    Gaussian's tiles row-major in its box). Returns (lists, number of entries needed)."""
+    tw, th = -(-width // TILE), -(-height // TILE)
+    x0, x1, y0, y1 = oracle_tile_boxes(proj, height, width)
+    vis = np.flatnonzero(proj["visible"])
+    order = vis[np.lexsort((vis, proj["depths"][vis]))]  # depth, then index
+    lists = [[] for _ in range(tw * th)]
+    used = 0
+    for g in order:
+        for ty in range(y0[g], y1[g]):
+            for tx in range(x0[g], x1[g]):
+                if capacity is None or used < capacity:
+                    lists[ty * tw + tx].append(int(g))
+                used += 1
+    return lists, used
+
+
+def oracle_render(
+    means, quats, scales, opacities, features, c2w, intr, height, width, capacity=None, with_margin=False
+):
+    """Brute force: every pixel against every Gaussian of its tile's list, front to back.
+
+    Returns (features [H, W, F], transmittance [H, W], depth [H, W]) in float64, and with
+    ``with_margin`` also ``margin [H, W]``: the smallest relative distance of any alpha to
+    1/255 or of any would-be transmittance to 1e-4 met at that pixel. Where it is tiny,
+    rounding (float32 vs float64) may legitimately flip gsplat's discrete decisions.
+    """
+    proj = oracle_project(means, quats, scales, c2w, intr, height, width)
+    lists, _ = oracle_tile_lists(proj, height, width, capacity)
+    opacities = np.asarray(opacities, np.float64)
+    feats = np.concatenate([np.asarray(features, np.float64), proj["depths"][:, None]], -1)
+    tw = -(-width // TILE)
+    out = np.zeros((height, width, feats.shape[1]))
+    trans_out = np.ones((height, width))
+    margin_out = np.full((height, width), np.inf)
+    for t, gaussians in enumerate(lists):
+        # The pixels of tile t, all handled at once; the loop over its list is sequential.
+        ys, xs = np.meshgrid(
+            np.arange((t // tw) * TILE, min((t // tw + 1) * TILE, height)),
+            np.arange((t % tw) * TILE, min((t % tw + 1) * TILE, width)),
+            indexing="ij",
+        )
+        ys, xs = ys.ravel(), xs.ravel()
+        trans = np.ones(len(ys))
+        margin = np.full(len(ys), np.inf)
+        done = np.zeros(len(ys), bool)
+        acc = np.zeros((len(ys), feats.shape[1]))
+        for g in gaussians:
+            dx = proj["means2d"][g, 0] - (xs + 0.5)
+            dy = proj["means2d"][g, 1] - (ys + 0.5)
+            a, b, c = proj["conics"][g]
+            sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+            alpha = np.minimum(0.999, opacities[g] * np.exp(-sigma))
+            margin = np.where(done, margin, np.minimum(margin, np.abs(alpha * 255.0 - 1.0)))
+            use = ~done & (sigma >= 0) & (alpha >= 1.0 / 255.0)
+            nxt = trans * (1.0 - alpha)
+            margin = np.where(use, np.minimum(margin, np.abs(nxt * 1e4 - 1.0)), margin)
+            stop = use & (nxt <= 1e-4)  # this Gaussian is not used, nor any later one
+            done |= stop
+            use &= ~stop
+            acc[use] += (alpha * trans)[use, None] * feats[g][None, :]
+            trans = np.where(use, nxt, trans)
+        out[ys, xs] = acc
+        trans_out[ys, xs] = trans
+        margin_out[ys, xs] = margin
+    f = feats.shape[1] - 1
+    if with_margin:
+        return out[..., :f], trans_out, out[..., f], margin_out
+    return out[..., :f], trans_out, out[..., f]
+
+
+def random_scene(rng: np.random.Generator, n: int, f: int, height: int, width: int, posed: bool = True):
+    """A hard random scene: in front / behind / beside the camera, tiny and huge scales,
+    opacities at and near 0 and 1, centres on tile and image borders, unnormalised quats.
+
+    ``posed``: a random rigid camera (else the identity, so world = camera coordinates and
+    float32 inputs carry no transform rounding)."""
+    fx, fy = 0.8 * width * rng.uniform(0.8, 1.2), 0.8 * width * rng.uniform(0.8, 1.2)
+    intr = np.array([fx, fy, width * rng.uniform(0.4, 0.6), height * rng.uniform(0.4, 0.6)])
+    # Depths: in front (>= 0.25: closer, float32 rounding of the camera transform alone moves
+    # a projected centre by ~1e-4 px, more than the 1e-5 comparisons allow), behind the
+    # camera, and between the camera and the near plane.
+    z = rng.uniform(0.25, 8.0, n)
+    where = rng.random(n)
+    z[where < 0.15] = rng.uniform(-1.0, 0.0, int((where < 0.15).sum()))
+    z[where > 0.95] = 0.005
+    # Pick pixel targets, a quarter of them exactly on tile / image borders.
+    u = rng.uniform(-0.2 * width, 1.2 * width, n)
+    v = rng.uniform(-0.2 * height, 1.2 * height, n)
+    k = n // 4
+    u[:k] = TILE * rng.integers(0, width // TILE + 2, k) + rng.normal(0, 0.5, k)
+    v[k : 2 * k] = rng.choice([0.0, float(height)], k) + rng.normal(0, 1.0, k)
+    means_c = np.stack([(u - intr[2]) / fx * z, (v - intr[3]) / fy * z, z], -1)
+    log_s = rng.uniform(-4.5, -1.0, (n, 3))
+    log_s[rng.random(n) < 0.1] = -14.0  # near-degenerate: all axes ~1e-6
+    log_s[rng.random((n, 3)) < 0.05] = 1.0  # very large along some axes
+    scales = np.exp(log_s)
+    quats = rng.normal(size=(n, 4)) * rng.uniform(0.2, 3.0, (n, 1))
+    opac = rng.uniform(0.0, 1.0, n)
+    special = rng.random(n)
+    opac[special < 0.1] = 1.0
+    opac[(special >= 0.1) & (special < 0.2)] = rng.uniform(0.99, 1.0, int(((special >= 0.1) & (special < 0.2)).sum()))
+    opac[(special >= 0.2) & (special < 0.3)] = rng.uniform(0.0, 0.01, int(((special >= 0.2) & (special < 0.3)).sum()))
+    feats = rng.normal(size=(n, f))
+    c2w = np.eye(4)
+    if posed:  # express the Gaussians in the world frame of a random rigid camera
+        c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+    means = means_c @ c2w[:3, :3].T + c2w[:3, 3]
+    return means, quats, scales, opac, feats, c2w, intr
+
+
+def test_oracle_rotation_matches_scipy(rng):
+    q = rng.normal(size=(50, 4)) * 3.0
+    expect = Rotation.from_quat(q[:, [1, 2, 3, 0]]).as_matrix()  # scipy is (x, y, z, w)
+    np.testing.assert_allclose(oracle_rotmat(q), expect, atol=1e-12)
+
+
+def test_oracle_single_and_stacked_gaussians_by_hand(rng):
+    """A pixel-centred Gaussian gives alpha = o there; a stack composites as o1 f1 + (1-o1) o2 f2."""
+    height, width = 20, 24
+    intr = np.array([30.0, 30.0, 12.0, 10.0])
+    o1, o2 = rng.uniform(0.2, 0.8, 2)
+    z1, z2 = 2.0, 3.0
+    px, py = 5.5, 7.5  # centre of pixel (5, 7)
+    means = np.array([[(px - 12) / 30 * z, (py - 10) / 30 * z, z] for z in (z2, z1)])  # far first
+    feats = rng.normal(size=(2, 3))
+    out, trans, depth = oracle_render(
+        means, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), 0.05), [o2, o1], feats, np.eye(4), intr, height, width
+    )
+    np.testing.assert_allclose(out[7, 5], o1 * feats[1] + (1 - o1) * o2 * feats[0], atol=1e-12)
+    np.testing.assert_allclose(trans[7, 5], (1 - o1) * (1 - o2), atol=1e-12)
+    np.testing.assert_allclose(depth[7, 5], o1 * z1 + (1 - o1) * o2 * z2, atol=1e-12)
+
+
+def test_oracle_stops_before_transmittance_limit():
+    """Two alpha-0.999 Gaussians: the second would take T to 1e-6 <= 1e-4, so it is not used."""
+    intr = np.array([30.0, 30.0, 8.5, 8.5])  # the means project onto the centre of pixel (8, 8)
+    means = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]])
+    out, trans, _ = oracle_render(
+        means, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), 0.1), [1.0, 1.0], [[1.0], [5.0]], np.eye(4), intr, 16, 16
+    )
+    assert trans[8, 8] == pytest.approx(1 - 0.999)
+    assert out[8, 8, 0] == pytest.approx(0.999)
