@@ -71,13 +71,14 @@ def _rel_err(got, want) -> float:
     return float(np.max(np.abs(np.asarray(got, np.float64) - want)) / np.max(np.abs(want)))
 
 
-@pytest.mark.parametrize("dtype, tol", [(jnp.float64, 1e-11), (jnp.float32, 1e-5)])
+@pytest.mark.parametrize("dtype, tol", [(jnp.float64, 1e-6), (jnp.float32, 1e-5)])
 def test_golden_long_lrm_backbone(dtype, tol):
     """Every block's output matches the official PyTorch run (float64 goldens).
 
     Tolerance: max|ours - golden| / max|golden|. The golden's own float32 run differs from
-    its float64 run by <= 2e-6 on these tensors (config.json), so 1e-5 in float32; in
-    float64 the only difference is summation order (~1e-14).
+    its float64 run by <= 2e-6 on these tensors (config.json), so 1e-5 in float32. In
+    float64 everything but the attention softmax runs in float64 (Mamba blocks agree to
+    ~1e-14); jax.nn.dot_product_attention always takes its softmax in float32, hence 1e-6.
     """
     from llrmpp_jax.convert.long_lrm import convert_backbone
 

@@ -38,9 +38,14 @@ _A_INIT_RANGE = (1.0, 16.0)
 _DT_MIN, _DT_MAX, _DT_INIT_FLOOR = 1e-3, 1e-1, 1e-4
 
 
+def _acc(dtype: jnp.dtype) -> jnp.dtype:
+    """Accumulation dtype: float64 for float64 activations (oracles), float32 otherwise."""
+    return jnp.dtype(jnp.float64) if dtype == jnp.float64 else jnp.dtype(jnp.float32)
+
+
 def _dense(x: Float[Array, "... C"], kernel: Float[Array, "C E"]) -> Float[Array, "... E"]:
-    """Bias-free linear layer, float32 accumulation, result in the dtype of ``x``."""
-    return jnp.matmul(x, kernel.astype(x.dtype), preferred_element_type=jnp.float32).astype(x.dtype)
+    """Bias-free linear layer, float32 (or float64) accumulation, result in the dtype of ``x``."""
+    return jnp.matmul(x, kernel.astype(x.dtype), preferred_element_type=_acc(x.dtype)).astype(x.dtype)
 
 
 def causal_depthwise_conv1d(
@@ -57,11 +62,12 @@ def causal_depthwise_conv1d(
             f"[{x.shape[-1]}], got kernel {kernel.shape} and bias {bias.shape}"
         )
     K, L = kernel.shape[0], x.shape[-2]
-    xf = x.astype(jnp.float32)
+    acc = _acc(x.dtype)
+    xf = x.astype(acc)
     padded = jnp.pad(xf, [(0, 0)] * (x.ndim - 2) + [(K - 1, 0), (0, 0)])
     lead = (1,) * (x.ndim - 1)
-    kf = kernel.astype(jnp.float32)
-    y = bias.astype(jnp.float32).reshape(*lead, -1)
+    kf = kernel.astype(acc)
+    y = bias.astype(acc).reshape(*lead, -1)
     for k in range(K):  # K = 4 shifted multiply-adds; cheaper than a grouped conv here
         y = y + kf[k].reshape(*lead, -1) * padded[..., k : k + L, :]
     return y.astype(x.dtype)
@@ -71,7 +77,8 @@ def gated_rms_norm(
     y: Float[Array, "... C"], z: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """``rms_norm(y * silu(z)) * scale`` (mamba_ssm ``RMSNormGated``, norm after the gate)."""
-    gated = y.astype(jnp.float32) * jax.nn.silu(z.astype(jnp.float32))
+    acc = _acc(y.dtype)
+    gated = y.astype(acc) * jax.nn.silu(z.astype(acc))
     return rms_norm(gated, scale, eps).astype(y.dtype)
 
 
@@ -109,9 +116,10 @@ def mamba2_scan_direction(
     B = xBC[..., d_inner : d_inner + g * n].reshape(*lead, L, g, n)
     C = xBC[..., d_inner + g * n :].reshape(*lead, L, g, n)
     lead1 = (1,) * (dt.ndim - 1)
-    dt = jax.nn.softplus(dt.astype(jnp.float32) + params["dt_bias"].astype(jnp.float32).reshape(*lead1, nh))
-    A = -jnp.exp(params["A_log"].astype(jnp.float32))
-    y = ssd_scan(x, dt, A, B, C, chunk_size=cfg.chunk_size, D=params["D"].astype(jnp.float32))
+    acc = _acc(zxbcdt.dtype)
+    dt = jax.nn.softplus(dt.astype(acc) + params["dt_bias"].astype(acc).reshape(*lead1, nh))
+    A = -jnp.exp(params["A_log"].astype(acc))
+    y = ssd_scan(x, dt, A, B, C, chunk_size=cfg.chunk_size, D=params["D"].astype(acc))
     return gated_rms_norm(y.reshape(*lead, L, d_inner), z, params["norm_scale"], cfg.norm_eps)
 
 
