@@ -49,7 +49,7 @@ def test_projection_matches_oracle_float64(rng):
 
 
 def test_projection_float32_close_to_oracle(rng):
-    scene = [np.asarray(a, np.float32).astype(np.float64) for a in random_scene(rng, N, 1, H, W, posed=False)]
+    scene = [np.asarray(a, np.float32).astype(np.float64) for a in random_scene(rng, N, 1, H, W, conditioned=True)]
     got = _project_np(scene, np.float32)
     exp = oracle_project(scene[0], scene[1], scene[2], scene[5], scene[6], H, W)
     vis = exp["visible"] & (got.radii > 0)

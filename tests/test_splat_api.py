@@ -1,0 +1,106 @@
+"""Entry-point behaviour: partition copies, vmap over cameras, overflow, bad input."""
+
+import dataclasses
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_splat_oracle import oracle_render, oracle_tile_lists, oracle_project, random_scene
+
+from llrmpp_jax.splat import SplatConfig, render_feature_copies, render_features
+
+H, W, N, F = 37, 53, 300, 3
+
+
+def _assert_close(got, expected, atol):
+    """``got`` and ``expected``: (features, transmittance, depth) triples (or SplatOutputs)."""
+    for g, e in zip(got[:3], expected[:3]):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(e), rtol=0, atol=atol)
+
+
+def test_feature_copies_equal_separate_renders(rng):
+    means, quats, scales, opac, feats, c2w, intr = random_scene(rng, N, F, H, W)
+    copies = np.stack([opac, opac * rng.uniform(0, 1, N)])
+    out = render_feature_copies(means, quats, scales, copies, feats, c2w, intr, H, W)
+    assert out.features.shape == (2, H, W, F) and out.transmittance.shape == (2, H, W)
+    for s in range(2):
+        single = render_features(means, quats, scales, copies[s], feats, c2w, intr, H, W)
+        _assert_close([x[s] for x in out[:3]], single, atol=1e-12)
+        _assert_close(single, oracle_render(means, quats, scales, copies[s], feats, c2w, intr, H, W), atol=1e-8)
+
+
+def test_vmap_over_cameras_equals_separate_renders(rng):
+    scenes = [random_scene(np.random.default_rng(rng.integers(2**31)), N, F, H, W) for _ in range(3)]
+    means, quats, scales, opac, feats = scenes[0][:5]
+    c2ws = np.stack([s[5] for s in scenes])
+    intrs = np.stack([s[6] for s in scenes])
+    batched = jax.jit(jax.vmap(lambda c, k: render_features(means, quats, scales, opac, feats, c, k, H, W)))(c2ws, intrs)
+    for i in range(3):
+        single = render_features(means, quats, scales, opac, feats, c2ws[i], intrs[i], H, W)
+        _assert_close([x[i] for x in batched[:3]], single, atol=1e-12)
+        assert int(batched.stats.num_intersections[i]) == int(single.stats.num_intersections)
+
+
+def test_overflow_renders_the_nearest_entries_and_reports(rng):
+    scene = random_scene(rng, N, F, H, W)
+    _, needed = oracle_tile_lists(oracle_project(*scene[:3], *scene[5:], H, W), H, W)
+    capacity = needed // 3
+    cfg = SplatConfig(max_intersections=capacity)
+    out = render_features(*scene, H, W, cfg)
+    assert bool(out.stats.overflow)
+    assert int(out.stats.capacity) == capacity and int(out.stats.num_intersections) == needed
+    assert int(out.stats.num_dropped) == needed - capacity
+    _assert_close(out, oracle_render(*scene, H, W, capacity=capacity), atol=1e-8)
+
+
+def test_nonfinite_gaussians_and_bad_camera_are_masked_under_jit(rng):
+    means, quats, scales, opac, feats, c2w, intr = random_scene(rng, N, F, H, W)
+    bad = dict(means=0, quats=1, scales=2, opac=3, feats=4)
+    arrays = dict(means=means.copy(), quats=quats.copy(), scales=scales.copy(), opac=opac.copy(), feats=feats.copy())
+    arrays["means"][0, 1] = np.nan
+    arrays["quats"][1, 0] = np.inf
+    arrays["scales"][2, 2] = -np.inf
+    arrays["opac"][3] = np.nan
+    arrays["feats"][4, 0] = np.inf
+    jitted = jax.jit(render_features, static_argnums=(7, 8))
+    names = ("means", "quats", "scales", "opac", "feats")
+    out = jitted(*(arrays[k] for k in names), c2w, intr, H, W)
+    keep = np.ones(N, bool)
+    keep[list(bad.values())] = False
+    expected = oracle_render(means[keep], quats[keep], scales[keep], opac[keep], feats[keep], c2w, intr, H, W)
+    _assert_close(out, expected, atol=1e-8)
+    assert int(out.stats.num_nonfinite) == 5 and not bool(out.stats.invalid_camera)
+
+    for k in ([0.0, 40.0, 26.0, 18.0], [40.0, -3.0, 26.0, 18.0], [40.0, 40.0, np.inf, 18.0]):
+        empty = jitted(means, quats, scales, opac, feats, c2w, np.asarray(k), H, W)
+        assert bool(empty.stats.invalid_camera) and int(empty.stats.num_visible) == 0
+        _assert_close(empty, (np.zeros((H, W, F)), np.ones((H, W)), np.zeros((H, W))), atol=0)
+
+
+def test_eager_bad_input_raises(rng):
+    means, quats, scales, opac, feats, c2w, intr = random_scene(rng, 20, F, H, W)
+    args = dict(means=means, quats=quats, scales=scales, opacities=opac, features=feats, c2w=c2w, intrinsics=intr)
+
+    def call(**changes):
+        return render_features(**{**args, **changes}, height=H, width=W)
+
+    for name in ("means", "scales", "opacities", "quats", "features"):
+        x = args[name].copy()
+        x.reshape(-1)[3] = np.nan
+        with pytest.raises(ValueError, match=f"{name} has 1 non-finite"):
+            call(**{name: x})
+    with pytest.raises(ValueError, match=re.escape("fx, fy > 0")):
+        call(intrinsics=np.array([0.0, 30.0, 10.0, 10.0]))
+    with pytest.raises(ValueError, match=re.escape("scales has N=19 Gaussians (shape (19, 3)) but means has N=20")):
+        call(scales=scales[:19])
+    with pytest.raises(ValueError, match=re.escape("quats must have shape (N, 4), got (20, 3)")):
+        call(quats=quats[:, :3])
+    with pytest.raises(ValueError, match=re.escape("c2w must have shape (4, 4), got (3, 4)")):
+        call(c2w=c2w[:3])
+    with pytest.raises(ValueError, match="height and width must be >= 1"):
+        render_features(**args, height=0, width=W)
+    with pytest.raises(ValueError, match="max_intersections"):
+        dataclasses.replace(SplatConfig(), max_intersections=0)
+    assert jnp.all(jnp.isfinite(call().features))  # the unmodified call is fine
