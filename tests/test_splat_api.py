@@ -1,4 +1,4 @@
-"""Entry-point behaviour: partition copies, vmap over cameras, overflow, bad input."""
+"""Entry-point behaviour: partition copies (values, gradients), vmap over cameras, overflow, bad input."""
 
 import dataclasses
 import re
@@ -7,7 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_splat_oracle import oracle_render, oracle_tile_lists, oracle_project, random_scene
+import test_splat_grad as smooth
+from test_splat_oracle import oracle_project, oracle_render, oracle_tile_lists, random_scene
 
 from llrmpp_jax.splat import SplatConfig, render_feature_copies, render_features
 
@@ -104,3 +105,24 @@ def test_eager_bad_input_raises(rng):
     with pytest.raises(ValueError, match="max_intersections"):
         dataclasses.replace(SplatConfig(), max_intersections=0)
     assert jnp.all(jnp.isfinite(call().features))  # the unmodified call is fine
+
+
+def test_copies_grads_equal_sum_of_separate_renders(rng):
+    """On the smooth scenes of test_splat_grad: shared inputs get the sum over copies."""
+    means, quats, scales, opac, feats, c2w, intr = smooth.smooth_scene(rng)
+    h, w = smooth.H, smooth.W
+    copies = jnp.asarray(np.stack([opac, opac * rng.uniform(0.2, 1.0, smooth.N)]))
+    cot = [jnp.asarray(rng.normal(size=(2,) + s)) for s in ((h, w, smooth.F), (h, w), (h, w))]
+    args = [jnp.asarray(a) for a in (means, quats, scales)]
+    camera = (jnp.asarray(c2w), jnp.asarray(intr))
+
+    def loss_copies(m, q, s, o, f):
+        out = render_feature_copies(m, q, s, o, f, jnp.asarray(c2w), jnp.asarray(intr), h, w)
+        return sum(jnp.sum(x * g) for x, g in zip(out[:3], cot))
+
+    got = jax.jit(jax.grad(loss_copies, argnums=tuple(range(5))))(*args, copies, jnp.asarray(feats))
+    per_copy = [smooth._value_and_grad(*args, copies[s], jnp.asarray(feats), *camera, [g[s] for g in cot])[1] for s in range(2)]
+    for i in (0, 1, 2, 4):  # shared inputs: gradients add up over the copies
+        np.testing.assert_allclose(np.asarray(got[i]), np.asarray(per_copy[0][i] + per_copy[1][i]), rtol=1e-9, atol=1e-12)
+    for s in range(2):
+        np.testing.assert_allclose(np.asarray(got[3][s]), np.asarray(per_copy[s][3]), rtol=1e-9, atol=1e-12)
