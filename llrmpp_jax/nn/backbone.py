@@ -129,6 +129,7 @@ class Backbone(nn.Module):
             "global_tokens",
             nn.initializers.truncated_normal(0.02),
             (cfg.num_global_tokens, cfg.dims[0]),
+            jnp.float32,
         )
         x = jnp.concatenate([jnp.broadcast_to(g[None].astype(x.dtype), (b, *g.shape)), x], axis=1)
         x = LayerNorm(name="input_norm")(x)

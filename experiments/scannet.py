@@ -1,0 +1,41 @@
+"""Long-LRM++ on ScanNetv2, colour + depth: the paper's three-stage curriculum (Table 9).
+
+Run:  llrmpp train --config experiments/scannet.py --workdir runs/scannet
+Eval: llrmpp eval --config experiments/scannet.py --checkpoint runs/scannet --format scannet \
+          --data data/scannet/val --out runs/scannet/eval
+
+| stage | inputs | targets | resolution | steps | global batch | (paper: GPUs) |
+|-------|--------|---------|------------|-------|--------------|---------------|
+| 1     | 8      | 8       | 256x256    | 20K   | 128          | 8             |
+| 2     | 8      | 8       | 448x336    | 5K    | 128          | 32            |
+| 3     | 128    | 8       | 448x336    | 2K    | 64           | 64            |
+
+Loss: MSE + 0.5 perceptual on colour, smooth-L1 log-depth + 0.1 gradient + 0.1 normal on
+depth (paper §3.4). ScanNet is dense, so input frames are not down-weighted as targets
+(paper appendix): input_weight 1.0. Learning rates as in dl3dv.py.
+"""
+
+from llrmpp_jax import config as C
+from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+
+DATA = "data/scannet/train"  # folder of exported ScanNet scenes (color/, depth/, pose/, intrinsic/)
+EVAL = "data/scannet/val"
+
+
+def get_config() -> ExperimentConfig:
+    stages = (
+        StageConfig("stage1_256", steps=20_000, global_batch=128, num_inputs=8, num_targets=8,
+                    resize_h=256, square_crop=True, lr=4e-4, warmup_steps=2000, input_weight=1.0,
+                    min_span=64, max_span=128),
+        StageConfig("stage2_448x336", steps=5_000, global_batch=128, num_inputs=8, num_targets=8,
+                    resize_h=336, resize_w=448, lr=4e-5, warmup_steps=0, input_weight=1.0,
+                    min_span=64, max_span=128),
+        StageConfig("stage3_448x336_128v", steps=2_000, global_batch=64, num_inputs=128, num_targets=8,
+                    resize_h=336, resize_w=448, lr=4e-5, warmup_steps=0, input_weight=1.0),
+    )
+    model = C.replace(C.paper_scannet(), backbone=C.replace(C.paper_scannet().backbone, remat=True))
+    return ExperimentConfig(
+        name="scannet", model=model, stages=stages,
+        data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8),
+        bf16=True, log_every=50, eval_every=1000, checkpoint_every=500,
+    )

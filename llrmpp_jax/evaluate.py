@@ -1,0 +1,113 @@
+"""Evaluation: metrics of the model and of two baselines on held-out scenes, and pictures.
+
+Baselines, measured on the same targets (they show whether the model learned anything):
+
+* ``mean_colour``: every target pixel is the mean colour of the input images;
+* ``nearest_view``: the input image whose camera centre is nearest to the target's,
+  shown as-is (no warping).
+
+Metrics are per target view, then averaged per scene, then over scenes (Long-LRM's order):
+PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
+from llrmpp_jax.model import reconstruct, render
+
+METHODS = ("model", "mean_colour", "nearest_view")
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def predict(params: dict, cfg: ModelConfig, sample: dict) -> dict[str, jax.Array]:
+    """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``."""
+    g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
+    h, w = sample["target_images"].shape[2:4]
+    out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
+    return dict(out.images, dropped=out.dropped)
+
+
+def baseline_predictions(sample: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``{"mean_colour": [T, H, W, 3], "nearest_view": [T, H, W, 3]}`` for one unbatched sample."""
+    inputs, targets = sample["input_images"], sample["target_images"]
+    mean = np.broadcast_to(inputs.mean(axis=(0, 1, 2)), targets.shape).astype(np.float32)
+    d = np.linalg.norm(sample["target_c2w"][:, None, :3, 3] - sample["input_c2w"][None, :, :3, 3], axis=-1)
+    return {"mean_colour": mean, "nearest_view": inputs[np.argmin(d, axis=1)]}
+
+
+def image_metrics(pred: np.ndarray, target: np.ndarray, lpips_params: dict | None) -> dict[str, float]:
+    """Mean over the views of ``[T, H, W, 3]``: psnr, ssim and (if params given) lpips."""
+    p, t = jnp.asarray(np.clip(pred, 0.0, 1.0), jnp.float32), jnp.asarray(target, jnp.float32)
+    out = {"psnr": float(jnp.mean(psnr(p, t))), "ssim": float(jnp.mean(ssim(p, t)))}
+    if lpips_params is not None:
+        out["lpips"] = float(jnp.mean(lpips(lpips_params, p, t)))
+    return out
+
+
+def evaluate(
+    params: dict,
+    cfg: ModelConfig,
+    samples: Sequence[dict[str, np.ndarray]],
+    lpips_params: dict | None = None,
+    names: Sequence[str] | None = None,
+) -> tuple[list[dict], dict[str, dict[str, float]], list[np.ndarray]]:
+    """Evaluate the model and the baselines on unbatched samples (batch layout without B).
+
+    Returns ``(rows, summary, predictions)``: one row per scene and method with its
+    metrics, the mean over scenes per method, and the model's RGB per sample.
+    """
+    rows, preds = [], []
+    for i, s in enumerate(samples):
+        out = predict(params, cfg, {k: v[None] for k, v in s.items()})
+        rgb = np.asarray(out["rgb"][0])
+        preds.append(rgb)
+        name = names[i] if names is not None else f"scene_{i:03d}"
+        candidates = {"model": rgb, **baseline_predictions(s)}
+        for method in METHODS:
+            rows.append({"scene": name, "method": method,
+                         **image_metrics(candidates[method], s["target_images"], lpips_params)})
+        if "depth" in out and "target_depth" in s:
+            dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0]), jnp.asarray(s["target_depth"]))
+            rows[-len(METHODS)].update({k: float(jnp.mean(v)) for k, v in dm.items()})
+    summary = {}
+    for method in METHODS:
+        mine = [r for r in rows if r["method"] == method]
+        keys = [k for k in mine[0] if k not in ("scene", "method")]
+        summary[method] = {k: float(np.mean([r[k] for r in mine if k in r])) for k in keys}
+    return rows, summary, preds
+
+
+def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int = 2) -> np.ndarray:
+    """``[rows*H, cols*W, 3]`` picture: first row the inputs; then one row per target:
+    target, prediction, |error| (x4, clipped), nearest input view (the baseline)."""
+    inputs, targets = sample["input_images"], sample["target_images"]
+    nearest = baseline_predictions(sample)["nearest_view"]
+    h, w = targets.shape[1:3]
+    rows = [list(inputs)]
+    for t in range(targets.shape[0]):
+        err = np.clip(np.abs(prediction[t] - targets[t]) * 4.0, 0.0, 1.0)
+        rows.append([targets[t], np.clip(prediction[t], 0, 1), err, nearest[t]])
+    cols = max(len(r) for r in rows)
+    grid = np.ones((len(rows) * (h + gap) - gap, cols * (w + gap) - gap, 3), np.float32)
+    for i, r in enumerate(rows):
+        for j, img in enumerate(r):
+            grid[i * (h + gap):i * (h + gap) + h, j * (w + gap):j * (w + gap) + w] = img
+    return grid
+
+
+def format_table(summary: dict[str, dict[str, float]]) -> str:
+    """A fixed-width table of the summary (methods as rows)."""
+    keys = list(next(iter(summary.values())))
+    head = f"{'method':<14}" + "".join(f"{k:>10}" for k in keys)
+    lines = [head, "-" * len(head)]
+    for method, vals in summary.items():
+        lines.append(f"{method:<14}" + "".join(f"{vals[k]:>10.4f}" for k in keys))
+    return "\n".join(lines)

@@ -1,0 +1,273 @@
+"""The training loop: stages, data, data-parallel steps, logging, evaluation, checkpoints.
+
+``train(exp, workdir)`` runs every stage of ``exp`` in order. Each stage restarts the
+optimizer and schedule from the previous stage's parameters (Long-LRM's
+``reset_training_state``) and checkpoints to ``workdir/checkpoints/<stage>``; a rerun
+resumes from the newest verified checkpoint (parameters, optimizer, step, data position,
+PRNG), so a killed run continues exactly. Steps run as ``jit`` of a ``shard_map`` over every
+device (``"batch"`` axis; multi-host after ``jax.distributed.initialize``), or under
+``pmap`` with ``use_pmap=True``.
+
+Logged: a console progress bar (loss, PSNR, steps/s, ETA), TensorBoard scalars and image
+grids in ``workdir/tb``, periodic evaluation on held-out scenes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from llrmpp_jax import train as T
+from llrmpp_jax.data import BatchConfig, BatchIterator, FileSource, ProceduralSource, ViewGeometry, make_sample
+from llrmpp_jax.data import formats
+from llrmpp_jax.data.batching import SceneSource
+from llrmpp_jax.data.selection import eval_views, training_views
+from llrmpp_jax.evaluate import evaluate, format_table, picture_grid
+from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+from llrmpp_jax.losses import depth_loss, rgb_loss
+from llrmpp_jax.model import init_params, reconstruct, render
+
+READERS: dict[str, Callable] = {
+    "long_lrm": formats.read_long_lrm_scene,
+    "nerfstudio": formats.read_nerfstudio_scene,
+    "colmap": formats.read_colmap_scene,
+    "scannet": formats.read_scannet_scene,
+    "re10k": formats.read_re10k_scene,
+}
+
+
+def scene_paths(kind: str, path: str) -> list[str]:
+    """Scene locations of a dataset: the entries of a Long-LRM ``.txt`` index, else the
+    sub-folders of ``path`` (or ``path`` itself when it is one scene)."""
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"dataset path does not exist: {path}")
+    if kind == "long_lrm" or path.endswith(".txt"):
+        paths = formats.read_long_lrm_index(path) if path.endswith(".txt") else [path]
+    elif os.path.isdir(path) and not _is_scene_dir(kind, path):
+        paths = sorted(os.path.join(path, d) for d in os.listdir(path) if os.path.isdir(os.path.join(path, d)))
+    else:
+        paths = [path]
+    if not paths:
+        raise ValueError(f"dataset {path} holds no scenes")
+    return paths
+
+
+def _is_scene_dir(kind: str, path: str) -> bool:
+    marker = {"nerfstudio": "transforms.json", "colmap": "sparse", "scannet": "pose"}.get(kind)
+    return marker is not None and os.path.exists(os.path.join(path, marker))
+
+
+def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
+    if data.kind == "procedural":
+        return _OffsetSource(ProceduralSource(data.procedural), data.eval_seed_offset if held_out else 0)
+    path = data.eval_path if held_out and data.eval_path else data.path
+    return FileSource(scene_paths(data.kind, path), READERS[data.kind])
+
+
+@dataclass(frozen=True)
+class _OffsetSource:
+    """Procedural scenes from seed ``offset`` on (held-out seeds never meet training ones)."""
+
+    base: ProceduralSource
+    offset: int
+
+    def __len__(self) -> int:
+        return len(self.base) - self.offset
+
+    def load(self, index: int):
+        return self.base.load(self.offset + index)
+
+
+def view_geometry(stage: StageConfig, multiple: int, train: bool = True) -> ViewGeometry:
+    return ViewGeometry(resize_h=stage.resize_h, resize_w=stage.resize_w, multiple=multiple,
+                        square_crop=stage.square_crop, zoom_min=stage.zoom_min if train else 1.0)
+
+
+def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
+    return BatchConfig(
+        global_batch=stage.global_batch, num_inputs=stage.num_inputs, num_targets=stage.num_targets,
+        geometry=view_geometry(stage, exp.model.size_multiple), min_span=stage.min_span,
+        max_span=stage.max_span, input_weight=stage.input_weight,
+        with_depth="depth" in exp.model.outputs,
+    )
+
+
+def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict], list[str]]:
+    """Held-out samples, deterministic. Real data: the paper protocol (targets every 8th
+    frame, k-means inputs). Procedural: the training view sampler with a fixed seed per
+    scene (procedural scenes are short paths, so every-8th targets would be too sparse)."""
+    source = scene_source(exp.data, held_out=True)
+    geom = view_geometry(stage, exp.model.size_multiple, train=False)
+    with_depth = "depth" in exp.model.outputs
+    samples, names = [], []
+    for i in range(min(exp.data.num_eval_scenes, len(source))):
+        scene = source.load(i)
+        if exp.data.kind == "procedural":
+            rng = np.random.default_rng([exp.seed, 7, i])
+            inputs, targets = training_views(rng, len(scene), stage.num_inputs, stage.num_targets,
+                                             exp.data.eval_span, exp.data.eval_span, input_weight=0.0)
+        else:
+            inputs, targets = eval_views(scene.c2w, stage.num_inputs)
+        samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth))
+        names.append(scene.name)
+    return samples, names
+
+
+def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossFn:
+    """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard."""
+    cfg = exp.model
+
+    def loss_fn(params, batch, key):
+        del key  # the model is deterministic; kept for the step's interface
+        g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
+        h, w = batch["target_images"].shape[2:4]
+        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, cfg.outputs)
+        loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3),
+                             batch["target_images"].reshape(-1, h, w, 3), vgg_params,
+                             perceptual_weight=exp.perceptual_weight)
+        if "depth" in cfg.outputs:
+            d, daux = depth_loss(out.images["depth"][..., 0].reshape(-1, h, w),
+                                 batch["target_depth"].reshape(-1, h, w),
+                                 batch["target_intrinsics"].reshape(-1, 4),
+                                 grad_weight=exp.depth_grad_weight, normal_weight=exp.depth_normal_weight)
+            loss = loss + d
+            aux.update({f"depth_{k}": v for k, v in daux.items()})
+        aux["splat_dropped"] = jnp.sum(out.dropped).astype(jnp.float32)
+        return loss, aux
+
+    return loss_fn
+
+
+def load_perceptual(exp: ExperimentConfig) -> dict | None:
+    if not exp.perceptual_weight:
+        return None
+    from llrmpp_jax.perceptual import load_vgg16_lpips, load_vgg19_torch
+
+    return load_vgg19_torch(exp.vgg19_path) if exp.vgg19_path else load_vgg16_lpips()
+
+
+def _to_host(tree):
+    return jax.tree.map(lambda x: np.asarray(jax.device_get(x)), tree)
+
+
+def train(
+    exp: ExperimentConfig,
+    workdir: str,
+    *,
+    max_minutes: float | None = None,
+    use_pmap: bool = True,
+    progress: bool = True,
+) -> dict:
+    """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``."""
+    exp.check_devices(jax.device_count())
+    scene_source(exp.data)  # a missing or empty dataset fails here, before any compile
+    os.makedirs(workdir, exist_ok=True)
+    budget = max_minutes if max_minutes is not None else exp.max_minutes
+    t_start = time.time()
+    from tensorboardX import SummaryWriter
+
+    writer = SummaryWriter(os.path.join(workdir, "tb")) if jax.process_index() == 0 else None
+    vgg = load_perceptual(exp)
+    loss_fn = make_loss_fn(exp, vgg)
+    mesh = T.make_data_mesh()
+    n_local = jax.local_device_count()
+    params = None
+    history: list[dict] = []
+    result: dict = {"stages": []}
+    for si, stage in enumerate(exp.stages):
+        h, w = stage.resize_h, stage.resize_w or stage.resize_h
+        opt_cfg = T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
+                                    total_steps=stage.steps, no_decay_names=("A_log", "dt_bias", "D"))
+        optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
+        key = jax.random.key(exp.seed + 1000 * si)
+        init = lambda k: init_params(k, exp.model, stage.num_inputs, h, w)  # noqa: E731
+        ckpt_dir = os.path.abspath(os.path.join(workdir, "checkpoints", stage.name))
+        restored = None
+        if os.path.isdir(ckpt_dir):  # shapes only: an incompatible checkpoint fails before compiling
+            shapes = jax.eval_shape(init, key) if params is None else params
+            template = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, key), shapes)
+            restored = T.restore_checkpoint(ckpt_dir, template)
+        start = 0
+        if restored is not None:
+            state, start = restored.state, int(restored.step)
+        else:
+            params = init(jax.random.fold_in(key, 1)) if params is None else params
+            state = T.init_train_state(params, optimizer, key)
+        if start >= stage.steps:
+            params = state.params
+            result["stages"].append({"stage": stage.name, "steps": start, "resumed_complete": True})
+            continue
+        step_fn = T.make_train_step(loss_fn, optimizer, schedule,
+                                    compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
+        if use_pmap:
+            run = T.pmap_train_step(step_fn, donate=True)
+            state = T.replicate_for_pmap(state)
+            place = lambda b: T.shard_for_pmap(b)  # noqa: E731
+        else:
+            run = T.sharded_train_step(step_fn, mesh, donate=True)
+            state = T.replicate_on_mesh(_to_host(state), mesh)
+            place = lambda b: T.shard_for_mesh(b, mesh)  # noqa: E731
+        it = BatchIterator(scene_source(exp.data), batch_config(exp, stage), seed=exp.seed + si,
+                           start_step=start, num_devices=n_local, process_index=jax.process_index(),
+                           process_count=jax.process_count(), num_workers=exp.data.workers)
+        samples, names = eval_samples(exp, stage) if exp.eval_every else ([], [])
+        bar = tqdm(total=stage.steps, initial=start, desc=f"{exp.name}/{stage.name}",
+                   disable=not progress or jax.process_index() != 0, dynamic_ncols=True)
+        step, t_log, out_of_time = start, time.time(), False
+        try:
+            while step < stage.steps:
+                state, metrics = run(state, place(next(it)))
+                step += 1
+                bar.update(1)
+                if step % exp.log_every == 0 or step == stage.steps:
+                    m = {k: float(np.mean(v)) for k, v in _to_host(metrics).items()}
+                    rate = exp.log_every / max(time.time() - t_log, 1e-9)
+                    t_log = time.time()
+                    bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", sps=f"{rate:.2f}")
+                    history.append({"stage": stage.name, "step": step, **m})
+                    if writer is not None:
+                        for k, v in m.items():
+                            writer.add_scalar(f"train/{k}", v, step)
+                out_of_time = budget is not None and (time.time() - t_start) / 60 > budget
+                last = step == stage.steps or out_of_time
+                if step % exp.checkpoint_every == 0 or last:
+                    T.save_checkpoint(ckpt_dir, _host_state(state, use_pmap), data_state=it.state(),
+                                      config=exp, keep=exp.keep_checkpoints)
+                if samples and (step % exp.eval_every == 0 or last):
+                    p = _host_state(state, use_pmap).params
+                    _, summary, preds = evaluate(p, exp.model, samples, names=names)
+                    if writer is not None:
+                        for method, vals in summary.items():
+                            for k, v in vals.items():
+                                writer.add_scalar(f"eval/{method}/{k}", v, step)
+                        writer.add_image("eval/grid", picture_grid(samples[0], preds[0]), step, dataformats="HWC")
+                    tqdm.write(f"[{stage.name} step {step}] held-out PSNR model {summary['model']['psnr']:.2f} dB")
+                    result["eval"] = summary
+                if out_of_time:
+                    tqdm.write(f"time budget of {budget} min reached at step {step}; checkpoint saved")
+                    break
+        finally:
+            bar.close()
+        params = _host_state(state, use_pmap).params
+        result["stages"].append({"stage": stage.name, "steps": step, "skipped_data": it.skipped})
+        if out_of_time:
+            break
+    if writer is not None:
+        writer.close()
+    result["history"] = history
+    result["params"] = params
+    with open(os.path.join(workdir, "train_log.json"), "w") as f:
+        json.dump({"stages": result["stages"], "history": history, "eval": result.get("eval")}, f, indent=1)
+    return result
+
+
+def _host_state(state, use_pmap: bool):
+    return _to_host(T.unreplicate(state) if use_pmap else state)

@@ -1,0 +1,106 @@
+"""Command line and training loop: experiment files, one-line errors, train -> resume -> eval."""
+
+import glob
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from llrmpp_jax import config as C
+from llrmpp_jax.cli import main
+from llrmpp_jax.data import ProceduralConfig
+from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(ROOT, "experiments", "*.py"))))
+def test_experiment_files_load(path):
+    if os.path.basename(path).startswith("bench"):
+        pytest.skip("benchmark script, not an experiment")
+    exp = load_experiment(path)
+    assert exp.stages and all(s.steps > 0 for s in exp.stages)
+    with open(path) as f:
+        assert "llrmpp " in f.read().split('"""')[1], "the header must give the run command"
+
+
+def test_paper_stage_tables():
+    """Tables 8 and 9 of the paper, written out by hand."""
+    dl3dv = load_experiment(os.path.join(ROOT, "experiments", "dl3dv.py"))
+    got = [(s.num_inputs, s.num_targets, s.resize_h, s.steps, s.global_batch) for s in dl3dv.stages]
+    assert got == [(8, 8, 256, 60_000, 256), (8, 8, 512, 10_000, 64), (8, 8, 540, 10_000, 64), (32, 8, 540, 10_000, 64)]
+    scannet = load_experiment(os.path.join(ROOT, "experiments", "scannet.py"))
+    got = [(s.num_inputs, s.resize_h, s.resize_w, s.steps, s.global_batch) for s in scannet.stages]
+    assert got == [(8, 256, None, 20_000, 128), (8, 336, 448, 5_000, 128), (128, 336, 448, 2_000, 64)]
+    assert scannet.model.outputs == ("rgb", "depth")
+
+
+def _run_cli(*args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", *args], capture_output=True, text=True,
+                          timeout=300, cwd=ROOT)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["train", "--config", "no/such/file.py", "--workdir", "/tmp/x"], "config file not found"),
+        (["eval", "--config", "experiments/demo.py", "--checkpoint", "/no/such/dir", "--out", "/tmp/x"],
+         "checkpoint folder not found"),
+        (["render", "--config", "experiments/demo.py", "--checkpoint", "/tmp", "--scene", "/no/scene",
+          "--out", "/tmp/x"], "scene not found"),
+        (["convert", "--checkpoint", "/no/such.pt", "--out", "/tmp/x"], "checkpoint file not found"),
+    ],
+)
+def test_bad_input_is_one_clear_line(args, message):
+    res = _run_cli(*args)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
+
+
+def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
+    exp = _micro_experiment()
+    bad = C.replace(exp, data=DataConfig(kind="colmap", path=str(tmp_path / "missing")))
+    from llrmpp_jax.trainer import train
+
+    with pytest.raises(FileNotFoundError, match="dataset path does not exist"):
+        train(bad, str(tmp_path / "w"))
+    odd = C.replace(exp, stages=(C.replace(exp.stages[0], global_batch=3),))
+    with pytest.raises(ValueError, match="global_batch=3 does not split over 2 devices"):
+        train(odd, str(tmp_path / "w"))
+
+
+def _micro_experiment(steps: int = 2) -> ExperimentConfig:
+    model = C.replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8, max_dist=8.0,
+                                                           scale_bias=-2.5))
+    return ExperimentConfig(
+        name="micro", model=model,
+        stages=(StageConfig("s1", steps=steps, global_batch=2, num_inputs=2, num_targets=1, resize_h=32,
+                            square_crop=True, lr=1e-3, warmup_steps=1),),
+        data=DataConfig(procedural=ProceduralConfig(height=32, width=32, num_frames=6), num_eval_scenes=1,
+                        workers=1),
+        perceptual_weight=0.0, log_every=1, eval_every=2, checkpoint_every=1,
+    )
+
+
+def test_train_resume_and_eval(tmp_path):
+    """2 steps, then the same run extended to 3 resumes at step 2; eval reads the checkpoint."""
+    from llrmpp_jax.trainer import train
+
+    work = str(tmp_path / "run")
+    first = train(_micro_experiment(2), work, progress=False)
+    assert first["stages"][0]["steps"] == 2
+    log = json.load(open(os.path.join(work, "train_log.json")))
+    assert [h["step"] for h in log["history"]] == [1, 2]
+    assert all(h["loss"] > 0 and h["skipped_total"] == 0 for h in log["history"])
+    second = train(_micro_experiment(3), work, progress=False)
+    assert [h["step"] for h in second["history"]] == [3]  # resumed, not restarted
+    assert os.listdir(os.path.join(work, "tb"))
+    cfg_file = tmp_path / "micro.py"
+    cfg_file.write_text("import sys\nsys.path.insert(0, %r)\nfrom test_cli import _micro_experiment\n"
+                        "def get_config():\n    return _micro_experiment(3)\n" % os.path.dirname(__file__))
+    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--out", str(tmp_path / "ev")]) == 0
+    rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
+    assert rows[0].startswith("scene,method,psnr,ssim,lpips") and len(rows) == 1 + 3
