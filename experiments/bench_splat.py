@@ -11,9 +11,12 @@ and time ~ pixels^b (per N).
 Memory: ``compiled.memory_analysis()`` (arguments + outputs + XLA temporaries, known on
 every backend) and, on GPU, the allocator's peak after the runs.
 
-Scene: Gaussians spread uniformly over the frustum at depths 1-6, projected footprints
-log-uniform in [0.25, 4] canvas pixels (Long-LRM++'s Gaussians are ~1 px at its canvas),
-opacities uniform in [0.05, 0.5], random rotations and features.
+Scene: one 3D scene per (N, seed) seen at every canvas size: Gaussians spread uniformly
+over the frustum at depths 1-6, world scales such that their footprints are log-uniform
+in [0.25, 4] pixels on a 256-pixel-wide canvas (Long-LRM++'s Gaussians are ~1 px at its
+272x480 canvas) and grow with the canvas resolution, opacities uniform in [0.05, 0.5],
+random rotations and features. So the work (intersections x 256 pixels) grows with N and
+with the pixel count.
 
 Full sweep (the issue's):  python experiments/bench_splat.py
 Quick run (2-core CPU):    python experiments/bench_splat.py --quick
@@ -40,10 +43,10 @@ def make_scene(rng: np.random.Generator, n: int, f: int, height: int, width: int
     fx = fy = 0.8 * max(height, width)
     intr = np.array([fx, fy, width / 2, height / 2])
     z = rng.uniform(1.0, 6.0, n)
-    u, v = rng.uniform(0, width, n), rng.uniform(0, height, n)
-    means = np.stack([(u - intr[2]) / fx * z, (v - intr[3]) / fy * z, z], -1)
-    sigma_px = np.exp(rng.uniform(np.log(0.25), np.log(4.0), (n, 1)))
-    scales = sigma_px * z[:, None] / fx * np.exp(rng.uniform(-1.0, 0.0, (n, 3)))
+    u, v = rng.uniform(0, 1, n), rng.uniform(0, 1, n)  # in canvas fractions
+    means = np.stack([(u - 0.5) * width / fx * z, (v - 0.5) * height / fy * z, z], -1)
+    sigma_px = np.exp(rng.uniform(np.log(0.25), np.log(4.0), (n, 1)))  # at a 256-px canvas
+    scales = sigma_px * z[:, None] / (0.8 * 256) * np.exp(rng.uniform(-1.0, 0.0, (n, 3)))
     quats = rng.normal(size=(n, 4))
     opac = rng.uniform(0.05, 0.5, n)
     feats = rng.normal(size=(n, f))
