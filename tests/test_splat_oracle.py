@@ -146,6 +146,12 @@ def oracle_render(
     return out[..., :f], trans_out, out[..., f]
 
 
+def assert_render_close(got, expected, atol):
+    """``got`` and ``expected``: (features, transmittance, depth) triples or SplatOutputs."""
+    for g, e in zip(got[:3], expected[:3]):
+        np.testing.assert_allclose(np.asarray(g), np.asarray(e), rtol=0, atol=atol)
+
+
 def random_scene(
     rng: np.random.Generator, n: int, f: int, height: int, width: int, conditioned: bool = False
 ):
