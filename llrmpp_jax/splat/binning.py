@@ -34,11 +34,12 @@ SATURATION = 2**30 - 1
 
 
 class TileBins(NamedTuple):
-    """Depth-sorted Gaussian lists of all tiles (tiles row-major, T = tiles_y * tiles_x)."""
+    """Depth-sorted Gaussian lists of all tiles (row-major, ``tiles = tiles_y * tiles_x``;
+    ``isect`` = buffer capacity)."""
 
-    gaussian_ids: Int[Array, "C"]  # Gaussian index of each slot, grouped by tile
-    tile_start: Int[Array, "T"]  # first slot of each tile
-    tile_count: Int[Array, "T"]  # number of slots of each tile
+    gaussian_ids: Int[Array, "isect"]  # Gaussian index of each slot, grouped by tile
+    tile_start: Int[Array, "tiles"]  # first slot of each tile
+    tile_count: Int[Array, "tiles"]  # number of slots of each tile
     num_intersections: Int[Array, ""]  # slots needed (exact below 2**30)
     overflow: Bool[Array, ""]  # needed > capacity: the farthest entries were dropped
     num_dropped: Int[Array, ""]  # max(needed - capacity, 0)

@@ -8,10 +8,13 @@ conic with its square completed, see :mod:`.projection`; ``sigma >= 0``, so gspl
 ``T (1 - alpha) <= t_min`` (that entry is not used). Outputs: ``sum_i w_i f_i`` with
 ``w_i = alpha_i T_i`` and the final transmittance T.
 
+Axis names: ``group`` tiles advanced together, ``chunk`` list entries per step, ``pix``
+the 256 pixels of a tile, ``isect`` the binning buffer, C channels (features + depth).
+
 Work layout: tiles are sorted by list length and cut into groups of ``tiles_per_group``;
 ``lax.map`` runs one group at a time and each group runs a ``while_loop`` over chunks of
 ``chunk_size`` list entries until its longest list is exhausted or all its pixels have
-stopped. A chunk evaluates alphas for ``[G, K, P]`` (group tiles x chunk x 256 pixels),
+stopped. A chunk evaluates alphas for ``[group, chunk, pix]``,
 makes in-chunk transmittances by a cumulative product and adds ``weights @ features``
 (one matmul per chunk, so the feature width F costs a contraction, not sequential steps).
 
@@ -43,23 +46,23 @@ _HIGHEST = lax.Precision.HIGHEST
 class _Groups(NamedTuple):
     """Tiles in processing order, ``[num_groups, G]`` each."""
 
-    tile_ids: Int[Array, "g G"]  # tile index (num_tiles for padding)
-    starts: Int[Array, "g G"]
-    counts: Int[Array, "g G"]
+    tile_ids: Int[Array, "groups group"]  # tile index (num_tiles for padding)
+    starts: Int[Array, "groups group"]
+    counts: Int[Array, "groups group"]
 
 
 class _Chunk(NamedTuple):
     """One chunk of K list entries evaluated on the P pixels of G tiles."""
 
-    gid: Int[Array, "G K"]  # Gaussian index (0 where the slot is past the list)
-    valid: Bool[Array, "G K"]  # slot inside the tile's list
-    dx: Float[Array, "G K P"]
-    dy: Float[Array, "G K P"]
-    quad: Float[Array, "G K 3"]  # (a, q, s) of the quadratic form
-    opacity: Float[Array, "G K"]
-    vis: Float[Array, "G K P"]  # exp(-sigma)
-    alpha: Float[Array, "G K P"]  # min(alpha_max, o exp(-sigma))
-    active: Bool[Array, "G K P"]  # valid and alpha >= alpha_min
+    gid: Int[Array, "group chunk"]  # Gaussian index (0 where the slot is past the list)
+    valid: Bool[Array, "group chunk"]  # slot inside the tile's list
+    dx: Float[Array, "group chunk pix"]
+    dy: Float[Array, "group chunk pix"]
+    quad: Float[Array, "group chunk 3"]  # (a, q, s) of the quadratic form
+    opacity: Float[Array, "group chunk"]
+    vis: Float[Array, "group chunk pix"]  # exp(-sigma)
+    alpha: Float[Array, "group chunk pix"]  # min(alpha_max, o exp(-sigma))
+    active: Bool[Array, "group chunk pix"]  # valid and alpha >= alpha_min
 
 
 def _make_groups(bins: TileBins, cfg: SplatConfig) -> _Groups:
@@ -77,8 +80,8 @@ def _make_groups(bins: TileBins, cfg: SplatConfig) -> _Groups:
 
 
 def _pixels(
-    tile_ids: Int[Array, "G"], height: int, width: int, cfg: SplatConfig, dtype: jnp.dtype
-) -> tuple[Float[Array, "G P"], Float[Array, "G P"], Bool[Array, "G P"]]:
+    tile_ids: Int[Array, "group"], height: int, width: int, cfg: SplatConfig, dtype: jnp.dtype
+) -> tuple[Float[Array, "group pix"], Float[Array, "group pix"], Bool[Array, "group pix"]]:
     """Pixel centres (x, y) of each tile (row-major inside the tile) and in-canvas mask."""
     ts = cfg.tile_size
     tiles_x = cfg.tile_grid(height, width)[1]
@@ -91,13 +94,13 @@ def _pixels(
 
 def _eval_chunk(
     c: Int[Array, ""],
-    starts: Int[Array, "G"],
-    counts: Int[Array, "G"],
-    gaussian_ids: Int[Array, "C"],
+    starts: Int[Array, "group"],
+    counts: Int[Array, "group"],
+    gaussian_ids: Int[Array, "isect"],
     geometry: Float[Array, "N 5"],
     opacities: Float[Array, "N"],
-    px: Float[Array, "G P"],
-    py: Float[Array, "G P"],
+    px: Float[Array, "group pix"],
+    py: Float[Array, "group pix"],
     cfg: SplatConfig,
 ) -> _Chunk:
     k = cfg.chunk_size
@@ -118,7 +121,7 @@ def _eval_chunk(
     return _Chunk(gid, valid, dx, dy, quad, opacity, vis, alpha, active)
 
 
-def _exclusive_cumprod(x: Float[Array, "G K P"]) -> Float[Array, "G K P"]:
+def _exclusive_cumprod(x: Float[Array, "group chunk pix"]) -> Float[Array, "group chunk pix"]:
     ones = jnp.ones_like(x[:, :1])
     return jnp.concatenate([ones, lax.cumprod(x[:, :-1], axis=1)], axis=1)
 
@@ -127,12 +130,12 @@ def _forward_group(
     geometry: Float[Array, "N 5"],
     opacities: Float[Array, "N"],
     features: Float[Array, "N C"],
-    gaussian_ids: Int[Array, "C"],
-    group: tuple[Int[Array, "G"], Int[Array, "G"], Int[Array, "G"]],
+    gaussian_ids: Int[Array, "isect"],
+    group: tuple[Int[Array, "group"], Int[Array, "group"], Int[Array, "group"]],
     height: int,
     width: int,
     cfg: SplatConfig,
-) -> tuple[Float[Array, "G P C"], Float[Array, "G P"], Int[Array, "G P"]]:
+) -> tuple[Float[Array, "group pix C"], Float[Array, "group pix"], Int[Array, "group pix"]]:
     """Composite one tile group: features, final T and ``last`` (1 + last used entry)."""
     tile_ids, starts, counts = group
     k = cfg.chunk_size
@@ -177,12 +180,12 @@ def _backward_group(
     geometry: Float[Array, "N 5"],
     opacities: Float[Array, "N"],
     features: Float[Array, "N C"],
-    gaussian_ids: Int[Array, "C"],
-    group: tuple[Int[Array, "G"], Int[Array, "G"], Int[Array, "G"]],
-    trans_final: Float[Array, "G P"],
-    last: Int[Array, "G P"],
-    g_feat: Float[Array, "G P C"],
-    g_trans: Float[Array, "G P"],
+    gaussian_ids: Int[Array, "isect"],
+    group: tuple[Int[Array, "group"], Int[Array, "group"], Int[Array, "group"]],
+    trans_final: Float[Array, "group pix"],
+    last: Int[Array, "group pix"],
+    g_feat: Float[Array, "group pix C"],
+    g_trans: Float[Array, "group pix"],
     grads: tuple[Float[Array, "N 5"], Float[Array, "N"], Float[Array, "N C"]],
     height: int,
     width: int,
@@ -238,7 +241,7 @@ def _backward_group(
     return grads
 
 
-def _to_canvas(tiles: Float[Array, "T P ..."], height: int, width: int, cfg: SplatConfig) -> Array:
+def _to_canvas(tiles: Float[Array, "tiles pix ..."], height: int, width: int, cfg: SplatConfig) -> Array:
     """``[T, P, ...]`` tile-major values to a ``[H, W, ...]`` canvas."""
     ts = cfg.tile_size
     tiles_y, tiles_x = cfg.tile_grid(height, width)
@@ -321,7 +324,7 @@ def composite(
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
-) -> tuple[Float[Array, "H W C"], Float[Array, "H W"]]:
+) -> tuple[Float[Array, "H W isect"], Float[Array, "H W"]]:
     """Composite binned Gaussians front to back onto an ``height x width`` canvas.
 
     Returns ``(sum_i w_i f_i [H, W, C], final transmittance [H, W])``; no background is

@@ -23,7 +23,7 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-def sh_basis(dirs: Float[Array, "N 3"], degree: int) -> Float[Array, "N B"]:
+def sh_basis(dirs: Float[Array, "N 3"], degree: int) -> Float[Array, "N bases"]:
     """Real SH basis ``[N, (degree+1)^2]`` at unit directions ``dirs``."""
     if not 0 <= degree <= MAX_DEGREE:
         raise ValueError(f"sh_basis: degree must be in [0, {MAX_DEGREE}], got {degree}")
