@@ -126,6 +126,13 @@ def _exclusive_cumprod(x: Float[Array, "group chunk pix"]) -> Float[Array, "grou
     return jnp.concatenate([ones, lax.cumprod(x[:, :-1], axis=1)], axis=1)
 
 
+def _typed_zero(dtype: jnp.dtype, *arrays: Array) -> Array:
+    """A scalar 0 that depends on every input, so loop carries built from constants have
+    the same type as the loop body's outputs under ``shard_map`` (whose values vary over
+    the mesh axis); XLA folds it away everywhere else."""
+    return sum((jnp.sum(a.reshape(-1)[:0]).astype(dtype) for a in arrays), jnp.zeros((), dtype))
+
+
 def _forward_group(
     geometry: Float[Array, "N 5"],
     opacities: Float[Array, "N"],
@@ -165,12 +172,13 @@ def _forward_group(
         last = jnp.where(used > 0, c * k + used, last)
         return c + 1, trans, done, acc, last
 
+    zero = _typed_zero(dtype, geometry, opacities, features, gaussian_ids, starts, counts)
     init = (
         jnp.zeros((), jnp.int32),
-        jnp.ones((g, p), dtype),
-        ~live,
-        jnp.zeros((g, p, features.shape[1]), dtype),
-        jnp.zeros((g, p), jnp.int32),
+        jnp.ones((g, p), dtype) + zero,
+        ~live | (zero != 0),
+        jnp.zeros((g, p, features.shape[1]), dtype) + zero,
+        jnp.zeros((g, p), jnp.int32) + zero.astype(jnp.int32),
     )
     _, trans, _, acc, last = lax.while_loop(cond, body, init)
     return acc, trans, last
@@ -305,7 +313,8 @@ def _composite_bwd(height, width, cfg, res, cotangents):
         )
         return new, None
 
-    zeros = (jnp.zeros_like(geometry), jnp.zeros_like(opacities), jnp.zeros_like(features))
+    zero = _typed_zero(geometry.dtype, geometry, opacities, features, gaussian_ids, trans, g_feat, g_trans)
+    zeros = (jnp.zeros_like(geometry) + zero, jnp.zeros_like(opacities) + zero, jnp.zeros_like(features) + zero)
     grads, _ = lax.scan(step, zeros, (tuple(groups), trans, last, gf, gt))
     d_geo, d_op, d_feat = grads
     none_groups = _Groups(None, None, None)
