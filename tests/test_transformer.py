@@ -70,7 +70,7 @@ def test_block_bfloat16_compute(key, rng):
             want = block_oracle(p, x, cfg, grid=grid, num_neighbours=64)
         else:
             p = params
-        got = block.apply({"params": p}, jnp.asarray(x, jnp.bfloat16))
+        got = jax.jit(block.apply)({"params": p}, jnp.asarray(x, jnp.bfloat16))
         assert got.dtype == jnp.bfloat16
         assert rel_err(got, want) < 3e-2
 
