@@ -22,7 +22,7 @@ def get_config() -> ExperimentConfig:
         head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=8.0, scale_bias=-2.5),
     )
     stage = StageConfig(
-        name="demo", steps=1000, global_batch=2, num_inputs=4, num_targets=2, resize_h=64,
+        name="demo", steps=700, global_batch=2, num_inputs=4, num_targets=2, resize_h=64,
         square_crop=True, lr=2e-3, warmup_steps=50, min_span=6, max_span=10,
     )
     data = DataConfig(
@@ -31,5 +31,5 @@ def get_config() -> ExperimentConfig:
     )
     return ExperimentConfig(
         name="demo", model=model, stages=(stage,), data=data, perceptual_weight=0.0,
-        log_every=10, eval_every=0, checkpoint_every=250, keep_checkpoints=2, max_minutes=8.0,
+        log_every=10, eval_every=0, checkpoint_every=250, keep_checkpoints=2, max_minutes=12.0,
     )
