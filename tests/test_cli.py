@@ -16,10 +16,12 @@ from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, loa
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-@pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(ROOT, "experiments", "*.py"))))
+EXPERIMENT_FILES = sorted(p for p in glob.glob(os.path.join(ROOT, "experiments", "*.py"))
+                          if not os.path.basename(p).startswith("bench"))  # bench_*.py are scripts
+
+
+@pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=os.path.basename)
 def test_experiment_files_load(path):
-    if os.path.basename(path).startswith("bench"):
-        pytest.skip("benchmark script, not an experiment")
     exp = load_experiment(path)
     assert exp.stages and all(s.steps > 0 for s in exp.stages)
     with open(path) as f:
