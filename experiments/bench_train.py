@@ -78,10 +78,9 @@ from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.model import init_params, reconstruct
 from llrmpp_jax.nn.backbone import count_params, parse_block_pattern
-from llrmpp_jax.trainer import batch_config, load_perceptual, make_loss_fn
+from llrmpp_jax.trainer import batch_config, load_perceptual, make_loss_fn, optimizer_config
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-NO_DECAY = ("A_log", "dt_bias", "D")  # as trainer.train: Mamba2 vectors are never decayed
 PAPER_STAGE4_DEVICES = 64  # paper Table 8: stage 4 trains a global batch of 64 on 64 GPUs
 GIB = 2.0**30
 
@@ -119,8 +118,7 @@ def with_remat(model: C.ModelConfig) -> C.ModelConfig:
 def make_step(exp: ExperimentConfig, stage: StageConfig,
               vgg_params: dict | None) -> tuple[T.step.StepFn, optax.GradientTransformation]:
     """The trainer's per-device step for ``stage`` and its optimizer (settings as ``trainer.train``)."""
-    opt_cfg = T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
-                                total_steps=stage.steps, no_decay_names=NO_DECAY)
+    opt_cfg = optimizer_config(stage)
     optimizer = T.make_optimizer(opt_cfg)
     step = T.make_train_step(make_loss_fn(exp, vgg_params), optimizer, T.make_schedule(opt_cfg),
                              compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)

@@ -36,7 +36,7 @@ def get_config() -> ExperimentConfig:
         StageConfig("stage4_540_32v", steps=10_000, global_batch=64, num_inputs=32, num_targets=8,
                     resize_h=540, lr=4e-5, warmup_steps=0),
     )
-    model = C.replace(C.paper_dl3dv(), backbone=C.replace(C.paper_dl3dv().backbone, remat=True))
+    model = C.for_accelerators(C.paper_dl3dv())
     return ExperimentConfig(
         name="dl3dv", model=model, stages=stages,
         data=DataConfig(kind="long_lrm", path=DATA, eval_path=EVAL, num_eval_scenes=140, workers=8),

@@ -33,7 +33,7 @@ def get_config() -> ExperimentConfig:
         StageConfig("stage3_448x336_128v", steps=2_000, global_batch=64, num_inputs=128, num_targets=8,
                     resize_h=336, resize_w=448, lr=4e-5, warmup_steps=0, input_weight=1.0),
     )
-    model = C.replace(C.paper_scannet(), backbone=C.replace(C.paper_scannet().backbone, remat=True))
+    model = C.for_accelerators(C.paper_scannet())
     return ExperimentConfig(
         name="scannet", model=model, stages=stages,
         data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8),

@@ -174,6 +174,19 @@ class ModelConfig:
         return math.lcm(self.token_stride, self.decoder.token_stride)
 
 
+def for_accelerators(model: ModelConfig) -> ModelConfig:
+    """Flash attention (cuDNN, bf16) in every global-attention block and remat everywhere:
+    XLA's plain attention would hold [heads, L, L] scores (L = 261K backbone tokens at
+    stage 4, ~1.5 TiB per block), see experiments/results/bench_train.json."""
+    flash = replace(model.backbone.transformer, attention_impl="cudnn")
+    return replace(
+        model,
+        backbone=replace(model.backbone, transformer=flash, remat=True),
+        decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl="cudnn"),
+                          remat=True),
+    )
+
+
 def paper_dl3dv() -> ModelConfig:
     """Long-LRM++ on DL3DV (paper §4.1): ~110M parameters (backbone ~104M, decoder ~4M)."""
     return ModelConfig()

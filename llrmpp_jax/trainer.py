@@ -146,6 +146,13 @@ def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossF
     return loss_fn
 
 
+def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
+    """AdamW + warmup/cosine of one stage; Mamba2's per-head vectors (like Long-LRM's
+    ``_no_weight_decay``) are never decayed."""
+    return T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
+                             total_steps=stage.steps, no_decay_names=("A_log", "dt_bias", "D"))
+
+
 def load_perceptual(exp: ExperimentConfig) -> dict | None:
     if not exp.perceptual_weight:
         return None
@@ -184,8 +191,7 @@ def train(
     result: dict = {"stages": []}
     for si, stage in enumerate(exp.stages):
         h, w = stage.resize_h, stage.resize_w or stage.resize_h
-        opt_cfg = T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
-                                    total_steps=stage.steps, no_decay_names=("A_log", "dt_bias", "D"))
+        opt_cfg = optimizer_config(stage)
         optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
         key = jax.random.key(exp.seed + 1000 * si)
         init = lambda k: init_params(k, exp.model, stage.num_inputs, h, w)  # noqa: E731
