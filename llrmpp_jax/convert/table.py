@@ -108,18 +108,18 @@ def convert_state_dict(
     for key, value in state_dict.items():
         if keep_prefixes is not None and not key.startswith(keep_prefixes):
             continue
-        targets = [t for t in (r.match(key) for r in rules) if t is not None]
-        if not targets:
+        hits = [(r, t) for r in rules if (t := r.match(key)) is not None]
+        if not hits:
             problems.append(f"no rule for key {key!r}")
             continue
-        if len(targets) > 1:
-            problems.append(f"key {key!r} matches several rules: {targets}")
+        if len(hits) > 1:
+            problems.append(f"key {key!r} matches several rules: {[t for _, t in hits]}")
             continue
-        rule = next(r for r in rules if r.match(key) is not None)
+        rule, target = hits[0]
         arr = np.asarray(value.detach().cpu().numpy() if hasattr(value, "detach") else value)
-        if targets[0] in flat:
-            problems.append(f"two keys map to {targets[0]!r} (second: {key!r})")
-        flat[targets[0]] = rule.transform(arr).astype(dtype)
+        if target in flat:
+            problems.append(f"two keys map to {target!r} (second: {key!r})")
+        flat[target] = rule.transform(arr).astype(dtype)
     if expected is not None:
         want = _flatten(expected)
         for path in sorted(set(want) - set(flat)):
