@@ -30,7 +30,7 @@ from llrmpp_jax.data import BatchConfig, BatchIterator, FileSource, ProceduralSo
 from llrmpp_jax.data import formats
 from llrmpp_jax.data.batching import SceneSource
 from llrmpp_jax.data.selection import eval_views, training_views
-from llrmpp_jax.evaluate import evaluate, format_table, picture_grid
+from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render

@@ -12,7 +12,7 @@ from llrmpp_jax import config as C
 from llrmpp_jax.decoder import TargetDecoder
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.losses import depth_loss, rgb_loss
-from llrmpp_jax.model import LongLRMPP, init_params, reconstruct, render
+from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.backbone import count_params
 from llrmpp_jax.perceptual import load_vgg16_lpips
 from llrmpp_jax.splat import render_features
