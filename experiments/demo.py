@@ -11,9 +11,9 @@ the paper's lambda=0.5 is one field away). Gaussians start 4 units out (max_dist
 larger than Long-LRM's (scale_bias -2.5), since the demo has minutes, not days, to move them.
 
 Where the minutes go: held-out PSNR grows with steps (19.04 dB at 700, 19.29 at 1200, 19.48
-at 2000), while, at equal steps, a wider backbone (D=96), K=8 Gaussians per token, a finer
-decoder (token stride 4), 4 targets, or lr 1e-3 / 3e-3 gained nothing or less than 0.1 dB
-and cost time. So: the smallest model, peak lr 2e-3, and as many steps (2400, about 9
+at 2000), while, at equal steps, K=8 Gaussians per token gained under 0.1 dB and a wider
+backbone (D=96), a finer decoder (token stride 4) or lr 1e-3 / 3e-3 lost ground, all at a
+cost in time. So: the smallest model, peak lr 2e-3, and as many steps (2400, about 9
 minutes on 2 cores) as the 10-minute budget allows; ``max_minutes`` stops (and checkpoints)
 a slower machine on time.
 """
