@@ -53,7 +53,11 @@ class StageConfig:
     the resize target; the data pipeline rounds each side to a multiple of the model's
     ``size_multiple`` (Long-LRM's rule: 540 -> 544), so any value is valid;
     ``square_crop`` centre-crops to a square; ``lr``/``warmup_steps`` restart with each
-    stage (Long-LRM resets the optimizer between stages).
+    stage (Long-LRM resets the optimizer between stages). Training augmentations
+    (Long-LRM, reference facts §3.3-3.4): ``zoom_min`` is ``random_crop`` (zoom by
+    ``1/r``, ``r ~ U(zoom_min, 1)``, one ``r`` per sample; 1.0 = off);
+    ``reverse_prob`` / ``shuffle_prob`` reverse / shuffle the input order;
+    ``input_weight`` is the target-draw weight of input frames.
     """
 
     name: str
@@ -70,6 +74,8 @@ class StageConfig:
     min_span: int | None = None
     max_span: int | None = None
     input_weight: float = 0.1  # Long-LRM++: input frames are drawn as targets with weight 0.1
+    reverse_prob: float = 0.0
+    shuffle_prob: float = 0.0
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.global_batch < 1 or self.num_inputs < 1 or self.num_targets < 1:
@@ -90,6 +96,7 @@ class ExperimentConfig:
     depth_grad_weight: float = 0.1
     depth_normal_weight: float = 0.1
     bf16: bool = False
+    skip_grad_norm_above: float | None = None  # Long-LRM: skip updates above 5 x clip 10 = 50
     log_every: int = 10
     eval_every: int = 500
     checkpoint_every: int = 500

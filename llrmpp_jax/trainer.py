@@ -96,6 +96,7 @@ def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
         global_batch=stage.global_batch, num_inputs=stage.num_inputs, num_targets=stage.num_targets,
         geometry=view_geometry(stage, exp.model.size_multiple), min_span=stage.min_span,
         max_span=stage.max_span, input_weight=stage.input_weight,
+        reverse_prob=stage.reverse_prob, shuffle_prob=stage.shuffle_prob,
         with_depth="depth" in exp.model.outputs,
     )
 
@@ -212,7 +213,8 @@ def train(
             result["stages"].append({"stage": stage.name, "steps": start, "resumed_complete": True})
             continue
         step_fn = T.make_train_step(loss_fn, optimizer, schedule,
-                                    compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
+                                    compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
+                                    skip_grad_norm_above=exp.skip_grad_norm_above)
         if use_pmap:
             run = T.pmap_train_step(step_fn, donate=True)
             state = T.replicate_for_pmap(state)
