@@ -15,6 +15,8 @@ depth (paper §3.4). ScanNet is dense, so input frames are not down-weighted as 
 (paper appendix): input_weight 1.0. Learning rates, input-order augmentations and the
 gradient-norm guard as in dl3dv.py; the zoom (r ~ U(0.77, 1)) at 448x336, the full-frame
 stages, as Long-LRM zooms only its full-frame stage (Long-LRM has no ScanNet recipe).
+Evaluation (paper §4.3): per scene the first 1,280 frames, every 8th a target, 128 inputs
+spread uniformly over the others; depth metrics in metres.
 """
 
 from llrmpp_jax import config as C
@@ -40,6 +42,7 @@ def get_config() -> ExperimentConfig:
     model = C.for_accelerators(C.paper_scannet())
     return ExperimentConfig(
         name="scannet", model=model, stages=stages,
-        data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8),
+        data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8,
+                        eval_inputs="uniform", eval_max_frames=1280),
         bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=1000, checkpoint_every=500,
     )

@@ -27,6 +27,11 @@ class DataConfig:
     from ``eval_seed_offset``, disjoint). Other kinds read scenes from ``path``: the
     Long-LRM ``.txt`` index (``long_lrm``) or a folder whose sub-folders are one scene each
     (other kinds); ``eval_path`` the same for held-out scenes.
+
+    Held-out split of real scenes (:func:`llrmpp_jax.trainer.eval_split`): targets every
+    8th frame of the first ``eval_max_frames`` (None: all); inputs from the others by
+    ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices, else
+    Long-LRM's k-means) or ``"uniform"`` (ScanNetv2: evenly spread, first 1,280 frames).
     """
 
     kind: str = "procedural"
@@ -36,11 +41,15 @@ class DataConfig:
     eval_seed_offset: int = 1_000_000_000
     num_eval_scenes: int = 8
     eval_span: int | None = None  # window of frames for procedural/held-out evaluation
+    eval_inputs: str = "kmeans"
+    eval_max_frames: int | None = None
     workers: int = 2
 
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
             raise ValueError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")
+        if self.eval_inputs not in ("kmeans", "uniform"):
+            raise ValueError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
         if self.kind != "procedural" and not self.path:
             raise ValueError(f"DataConfig: kind={self.kind!r} needs a dataset path")
 

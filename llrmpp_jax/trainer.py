@@ -29,7 +29,8 @@ from llrmpp_jax import train as T
 from llrmpp_jax.data import BatchConfig, BatchIterator, FileSource, ProceduralSource, ViewGeometry, make_sample
 from llrmpp_jax.data import formats
 from llrmpp_jax.data.batching import SceneSource
-from llrmpp_jax.data.selection import eval_views, training_views
+from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.data.selection import eval_views, every_nth, training_views
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 from llrmpp_jax.losses import depth_loss, rgb_loss
@@ -101,10 +102,35 @@ def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
     )
 
 
+def eval_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None = None,
+               every: int = 8) -> tuple[np.ndarray, np.ndarray, str]:
+    """The paper's evaluation split of one real held-out scene: ``(inputs, targets, how)``,
+    ``how`` a line saying what was used (see :class:`~llrmpp_jax.experiment.DataConfig`).
+    ``path``: the scene's Long-LRM JSON, read for cached k-means indices."""
+    n, limit = len(scene), data.eval_max_frames
+    if data.eval_inputs == "uniform":
+        inputs, targets = eval_views(scene.c2w, num_inputs, every, limit, inputs="uniform")
+        first = limit is not None and n >= limit
+        used = limit if first else n
+        how = (f"targets every {every}th of {'the first' if first else 'all'} {used} frames, "
+               f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}")
+        if limit is not None and n < limit:
+            how = f"only {n} frames, fewer than {limit}: {how}"
+        return inputs, targets, how
+    cached = None
+    if data.kind == "long_lrm" and path is not None and limit is None:
+        cached = formats.cached_kmeans_inputs(path, every, num_inputs, n)
+    if cached is not None:
+        return cached, every_nth(n, every), f"inputs: the dataset's cached 'fold_{every}_kmeans_{num_inputs}_input'"
+    inputs, targets = eval_views(scene.c2w, num_inputs, every, limit)
+    return inputs, targets, "inputs: Long-LRM's k-means (scikit-learn KMeans, random_state=0, n_init='auto')"
+
+
 def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict], list[str]]:
-    """Held-out samples, deterministic. Real data: the paper protocol (targets every 8th
-    frame, k-means inputs). Procedural: the training view sampler with a fixed seed per
-    scene (procedural scenes are short paths, so every-8th targets would be too sparse)."""
+    """Held-out samples, deterministic. Real data: the paper protocol (:func:`eval_split`,
+    printing per scene what it used). Procedural: the training view sampler with a fixed
+    seed per scene (procedural scenes are short paths, so every-8th targets would be too
+    sparse)."""
     source = scene_source(exp.data, held_out=True)
     geom = view_geometry(stage, exp.model.size_multiple, train=False)
     with_depth = "depth" in exp.model.outputs
@@ -116,7 +142,8 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
             inputs, targets = training_views(rng, len(scene), stage.num_inputs, stage.num_targets,
                                              exp.data.eval_span, exp.data.eval_span, input_weight=0.0)
         else:
-            inputs, targets = eval_views(scene.c2w, stage.num_inputs)
+            inputs, targets, how = eval_split(exp.data, stage.num_inputs, scene, source.paths[i])
+            print(f"eval scene {scene.name}: {how}")
         samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth))
         names.append(scene.name)
     return samples, names

@@ -29,7 +29,7 @@ def test_layout_and_values():
     assert shapes == {
         "input_images": (4, 3, 24, 32, 3), "input_c2w": (4, 3, 4, 4), "input_intrinsics": (4, 3, 4),
         "target_images": (4, 2, 24, 32, 3), "target_c2w": (4, 2, 4, 4), "target_intrinsics": (4, 2, 4),
-        "target_depth": (4, 2, 24, 32),
+        "target_depth": (4, 2, 24, 32), "scene_scale": (4,),
     }
     assert all(v.dtype == np.float32 for v in b.values())
     assert b["input_images"].min() >= 0 and b["input_images"].max() <= 1

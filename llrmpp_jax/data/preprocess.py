@@ -182,4 +182,5 @@ def make_sample(
     }
     if with_depth:
         sample["target_depth"] = (tg_depth * np.float32(scale)).astype(np.float32)
+    sample["scene_scale"] = np.float32(scale)
     return sample

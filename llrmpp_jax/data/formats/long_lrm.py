@@ -86,9 +86,33 @@ def read_long_lrm_scene(json_path: str, missing: Missing = "skip", depth_scale: 
     )
 
 
-def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int) -> list[int] | None:
-    """The ``fold_<every>_kmeans_<num_inputs>_input`` indices cached in a scene JSON, if any."""
-    return _load(json_path).get(f"fold_{every}_kmeans_{num_inputs}_input")
+def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int, num_frames: int) -> np.ndarray | None:
+    """The ``fold_<every>_kmeans_<num_inputs>_input`` indices cached in a scene JSON, sorted
+    int64, or None if the JSON has none. ``num_frames``: frames of the scene as read.
+
+    Raises:
+      ValueError (one line): the indices are not ``num_inputs`` integers in ``[0,
+        num_frames)``, or the reader skipped frames (missing images), so they no longer
+        index the scene.
+    """
+    data = _load(json_path)
+    key = f"fold_{every}_kmeans_{num_inputs}_input"
+    if key not in data:
+        return None
+    if len(data["frames"]) != num_frames:
+        raise ValueError(
+            f"{json_path}: '{key}' indexes the JSON's {len(data['frames'])} frames but {num_frames} were read "
+            f"(frames without images are skipped); restore the images or delete the key to recompute it"
+        )
+    idx = np.asarray(data[key])
+    if idx.shape != (num_inputs,) or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"{json_path}: '{key}' must be {num_inputs} integer frame indices, got {data[key]!r:.80}")
+    bad = idx[(idx < 0) | (idx >= num_frames)]
+    if bad.size:
+        raise ValueError(
+            f"{json_path}: '{key}' holds frame index {int(bad[0])}, out of range for a scene of {num_frames} frames"
+        )
+    return np.sort(idx.astype(np.int64))
 
 
 def write_long_lrm_scene(
