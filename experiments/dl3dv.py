@@ -30,6 +30,9 @@ from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
 DATA = "data/dl3dv/train.txt"  # Long-LRM .txt index of scene JSONs (see data/formats/long_lrm.py)
 EVAL = "data/dl3dv/dl3dv140.txt"
+# Long-LRM's precomputed DL3DV-140 k-means inputs (its repository's
+# data/dl3dv_fold_8_kmeans_input_idx.json); None computes them as Long-LRM does.
+KMEANS_INDEX = "data/dl3dv/dl3dv_fold_8_kmeans_input_idx.json"
 
 
 def get_config() -> ExperimentConfig:
@@ -49,6 +52,7 @@ def get_config() -> ExperimentConfig:
     model = C.for_accelerators(C.paper_dl3dv())
     return ExperimentConfig(
         name="dl3dv", model=model, stages=stages,
-        data=DataConfig(kind="long_lrm", path=DATA, eval_path=EVAL, num_eval_scenes=140, workers=8),
+        data=DataConfig(kind="long_lrm", path=DATA, eval_path=EVAL, num_eval_scenes=140, workers=8,
+                        eval_index=KMEANS_INDEX),
         perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=2000, checkpoint_every=1000,
     )

@@ -58,9 +58,8 @@ def _params_from_checkpoint(exp, checkpoint: str):
 
 
 def cmd_train(args) -> int:
-    from llrmpp_jax.trainer import train
-
     from llrmpp_jax.experiment import replace
+    from llrmpp_jax.trainer import train
 
     exp = _experiment(args.config)
     if args.vgg19:

@@ -30,8 +30,9 @@ class DataConfig:
 
     Held-out split of real scenes (:func:`llrmpp_jax.trainer.eval_split`): targets every
     8th frame of the first ``eval_max_frames`` (None: all); inputs from the others by
-    ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices, else
-    Long-LRM's k-means) or ``"uniform"`` (ScanNetv2: evenly spread, first 1,280 frames).
+    ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices -- in the
+    scene JSONs or in ``eval_index``, Long-LRM's ``dl3dv_fold_8_kmeans_input_idx.json`` --
+    else Long-LRM's k-means) or ``"uniform"`` (ScanNetv2: evenly spread, first 1,280 frames).
     """
 
     kind: str = "procedural"
@@ -43,6 +44,7 @@ class DataConfig:
     eval_span: int | None = None  # window of frames for procedural/held-out evaluation
     eval_inputs: str = "kmeans"
     eval_max_frames: int | None = None
+    eval_index: str | None = None
     workers: int = 2
 
     def __post_init__(self) -> None:

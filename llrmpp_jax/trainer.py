@@ -30,7 +30,7 @@ from llrmpp_jax.data import BatchConfig, BatchIterator, FileSource, ProceduralSo
 from llrmpp_jax.data import formats
 from llrmpp_jax.data.batching import SceneSource
 from llrmpp_jax.data.scene import Scene
-from llrmpp_jax.data.selection import eval_views, every_nth, training_views
+from llrmpp_jax.data.selection import checked_inputs, eval_views, every_nth, training_views
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 from llrmpp_jax.losses import depth_loss, rgb_loss
@@ -103,10 +103,12 @@ def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
 
 
 def eval_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None = None,
-               every: int = 8) -> tuple[np.ndarray, np.ndarray, str]:
+               index: dict[str, dict] | None = None, every: int = 8) -> tuple[np.ndarray, np.ndarray, str]:
     """The paper's evaluation split of one real held-out scene: ``(inputs, targets, how)``,
     ``how`` a line saying what was used (see :class:`~llrmpp_jax.experiment.DataConfig`).
-    ``path``: the scene's Long-LRM JSON, read for cached k-means indices."""
+    k-means inputs come from, in this order: the scene's Long-LRM JSON at ``path``, the
+    entry of ``scene.name`` in ``index`` (:func:`~llrmpp_jax.data.formats.read_kmeans_index`),
+    else Long-LRM's k-means computed here."""
     n, limit = len(scene), data.eval_max_frames
     if data.eval_inputs == "uniform":
         inputs, targets = eval_views(scene.c2w, num_inputs, every, limit, inputs="uniform")
@@ -117,11 +119,14 @@ def eval_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None
         if limit is not None and n < limit:
             how = f"only {n} frames, fewer than {limit}: {how}"
         return inputs, targets, how
-    cached = None
-    if data.kind == "long_lrm" and path is not None and limit is None:
+    key = f"fold_{every}_kmeans_{num_inputs}_input"
+    if limit is None and data.kind == "long_lrm" and path is not None:
         cached = formats.cached_kmeans_inputs(path, every, num_inputs, n)
-    if cached is not None:
-        return cached, every_nth(n, every), f"inputs: the dataset's cached 'fold_{every}_kmeans_{num_inputs}_input'"
+        if cached is not None:
+            return cached, every_nth(n, every), f"inputs: the scene JSON's cached '{key}'"
+    if limit is None and index is not None and key in index.get(scene.name, {}):
+        inputs = checked_inputs(index[scene.name][key], n, num_inputs, f"{data.eval_index}: {scene.name} '{key}'")
+        return inputs, every_nth(n, every), f"inputs: '{key}' of {data.eval_index}"
     inputs, targets = eval_views(scene.c2w, num_inputs, every, limit)
     return inputs, targets, "inputs: Long-LRM's k-means (scikit-learn KMeans, random_state=0, n_init='auto')"
 
@@ -134,6 +139,7 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
     source = scene_source(exp.data, held_out=True)
     geom = view_geometry(stage, exp.model.size_multiple, train=False)
     with_depth = "depth" in exp.model.outputs
+    index = formats.read_kmeans_index(exp.data.eval_index) if exp.data.eval_index else None
     samples, names = [], []
     for i in range(min(exp.data.num_eval_scenes, len(source))):
         scene = source.load(i)
@@ -142,7 +148,7 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
             inputs, targets = training_views(rng, len(scene), stage.num_inputs, stage.num_targets,
                                              exp.data.eval_span, exp.data.eval_span, input_weight=0.0)
         else:
-            inputs, targets, how = eval_split(exp.data, stage.num_inputs, scene, source.paths[i])
+            inputs, targets, how = eval_split(exp.data, stage.num_inputs, scene, source.paths[i], index)
             print(f"eval scene {scene.name}: {how}")
         samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth))
         names.append(scene.name)

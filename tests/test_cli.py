@@ -122,7 +122,7 @@ def test_train_resume_and_eval(tmp_path):
     assert first["stages"][0]["steps"] == 2
     log = json.load(open(os.path.join(work, "train_log.json")))
     assert [h["step"] for h in log["history"]] == [1, 2]
-    assert all(h["loss"] > 0 and h["skipped_total"] == 0 for h in log["history"])
+    assert all(h["loss"] > 0 and h["skipped_total"] == h["skipped_grad_norm_total"] == 0 for h in log["history"])
     second = train(_micro_experiment(3), work, progress=False)
     assert [h["step"] for h in second["history"]] == [3]  # resumed, not restarted
     assert os.listdir(os.path.join(work, "tb"))

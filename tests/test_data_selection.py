@@ -166,7 +166,7 @@ def test_cached_kmeans_indices_are_used_and_checked(tmp_path, rng):
     inputs, targets, how = eval_split(data, 4, read, path)
     np.testing.assert_array_equal(inputs, [2, 5, 9, 33])
     np.testing.assert_array_equal(targets, np.arange(0, 40, 8))
-    assert how == "inputs: the dataset's cached 'fold_8_kmeans_4_input'"
+    assert how == "inputs: the scene JSON's cached 'fold_8_kmeans_4_input'"
     meta["fold_8_kmeans_4_input"] = [1, 2, 40, 9]
     json.dump(meta, open(path, "w"))
     with pytest.raises(ValueError, match=r"'fold_8_kmeans_4_input' holds frame index 40, out of range for a scene of 40"):
@@ -210,3 +210,27 @@ def test_training_targets_follow_weighted_sampling_without_replacement():
         p = w[a] / total * w[b] / (total - w[a]) + w[b] / total * w[a] / (total - w[b])
         got = counts.get((a, b), 0) / draws
         assert abs(got - p) < 4 * np.sqrt(p * (1 - p) / draws) + 1e-3, ((a, b), got, p)
+
+
+def test_long_lrm_kmeans_index_file(tmp_path, rng):
+    """Long-LRM's dl3dv_fold_8_kmeans_input_idx.json layout (a list of per-scene entries):
+    the scene's entry is used when its JSON has no cached key; other scenes fall back to the
+    official k-means; an index past the scene's end is one clear line."""
+    from llrmpp_jax.data.formats import read_kmeans_index
+
+    scene = synthetic_scene(40, rng)
+    index_path = str(tmp_path / "idx.json")
+    json.dump([{"scene_name": "seq", "fold_8_kmeans_4_input": [30, 3, 12, 20], "fold_8_kmeans_2_input": [1, 2]},
+               {"scene_name": "other", "fold_8_kmeans_4_input": [1, 2, 3, 4]}], open(index_path, "w"))
+    data = DataConfig(eval_index=index_path)
+    index = read_kmeans_index(index_path)
+    inputs, targets, how = eval_split(data, 4, scene, index=index)
+    np.testing.assert_array_equal(inputs, [3, 12, 20, 30])
+    np.testing.assert_array_equal(targets, np.arange(0, 40, 8))
+    assert how == f"inputs: 'fold_8_kmeans_4_input' of {index_path}"
+    inputs, _, how = eval_split(data, 3, scene, index=index)  # no 3-input entry: computed
+    assert "k-means" in how
+    np.testing.assert_array_equal(inputs, official_kmeans_split(scene.c2w[:, :3, 3], scene.c2w[:, :3, 2], 3)[0])
+    with pytest.raises(ValueError, match=r"seq 'fold_8_kmeans_4_input' holds frame index 45, out of range for a scene "
+                                         r"of 40 frames"):
+        eval_split(data, 4, scene, index={"seq": {"fold_8_kmeans_4_input": [1, 45, 2, 3]}})

@@ -15,6 +15,8 @@ Everything is deterministic: k-means uses a fixed seed, training draws take a ge
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
@@ -69,6 +71,21 @@ def eval_views(
     if len(rest) < num_inputs:
         raise ValueError(f"eval_views: {num_inputs} input views requested but only {len(rest)} non-target frames")
     return rest[uniform_inputs(len(rest), num_inputs)], targets
+
+
+def checked_inputs(
+    indices: Sequence[int], num_frames: int, num_inputs: int, source: str
+) -> Int[np.ndarray, "V"]:
+    """Precomputed input indices (e.g. Long-LRM's cached k-means ones) as sorted int64;
+    ``ValueError`` (one line naming ``source``) unless they are ``num_inputs`` integers in
+    ``[0, num_frames)``."""
+    idx = np.asarray(indices)
+    if idx.shape != (num_inputs,) or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"{source} must be {num_inputs} integer frame indices, got {list(np.ravel(idx))[:6]}...")
+    bad = idx[(idx < 0) | (idx >= num_frames)]
+    if bad.size:
+        raise ValueError(f"{source} holds frame index {int(bad[0])}, out of range for a scene of {num_frames} frames")
+    return np.sort(idx.astype(np.int64))
 
 
 def uniform_inputs(num_frames: int, num_inputs: int) -> Int[np.ndarray, "V"]:

@@ -18,6 +18,7 @@ import numpy as np
 
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.data.selection import checked_inputs
 
 SCENE_JSON = "opencv_cameras.json"
 
@@ -104,15 +105,22 @@ def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int, num_frames
             f"{json_path}: '{key}' indexes the JSON's {len(data['frames'])} frames but {num_frames} were read "
             f"(frames without images are skipped); restore the images or delete the key to recompute it"
         )
-    idx = np.asarray(data[key])
-    if idx.shape != (num_inputs,) or not np.issubdtype(idx.dtype, np.integer):
-        raise ValueError(f"{json_path}: '{key}' must be {num_inputs} integer frame indices, got {data[key]!r:.80}")
-    bad = idx[(idx < 0) | (idx >= num_frames)]
-    if bad.size:
-        raise ValueError(
-            f"{json_path}: '{key}' holds frame index {int(bad[0])}, out of range for a scene of {num_frames} frames"
-        )
-    return np.sort(idx.astype(np.int64))
+    return checked_inputs(data[key], num_frames, num_inputs, f"{json_path}: '{key}'")
+
+
+def read_kmeans_index(path: str) -> dict[str, dict]:
+    """Long-LRM's file of precomputed evaluation inputs (``data/dl3dv_fold_8_kmeans_input_idx.json``:
+    a list of ``{"scene_name", "fold_8_kmeans_<n>_input": [...]}``) keyed by scene name."""
+    try:
+        with open(path) as f:
+            entries = json.load(f)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"k-means index file not found: {path}") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(entries, list) or not all(isinstance(e, dict) and "scene_name" in e for e in entries):
+        raise ValueError(f"{path}: expected a list of objects with a 'scene_name' (Long-LRM's k-means index)")
+    return {e["scene_name"]: e for e in entries}
 
 
 def write_long_lrm_scene(
