@@ -54,5 +54,6 @@ def get_config() -> ExperimentConfig:
         name="dl3dv", model=model, stages=stages,
         data=DataConfig(kind="long_lrm", path=DATA, eval_path=EVAL, num_eval_scenes=140, workers=8,
                         eval_index=KMEANS_INDEX),
-        perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=2000, checkpoint_every=1000,
+        perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0,
+        log_every=50, eval_every=2000, checkpoint_every=1000,
     )

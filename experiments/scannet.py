@@ -47,5 +47,6 @@ def get_config() -> ExperimentConfig:
         name="scannet", model=model, stages=stages,
         data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8,
                         eval_inputs="uniform", eval_max_frames=1280),
-        perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0, log_every=50, eval_every=1000, checkpoint_every=500,
+        perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0,
+        log_every=50, eval_every=1000, checkpoint_every=500,
     )
