@@ -23,14 +23,18 @@ from llrmpp_jax.data.selection import checked_inputs
 SCENE_JSON = "opencv_cameras.json"
 
 
-def _load(path: str) -> dict:
+def _read_json(path: str, what: str):
     try:
         with open(path) as f:
-            data = json.load(f)
+            return json.load(f)
     except FileNotFoundError:
-        raise FileNotFoundError(f"Long-LRM scene file not found: {path}") from None
+        raise FileNotFoundError(f"{what} not found: {path}") from None
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from None
+
+
+def _load(path: str) -> dict:
+    data = _read_json(path, "Long-LRM scene file")
     if isinstance(data, list):  # LaCT: bare list of frames
         data = {"scene_name": os.path.basename(os.path.dirname(os.path.abspath(path))), "frames": data}
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
@@ -111,13 +115,7 @@ def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int, num_frames
 def read_kmeans_index(path: str) -> dict[str, dict]:
     """Long-LRM's file of precomputed evaluation inputs (``data/dl3dv_fold_8_kmeans_input_idx.json``:
     a list of ``{"scene_name", "fold_8_kmeans_<n>_input": [...]}``) keyed by scene name."""
-    try:
-        with open(path) as f:
-            entries = json.load(f)
-    except FileNotFoundError:
-        raise FileNotFoundError(f"k-means index file not found: {path}") from None
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    entries = _read_json(path, "k-means index file")
     if not isinstance(entries, list) or not all(isinstance(e, dict) and "scene_name" in e for e in entries):
         raise ValueError(f"{path}: expected a list of objects with a 'scene_name' (Long-LRM's k-means index)")
     return {e["scene_name"]: e for e in entries}
