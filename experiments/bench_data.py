@@ -66,11 +66,11 @@ def bench_capture(scene, size: int, frames: int, repeats: int) -> dict[str, floa
                         resize_h=size if scene.hw[0, 0] <= scene.hw[0, 1] else None, square_crop=True)
     hw = tuple(scene.hw[0])
     resized, out_hw = resized_size(hw, geom), output_size(hw, geom)
-    box = crop_box(resized, geom, None)
+    box = crop_box(resized, geom)
 
     def load(r: int) -> None:
         start = (r + 1) * frames % max(1, len(scene) - frames)
-        load_views(scene, np.arange(start, start + frames), resized, box, out_hw, False)
+        load_views(scene, np.arange(start, start + frames), resized, box, None, False)
 
     out = _rate(load, frames, repeats)
     out["output_hw"] = list(out_hw)

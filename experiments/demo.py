@@ -15,7 +15,8 @@ at 2000), while, at equal steps, K=8 Gaussians per token gained under 0.1 dB and
 backbone (D=96), a finer decoder (token stride 4) or lr 1e-3 / 3e-3 lost ground, all at a
 cost in time. So: the smallest model, peak lr 2e-3, and as many steps (2400, about 9
 minutes on 2 cores) as the 10-minute budget allows; ``max_minutes`` stops (and checkpoints)
-a slower machine on time.
+a slower machine on time. Long-LRM's zoom and input-order augmentations and its gradient-norm
+guard stay off (the defaults): the paper configs (dl3dv.py, scannet.py) turn them on.
 """
 
 from llrmpp_jax import config as C

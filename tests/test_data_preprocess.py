@@ -5,10 +5,18 @@ scene normalisation of a sample."""
 import numpy as np
 import pytest
 
-from llrmpp_jax.data.preprocess import ViewGeometry, crop_box, make_sample, output_size, resized_size
+from llrmpp_jax.data.preprocess import (
+    ViewGeometry,
+    crop_box,
+    load_views,
+    make_sample,
+    output_size,
+    resized_size,
+    zoom_offset,
+)
 from llrmpp_jax.data.scene import in_memory_scene
 from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
-from llrmpp_jax.geometry import normalize_scene, unproject_depth
+from llrmpp_jax.geometry import normalize_scene, project_points, unproject_depth
 
 
 def long_lrm_size(h, w, resize_h, resize_w, patch):
@@ -75,13 +83,76 @@ def test_sample_intrinsics_are_exact(rng, square, zoom):
                 assert np.median(err) < 1e-6 and err.max() <= 0.0111 * scale  # at most one source pixel off
 
 
-def test_crop_box_bounds(rng):
-    geom = ViewGeometry(square_crop=True, zoom_min=0.5)
-    for _ in range(50):
-        top, left, ch, cw = crop_box((60, 100), geom, rng)
-        assert 20 <= left and left + cw <= 80 and 0 <= top and top + ch <= 60 and ch == cw and ch >= 30
-    assert crop_box((60, 100), ViewGeometry(square_crop=True), rng) == (0, 20, 60, 60)
-    assert crop_box((60, 100), geom, None) == (0, 20, 60, 60)  # no rng: no zoom (evaluation)
+def test_crop_box():
+    assert crop_box((60, 100), ViewGeometry(square_crop=True)) == (0, 20, 60, 60)
+    assert crop_box((100, 60), ViewGeometry(square_crop=True)) == (20, 0, 60, 60)
+    assert crop_box((60, 100), ViewGeometry()) == (0, 0, 60, 100)
+
+
+def test_zoom_offset_is_long_lrm_centre_crop():
+    """torch sizes the 1/r upsample floor(n / r); the crop starts at half the excess, floored."""
+    for n, r in ((544, 0.77), (960, 0.77), (256, 0.9), (336, 0.999), (448, 1.0)):
+        mag = int(np.floor(n * (1.0 / r)))
+        assert zoom_offset((n, n), r) == ((mag - n) // 2,) * 2
+
+
+def blob_scene(rng, n, h, w, sigma):
+    """Frames looking at one 3-D point X (random cameras around it), each image a Gaussian
+    blob of ``sigma`` px centred on X's projection, principal point well off-centre."""
+    x_world = rng.normal(size=3)
+    k = np.array([0.8 * w, 0.85 * w, 0.62 * w, 0.41 * h])
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        a = rng.uniform(-0.3, 0.3)
+        c2w[i, :3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+        cam = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(2.0, 3.0)])
+        c2w[i, :3, 3] = x_world - c2w[i, :3, :3] @ cam
+    pix = project_points(np.tile(x_world, (n, 1, 1)), c2w, np.tile(k, (n, 1)))[0][:, 0]
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    img = np.stack([np.exp(-((xx - px) ** 2 + (yy - py) ** 2) / (2 * sigma**2)) for px, py in pix])
+    return in_memory_scene("blob", np.repeat(img[..., None], 3, axis=-1), c2w, np.tile(k, (n, 1))), x_world
+
+
+def centroid(img):
+    yy, xx = np.mgrid[0 : img.shape[0], 0 : img.shape[1]] + 0.5
+    return np.array([(img * xx).sum(), (img * yy).sum()]) / img.sum()
+
+
+@pytest.mark.parametrize("r", [0.77, 0.83, 0.91, 1.0])
+def test_zoom_keeps_projections_consistent(rng, r):
+    """The zoomed view of a 3-D point sits where the zoomed intrinsics project it (blob
+    centroid vs projection, <= 0.5 px; measured ~1e-3 px). Long-LRM's own rule
+    (f * floor(W/r)/W, c unchanged) misses by > 1 px here: the principal point is off-centre."""
+    h, w = 80, 112
+    scene, x_world = blob_scene(rng, 3, h, w, sigma=2.5)
+    box = crop_box((h, w), ViewGeometry())
+    images, intr, _ = load_views(scene, np.arange(3), (h, w), box, None if r == 1.0 else r, False)
+    for v in range(3):
+        got = centroid(images[v][..., 0])
+        want = project_points(x_world[None], scene.c2w[v], intr[v])[0][0]
+        assert np.abs(got - want).max() <= 0.5, (got, want)
+        assert np.abs(got - want).max() < 0.01
+        if r < 1.0:
+            k = scene.intrinsics[v]
+            mag = np.floor(np.array([w, h]) / r)
+            long_lrm = np.array([k[0] * mag[0] / w, k[1] * mag[1] / h, k[2], k[3]])
+            assert np.abs(project_points(x_world[None], scene.c2w[v], long_lrm)[0][0] - got).max() > 1.0
+
+
+def test_one_zoom_per_sample(rng):
+    """Inputs and targets of a sample share r: every view's focal is the stored focal x
+    (resize factor) / r with the same r, and r lies in [zoom_min, 1]."""
+    scene, _ = ramp_scene(rng, 6, 90, 120)
+    geom = ViewGeometry(resize_h=48, multiple=8, zoom_min=0.77)
+    rs = []
+    for seed in range(5):
+        s = make_sample(scene, np.array([0, 2, 4]), np.array([1, 5]), geom, rng=np.random.default_rng(seed))
+        ks = np.concatenate([s["input_intrinsics"], s["target_intrinsics"]])
+        resize = 48 / 90
+        r = scene.intrinsics[0, 0] * resize / ks[:, 0]
+        np.testing.assert_allclose(r, r[0], rtol=1e-6)
+        rs.append(r[0])
+    assert all(0.77 <= r <= 1.0 for r in rs) and len(set(np.round(rs, 6))) == 5
 
 
 def test_sample_is_normalised_and_depth_consistent():

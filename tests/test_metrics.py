@@ -121,3 +121,32 @@ def test_depth_metrics_errors(rng):
         depth_metrics(d, d, np.ones((2, 8), bool))
     with pytest.raises(ValueError, match=r"pred \(2, 8, 7\)"):
         depth_metrics(d[..., :7], d)
+
+
+def test_eval_depth_metrics_are_in_metres(monkeypatch):
+    """A prediction 1.1 x the target (in the sample's normalised units) scored by
+    ``evaluate``: abs_rel 0.1 and delta 1 (scale-free), abs_diff 0.1 x and sq_rel 0.01 x the
+    mean target depth in metres, taken from the scene's own depth maps (NumPy)."""
+    from llrmpp_jax import evaluate as E
+    from llrmpp_jax.config import paper_scannet
+    from llrmpp_jax.data import ProceduralConfig, ViewGeometry, make_sample, procedural_scene
+
+    scene = procedural_scene(3, ProceduralConfig(height=32, width=48, num_frames=10))
+    targets = np.array([2, 5])
+    s = make_sample(scene, np.array([0, 3, 6, 9]), targets, ViewGeometry(multiple=8), with_depth=True,
+                    scene_scale=2.5)
+    assert abs(float(s["scene_scale"]) - 1.0) > 0.5  # the normalisation really rescales
+
+    def fake_predict(params, cfg, batch):
+        t = batch["target_images"]
+        return {"rgb": t, "depth": (batch["target_depth"] * np.float32(1.1))[..., None],
+                "dropped": np.zeros((), np.int32)}
+
+    monkeypatch.setattr(E, "predict", fake_predict)
+    rows, _, _ = E.evaluate(None, paper_scannet(), [s])
+    metres = np.stack([scene.depth(int(t)) for t in targets]).astype(np.float64)
+    mean_t = np.mean([m[m > 0].mean() for m in metres])
+    row = rows[0]
+    assert row["abs_rel"] == pytest.approx(0.1, rel=1e-5) and row["delta_1_25"] == 1.0
+    assert row["abs_diff"] == pytest.approx(0.1 * mean_t, rel=1e-5)
+    assert row["sq_rel"] == pytest.approx(0.01 * mean_t, rel=1e-5)

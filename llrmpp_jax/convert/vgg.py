@@ -10,11 +10,14 @@ Long-LRM perceptual loss). Two PyTorch layouts are read:
   (same torchvision indices, sliced into blocks; only the convolutions up to conv5_2).
 
 A file may stop early (Long-LRM keeps conv1_1..conv5_2 of VGG19), but the convolutions it
-holds must be a gap-free prefix of the architecture with the architecture's shapes.
+holds must be a gap-free prefix of the architecture with the architecture's shapes; a file
+of another architecture (e.g. VGG16 given as VGG19) is rejected with one line naming the
+first key, in torchvision order, where it departs from ``arch``.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -56,6 +59,39 @@ def vgg_rules(arch: str) -> list[Rule]:
     return rules
 
 
+_KEY = re.compile(r"(?P<prefix>features\.|perceptual_loss\.blocks\.\d+\.0\.)(?P<idx>\d+)\.(?P<kind>weight|bias)")
+
+
+def first_mismatch(state_dict: Mapping[str, Any], arch: str) -> str | None:
+    """``"'key': why"`` for the first VGG key (torchvision index order, weight before bias)
+    that departs from ``arch``: a tensor at an index where ``arch`` has no convolution, a
+    wrong shape, or a convolution missing before the file's last one. None if it matches."""
+    convs = {idx: (name, cin, cout) for name, idx, cin, cout in vgg_layers(arch)}
+    found = {}
+    for key in state_dict:
+        m = _KEY.fullmatch(key)
+        if m is not None:
+            found[(int(m.group("idx")), m.group("kind") == "bias")] = (key, m.group("prefix"))
+    if not found:
+        return None
+    prefix = next(iter(found.values()))[1]
+    last = max(idx for idx, _ in found)
+    for idx, is_bias in sorted(set(found) | {(i, b) for i in convs if i <= last for b in (False, True)}):
+        kind = "bias" if is_bias else "weight"
+        if (idx, is_bias) not in found:
+            return f"'{prefix}{idx}.{kind}': missing ({arch} has {convs[idx][0]} there)"
+        key = found[(idx, is_bias)][0]
+        if idx not in convs:
+            return f"'{key}': {arch} has no convolution at index {idx}"
+        name, cin, cout = convs[idx]
+        want = (cout,) if is_bias else (cout, cin, 3, 3)
+        got = tuple(np.shape(state_dict[key]))
+        if got != want:
+            flax = f"{name}/bias {want}" if is_bias else f"{name}/kernel (3, 3, {cin}, {cout})"
+            return f"'{key}': {arch}'s {flax} needs torch shape {want}, got {got}"
+    return None
+
+
 def convert_vgg(
     state_dict: Mapping[str, Any], arch: str = "vgg19", *, source: str = "state_dict"
 ) -> dict[str, dict[str, np.ndarray]]:
@@ -82,10 +118,9 @@ def convert_vgg(
             f"{source}: no VGG convolution weights (keys 'features.{{idx}}.weight' or "
             f"'perceptual_loss.blocks.{{k}}.0.{{idx}}.weight'); got keys {sorted(state_dict)[:8]}..."
         )
-    if n_weights > len(layers):
-        raise ValueError(
-            f"{source}: {n_weights} convolution weights, but {arch} has only {len(layers)}"
-        )
+    mismatch = first_mismatch(state_dict, arch)
+    if mismatch is not None:
+        raise ValueError(f"{source}: not a {arch} state_dict; first mismatching key {mismatch}")
     # Zero-stride views: only ``.shape`` is read, nothing is allocated.
     expected = {
         name: {

@@ -15,6 +15,8 @@ key                    shape                  content
 ``target_depth``       ``[B, T, H, W]``       float32 z-depth in normalised scene units
                                               (metres times the scene scale); 0 = invalid.
                                               Only with ``BatchConfig.with_depth``.
+``scene_scale``        ``[B]``                float32 normalised units per metre (world
+                                              unit): divide depths by it for metres.
 =====================  =====================  ==========================================
 
 Determinism: batch ``step`` is a pure function of ``(seed, step)``: element ``b`` of the

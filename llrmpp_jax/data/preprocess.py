@@ -4,24 +4,34 @@ Per frame, in Long-LRM's order (reference facts §3.3):
 
 1. **resize** keeping the aspect ratio to height ``resize_h`` (or width ``resize_w``),
    then round both sides to a multiple of ``multiple`` (the patch size): ``round(x / m) * m``;
-2. **crop** an integer box: the centred square (``square_crop``), then optionally a random
-   **zoom** box of ``r`` times the side (``r ~ U(zoom_min, 1)``, one ``r`` and position per
-   sample, shared by all its views) that is resized back to the pre-zoom size.
+2. **square crop** (``square_crop``): the centred ``min(H, W)`` square;
+3. **zoom** (Long-LRM's ``random_crop``, training only): ``r ~ U(zoom_min, 1)``, one ``r``
+   per sample shared by its inputs and targets; the image is upsampled by ``1/r``
+   (bilinear, ``align_corners=False``, to ``floor(H/r) x floor(W/r)`` as torch sizes it)
+   and centre-cropped back to ``H x W`` at offset ``((floor(H/r) - H) // 2, (floor(W/r) -
+   W) // 2)`` -- Long-LRM's exact sampling grid.
 
-Each step updates ``(fx, fy, cx, cy)`` exactly through :mod:`llrmpp_jax.geometry` (unlike
-Long-LRM's zoom, which leaves ``cx, cy`` unchanged). Depth maps are not blended: each output
-pixel takes the stored sample under its centre, found through the composed mapping. Then the Long-LRM scene normalisation
-is applied to inputs and targets together, and depth is scaled with the scene.
+Each step updates ``(fx, fy, cx, cy)`` exactly through :mod:`llrmpp_jax.geometry`. For the
+zoom that is ``f / r`` and ``c / r - offset``. Long-LRM itself writes ``f * floor(W/r) / W``
+and leaves ``c`` unchanged, which is exact only when ``W/r`` is an integer, the offset is
+exactly ``(W/r - W) / 2`` and the principal point is the image centre; otherwise its rays
+are off by up to ``|c - W/2| (1/r - 1)`` px (an off-centre principal point), up to 1 px at
+the centre (the two floors) and up to 0.5 px at the border (the focal rounding).
+
+Depth maps are not blended: each output pixel takes the stored sample under its centre,
+found through the composed mapping. Then the Long-LRM scene normalisation is applied to
+inputs and targets together, and depth is scaled with the scene.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
-from llrmpp_jax.data.resample import remap, resize_image
+from llrmpp_jax.data.resample import remap
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.geometry import crop_intrinsics, normalize_scene, resize_intrinsics
 
@@ -31,15 +41,13 @@ class ViewGeometry:
     """Output image geometry. ``resize_h`` / ``resize_w``: target height or width before
     rounding (at most one None = keep the aspect; both None = keep the stored size);
     ``multiple``: side multiple (patch size); ``square_crop``: centre-crop to a square;
-    ``zoom_min``: smallest zoom-crop fraction (1.0 = no zoom augmentation);
-    ``zoom_random_position``: place the zoom box at random (else centred, as Long-LRM)."""
+    ``zoom_min``: smallest zoom fraction ``r`` (1.0 = no zoom augmentation; Long-LRM 0.77)."""
 
     resize_h: int | None = None
     resize_w: int | None = None
     multiple: int = 8
     square_crop: bool = False
     zoom_min: float = 1.0
-    zoom_random_position: bool = True
 
     def __post_init__(self) -> None:
         if self.multiple < 1 or not 0.0 < self.zoom_min <= 1.0:
@@ -63,25 +71,13 @@ def resized_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
     return out
 
 
-def crop_box(
-    hw: tuple[int, int], geom: ViewGeometry, rng: np.random.Generator | None
-) -> tuple[int, int, int, int]:
-    """Step 2's integer box ``(top, left, height, width)`` inside an image of size ``hw``.
-    ``rng`` draws the zoom (None = no zoom, e.g. at evaluation)."""
+def crop_box(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int, int, int]:
+    """Step 2's integer box ``(top, left, height, width)`` inside an image of size ``hw``."""
     h, w = hw
-    top, left = 0, 0
-    if geom.square_crop:
-        side = min(h, w)
-        top, left, h, w = (h - side) // 2, (w - side) // 2, side, side
-    if rng is not None and geom.zoom_min < 1.0:
-        r = rng.uniform(geom.zoom_min, 1.0)
-        ch, cw = max(1, int(round(r * h))), max(1, int(round(r * w)))
-        if geom.zoom_random_position:
-            dy, dx = int(rng.integers(0, h - ch + 1)), int(rng.integers(0, w - cw + 1))
-        else:
-            dy, dx = (h - ch) // 2, (w - cw) // 2
-        top, left, h, w = top + dy, left + dx, ch, cw
-    return top, left, h, w
+    if not geom.square_crop:
+        return 0, 0, h, w
+    side = min(h, w)
+    return (h - side) // 2, (w - side) // 2, side, side
 
 
 def output_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
@@ -90,30 +86,64 @@ def output_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
     return (min(rh, rw),) * 2 if geom.square_crop else (rh, rw)
 
 
+def draw_zoom(geom: ViewGeometry, rng: np.random.Generator | None) -> float | None:
+    """Step 3's ``r ~ U(zoom_min, 1)`` drawn from ``rng``; None (no zoom) without ``rng``
+    (evaluation) or with ``zoom_min == 1`` (then nothing is drawn)."""
+    if rng is None or geom.zoom_min >= 1.0:
+        return None
+    return float(rng.uniform(geom.zoom_min, 1.0))
+
+
+def zoom_offset(hw: tuple[int, int], r: float) -> tuple[int, int]:
+    """``(top, left)`` of Long-LRM's centre crop in the image upsampled by ``1/r``, whose
+    size torch makes ``floor(side * (1/r))``."""
+    scale = 1.0 / r
+    return tuple((int(math.floor(float(n) * scale)) - n) // 2 for n in hw)
+
+
+def zoom_intrinsics(intrinsics: Float[np.ndarray, "... 4"], r: float, offset: tuple[int, int]) -> Float[np.ndarray, "... 4"]:
+    """Exact intrinsics after step 3: every coordinate scales by ``1/r``, then the crop
+    moves the principal point by ``-(left, top)``."""
+    return crop_intrinsics(np.asarray(intrinsics, np.float64) / r, offset[0], offset[1])
+
+
+def zoom_image(image: Float[np.ndarray, "H W C"], r: float, offset: tuple[int, int]) -> Float[np.ndarray, "H W C"]:
+    """Step 3 on one image: output pixel centre ``(j + 0.5, i + 0.5)`` samples the input
+    bilinearly at ``((j + 0.5 + left) r, (i + 0.5 + top) r)``, as torch's ``interpolate``
+    with ``scale_factor=1/r`` followed by the crop does (borders clamp)."""
+    h, w = image.shape[:2]
+    top, left = offset
+    x = (np.arange(w) + 0.5 + left) * r
+    y = (np.arange(h) + 0.5 + top) * r
+    return remap(image, np.stack(np.meshgrid(x, y, indexing="xy"), axis=-1)).astype(np.float32)
+
+
 def load_views(
     scene: Scene,
     indices: Int[np.ndarray, "K"],
     resized_hw: tuple[int, int],
     box: tuple[int, int, int, int],
-    out_hw: tuple[int, int],
+    zoom: float | None,
     with_depth: bool,
 ) -> tuple[Float[np.ndarray, "K H W 3"], Float[np.ndarray, "K 4"], Float[np.ndarray, "K H W"] | None]:
-    """Load frames ``indices`` resized to ``resized_hw``, cropped to ``box`` and resized to
-    ``out_hw``: ``(images, intrinsics, depth or None)``. Depth is not resampled twice: each
-    output pixel takes the stored depth sample under its centre (nearest), found through
-    the output and stored intrinsics (the same camera ray)."""
+    """Load frames ``indices`` resized to ``resized_hw``, cropped to ``box`` and zoomed by
+    ``1/zoom`` (None = no zoom): ``(images, intrinsics, depth or None)``. Depth is not
+    resampled twice: each output pixel takes the stored depth sample under its centre
+    (nearest), found through the output and stored intrinsics (the same camera ray)."""
     top, left, ch, cw = box
+    offset = None if zoom is None else zoom_offset((ch, cw), zoom)
     images, intr, depths = [], [], []
     for i in indices:
         img = scene.image(int(i), resized_hw)[top : top + ch, left : left + cw]
-        images.append(resize_image(img, out_hw))
-        k = resize_intrinsics(scene.intrinsics[i], tuple(scene.hw[i]), resized_hw)
-        k = resize_intrinsics(crop_intrinsics(k, top, left), (ch, cw), out_hw)
+        k = crop_intrinsics(resize_intrinsics(scene.intrinsics[i], tuple(scene.hw[i]), resized_hw), top, left)
+        if zoom is not None:
+            img, k = zoom_image(img, zoom, offset), zoom_intrinsics(k, zoom, offset)
+        images.append(img)
         intr.append(k)
         if with_depth:
             k0 = scene.intrinsics[i]
-            x = k0[2] + k0[0] * (np.arange(out_hw[1]) + 0.5 - k[2]) / k[0]
-            y = k0[3] + k0[1] * (np.arange(out_hw[0]) + 0.5 - k[3]) / k[1]
+            x = k0[2] + k0[0] * (np.arange(cw) + 0.5 - k[2]) / k[0]
+            y = k0[3] + k0[1] * (np.arange(ch) + 0.5 - k[3]) / k[1]
             src = np.stack(np.meshgrid(x, y, indexing="xy"), axis=-1)
             depths.append(remap(scene.depth(int(i)), src, nearest=True))
     return (
@@ -137,10 +167,10 @@ def make_sample(
     if with_depth and not scene.has_depth:
         raise ValueError(f"scene {scene.name!r}: depth requested but the scene has no depth maps")
     resized = resized_size(tuple(scene.hw[inputs[0]]), geom)
-    out_hw = output_size(tuple(scene.hw[inputs[0]]), geom)
-    box = crop_box(resized, geom, rng)
-    in_img, in_k, _ = load_views(scene, inputs, resized, box, out_hw, False)
-    tg_img, tg_k, tg_depth = load_views(scene, targets, resized, box, out_hw, with_depth)
+    box = crop_box(resized, geom)
+    zoom = draw_zoom(geom, rng)
+    in_img, in_k, _ = load_views(scene, inputs, resized, box, zoom, False)
+    tg_img, tg_k, tg_depth = load_views(scene, targets, resized, box, zoom, with_depth)
     in_c2w, tg_c2w, _, scale = normalize_scene(scene.c2w[inputs], scene.c2w[targets], scene_scale=scene_scale)
     sample = {
         "input_images": in_img,
@@ -152,4 +182,5 @@ def make_sample(
     }
     if with_depth:
         sample["target_depth"] = (tg_depth * np.float32(scale)).astype(np.float32)
+    sample["scene_scale"] = np.float32(scale)
     return sample

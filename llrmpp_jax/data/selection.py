@@ -1,8 +1,11 @@
 """Which frames of a scene become input views and which become targets.
 
-* Evaluation (paper §4, Long-LRM ``data_eval``): targets are every ``every``-th frame from
-  index 0; inputs come from the remaining frames by k-means on ``[camera position, forward
-  axis]`` (raw world coordinates), taking the frame nearest each cluster centre.
+* Evaluation, DL3DV (paper §4, Long-LRM ``data_eval``): targets are every ``every``-th
+  frame from index 0; inputs come from the remaining frames by Long-LRM's k-means
+  (:func:`kmeans_inputs`: scikit-learn on ``[camera position, forward axis]`` in raw world
+  coordinates, the frame nearest each centre) unless the dataset caches them.
+* Evaluation, ScanNetv2 (paper §4.3): the first 1,280 frames, targets every 8th, 128
+  inputs spread uniformly (Long-LRM's ``np.linspace`` rule) over the remaining frames.
 * Training (Long-LRM ``__getitem__`` + Long-LRM++ appendix): a random window of
   consecutive frames; inputs spread uniformly over it; targets drawn from the window
   without replacement, input frames having weight ``input_weight`` (0.1) and others 1.
@@ -11,6 +14,8 @@ Everything is deterministic: k-means uses a fixed seed, training draws take a ge
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -24,74 +29,63 @@ def every_nth(num_frames: int, every: int = 8) -> Int[np.ndarray, "T"]:
     return np.arange(0, num_frames, every, dtype=np.int64)
 
 
-def kmeans(
-    points: Float[np.ndarray, "P D"], k: int, seed: int = 0, iterations: int = 100
-) -> Float[np.ndarray, "k D"]:
-    """Lloyd's k-means with k-means++ seeding from ``default_rng(seed)``; a cluster that
-    empties is re-seeded at the point farthest from its centre. Deterministic."""
-    points = np.asarray(points, dtype=np.float64)
-    p = points.shape[0]
-    if not 1 <= k <= p:
-        raise ValueError(f"kmeans: need 1 <= k <= number of points ({p}), got k={k}")
-    rng = np.random.default_rng(seed)
-    centres = [points[rng.integers(p)]]
-    d2 = ((points - centres[0]) ** 2).sum(axis=1)
-    for _ in range(1, k):
-        total = d2.sum()
-        j = int(rng.choice(p, p=d2 / total)) if total > 0 else int(rng.integers(p))
-        centres.append(points[j])
-        d2 = np.minimum(d2, ((points - points[j]) ** 2).sum(axis=1))
-    centres = np.array(centres)
-    for _ in range(iterations):
-        dist = ((points[:, None, :] - centres[None, :, :]) ** 2).sum(axis=2)
-        label = np.argmin(dist, axis=1)
-        new = centres.copy()
-        for c in range(k):
-            members = points[label == c]
-            if len(members):
-                new[c] = members.mean(axis=0)
-            else:
-                new[c] = points[int(np.argmax(dist[np.arange(p), label]))]
-        if np.array_equal(new, centres):
-            break
-        centres = new
-    return centres
-
-
 def kmeans_inputs(
-    c2w: Float[np.ndarray, "N 4 4"], candidates: Int[np.ndarray, "C"], num_inputs: int, seed: int = 0
+    c2w: Float[np.ndarray, "N 4 4"], candidates: Int[np.ndarray, "C"], num_inputs: int
 ) -> Int[np.ndarray, "V"]:
-    """``num_inputs`` distinct frames from ``candidates``, sorted: k-means on
-    ``[c2w[:3, 3], c2w[:3, 2]]`` of the candidates, then for each centre (in order of how
-    close its best frame is) the nearest candidate not already taken."""
+    """Long-LRM's k-means input selection, exactly as its ``Dataset.__getitem__``: the 6-D
+    features ``[c2w[:3, 3], c2w[:3, 2]]`` of the candidates (raw world coordinates),
+    ``sklearn.cluster.KMeans(num_inputs, random_state=0, n_init="auto")``, and for each
+    centre the candidate nearest to it (first on ties). Returned sorted; two centres with
+    the same nearest frame give it twice (Long-LRM does not de-duplicate)."""
+    from sklearn.cluster import KMeans  # imported here: ~1 s, and only evaluation needs it
+
     candidates = np.asarray(candidates, dtype=np.int64)
     if len(candidates) < num_inputs:
         raise ValueError(
             f"kmeans_inputs: {num_inputs} input views requested but only {len(candidates)} candidate frames"
         )
     feats = np.concatenate([c2w[candidates, :3, 3], c2w[candidates, :3, 2]], axis=1)
-    centres = kmeans(feats, num_inputs, seed=seed)
-    dist = ((feats[None, :, :] - centres[:, None, :]) ** 2).sum(axis=2)  # [k, C]
-    taken = np.zeros(len(candidates), dtype=bool)
-    chosen = []
-    for c in np.argsort(dist.min(axis=1), kind="stable"):
-        order = np.argsort(dist[c], kind="stable")
-        j = int(order[np.argmax(~taken[order])])
-        taken[j] = True
-        chosen.append(candidates[j])
-    return np.sort(np.array(chosen, dtype=np.int64))
+    centres = KMeans(n_clusters=num_inputs, random_state=0, n_init="auto").fit(feats).cluster_centers_
+    nearest = [int(np.argmin(np.linalg.norm(feats - c, axis=1))) for c in centres]
+    return np.sort(candidates[nearest])
 
 
 def eval_views(
-    c2w: Float[np.ndarray, "N 4 4"], num_inputs: int, every: int = 8, max_frames: int | None = None
+    c2w: Float[np.ndarray, "N 4 4"],
+    num_inputs: int,
+    every: int = 8,
+    max_frames: int | None = None,
+    inputs: str = "kmeans",
 ) -> tuple[Int[np.ndarray, "V"], Int[np.ndarray, "T"]]:
-    """Paper evaluation split ``(inputs, targets)``: targets every ``every``-th frame,
-    inputs by :func:`kmeans_inputs` over the rest (optionally only the first ``max_frames``
-    frames, as the ScanNet protocol uses the first 1280)."""
+    """Paper evaluation split ``(inputs, targets)`` over the first ``max_frames`` frames
+    (None: all): targets every ``every``-th frame, inputs from the rest by
+    :func:`kmeans_inputs` (``inputs="kmeans"``, DL3DV) or :func:`uniform_inputs`
+    (``"uniform"``, ScanNetv2 with ``max_frames=1280``)."""
+    if inputs not in ("kmeans", "uniform"):
+        raise ValueError(f"eval_views: inputs must be 'kmeans' or 'uniform', got {inputs!r}")
     n = c2w.shape[0] if max_frames is None else min(max_frames, c2w.shape[0])
     targets = every_nth(n, every)
     rest = np.setdiff1d(np.arange(n), targets)
-    return kmeans_inputs(c2w, rest, num_inputs), targets
+    if inputs == "kmeans":
+        return kmeans_inputs(c2w, rest, num_inputs), targets
+    if len(rest) < num_inputs:
+        raise ValueError(f"eval_views: {num_inputs} input views requested but only {len(rest)} non-target frames")
+    return rest[uniform_inputs(len(rest), num_inputs)], targets
+
+
+def checked_inputs(
+    indices: Sequence[int], num_frames: int, num_inputs: int, source: str
+) -> Int[np.ndarray, "V"]:
+    """Precomputed input indices (e.g. Long-LRM's cached k-means ones) as sorted int64;
+    ``ValueError`` (one line naming ``source``) unless they are ``num_inputs`` integers in
+    ``[0, num_frames)``."""
+    idx = np.asarray(indices)
+    if idx.shape != (num_inputs,) or not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"{source} must be {num_inputs} integer frame indices, got {list(np.ravel(idx))[:6]}...")
+    bad = idx[(idx < 0) | (idx >= num_frames)]
+    if bad.size:
+        raise ValueError(f"{source} holds frame index {int(bad[0])}, out of range for a scene of {num_frames} frames")
+    return np.sort(idx.astype(np.int64))
 
 
 def uniform_inputs(num_frames: int, num_inputs: int) -> Int[np.ndarray, "V"]:

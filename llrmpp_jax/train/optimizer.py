@@ -6,9 +6,10 @@ Mamba2 ``A_log`` / ``dt_bias`` / ``D`` vectors are not decayed), global-norm cli
 10, and HF ``get_cosine_schedule_with_warmup``: linear warmup from 0 to ``lr``, then a
 half cosine down to 0 at ``total_steps``.
 
-The schedule is indexed by the number of *applied* updates (optax's own count), which
-is what the PyTorch scheduler sees when a non-finite step is skipped without
-``scheduler.step()``.
+The schedule is indexed by optax's own count, which advances with every applied update
+and, through :func:`advance_schedule`, with every update skipped for a too-large
+gradient norm: the PyTorch scheduler steps on those (Long-LRM skips ``optimizer.step()``
+but still calls ``scheduler.step()``) and not on non-finite steps.
 """
 
 from __future__ import annotations
@@ -133,3 +134,24 @@ def make_optimizer(cfg: OptimizerConfig) -> optax.GradientTransformation:
     if cfg.grad_clip_norm is None:
         return adamw
     return optax.chain(optax.clip_by_global_norm(cfg.grad_clip_norm), adamw)
+
+
+def _is_schedule_state(node) -> bool:
+    return isinstance(node, optax.ScaleByScheduleState)
+
+
+def schedule_count(opt_state: optax.OptState) -> Int[Array, ""] | None:
+    """The learning-rate schedule's step count held in ``opt_state`` (the count of its
+    first ``ScaleByScheduleState``), or ``None`` if the optimizer has no schedule."""
+    found = [n for n in jax.tree.leaves(opt_state, is_leaf=_is_schedule_state) if _is_schedule_state(n)]
+    return found[0].count if found else None
+
+
+def advance_schedule(opt_state: optax.OptState) -> optax.OptState:
+    """``opt_state`` with every learning-rate schedule one step further and all else
+    (Adam moments and their bias-correction count) unchanged: a skipped update after
+    which ``scheduler.step()`` still ran."""
+    return jax.tree.map(
+        lambda n: n._replace(count=optax.safe_increment(n.count)) if _is_schedule_state(n) else n,
+        opt_state, is_leaf=_is_schedule_state,
+    )

@@ -7,9 +7,12 @@ function runs under ``jax.pmap`` (:func:`pmap_train_step`) and under ``jax.jit``
 shards the averaged gradient is the gradient of the global-batch mean loss, so the
 update does not depend on the device count.
 
-Long-LRM's guard (reference facts §2.1): a step whose loss or gradient norm is not
+Long-LRM's guards (reference facts §2.1): a step whose loss or gradient norm is not
 finite is skipped -- parameters and optimizer state are returned bitwise unchanged,
 ``skipped`` is incremented, ``step`` still advances (the data iterator and PRNG move on).
+With ``skip_grad_norm_above`` (Long-LRM: 5 x the clip norm 10 = 50) a finite step whose
+pre-clip gradient norm exceeds it is skipped the same way, except that the learning-rate
+schedule advances (Long-LRM still calls ``scheduler.step()`` there).
 """
 
 from __future__ import annotations
@@ -24,12 +27,14 @@ from jax import lax
 from jax.sharding import Mesh, PartitionSpec
 
 from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.train.optimizer import advance_schedule, schedule_count
 from llrmpp_jax.train.state import TrainState, step_key
 
 AXIS = "batch"
 LossFn = Callable[[Any, Any, KeyArray], tuple[Float[Array, ""], dict[str, Array]]]
 StepFn = Callable[[TrainState, Any], tuple[TrainState, dict[str, Array]]]
-_RESERVED = ("loss", "grad_norm", "lr", "skipped", "skipped_total")
+_RESERVED = ("loss", "grad_norm", "lr", "skipped", "skipped_total", "skipped_grad_norm",
+             "skipped_grad_norm_total")
 
 
 def _cast_floating(tree, dtype: jnp.dtype):
@@ -53,17 +58,21 @@ def make_train_step(
     this device's batch shard. With ``compute_dtype=jnp.bfloat16`` the float32 parameters
     are cast to bf16 before ``loss_fn`` (gradients, parameters and optimizer stay float32).
     ``schedule`` is the optimizer's learning-rate schedule; it is only reported.
-    ``skip_grad_norm_above`` also skips steps whose (pre-clip) gradient norm exceeds it
-    (Long-LRM's ``grad_clip_norm * allowed_gradnorm_factor`` = 50); ``None`` skips only
-    non-finite steps. Every skip leaves the schedule where it was (Long-LRM still steps
-    its scheduler on a large-norm skip).
+    ``skip_grad_norm_above`` also skips steps whose finite (pre-clip) gradient norm
+    exceeds it (Long-LRM's ``grad_clip_norm * allowed_gradnorm_factor`` = 50): parameters
+    and Adam moments stay bitwise unchanged but the schedule advances
+    (:func:`~llrmpp_jax.train.optimizer.advance_schedule`), as Long-LRM's scheduler does;
+    ``None`` skips only non-finite steps, which leave the schedule where it was.
 
     The loss's key is ``fold_in(fold_in(base, step), device)``: deterministic per
     (step, device), so a random loss draws different noise on 1 and on 2 devices.
 
     Metrics (float32 ``[]``, identical on every device): ``loss``, ``grad_norm``, ``lr``
-    (rate of this step's update), ``skipped`` (1.0 if this step was skipped),
-    ``skipped_total``, plus ``loss_fn``'s metrics averaged over devices.
+    (rate of this step's update), ``skipped`` (1.0 if this step was skipped, for either
+    reason), ``skipped_total``, ``skipped_grad_norm`` (1.0 if skipped for its gradient
+    norm), ``skipped_grad_norm_total`` (schedule count minus applied updates, so it counts
+    only from a state whose schedule count started with it, as ``init_train_state``'s
+    does), plus ``loss_fn``'s metrics averaged over devices.
     """
     compute_dtype = jnp.dtype(compute_dtype)
     if compute_dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.bfloat16)):
@@ -95,9 +104,11 @@ def make_train_step(
         loss = lax.pmean(loss, AXIS)
         metrics = lax.pmean(jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), metrics), AXIS)
         grad_norm = optax.tree.norm(grads).astype(jnp.float32)
-        ok = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-        if skip_grad_norm_above is not None:
-            ok = ok & (grad_norm <= skip_grad_norm_above)
+        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+        too_large = finite & (
+            jnp.zeros((), jnp.bool_) if skip_grad_norm_above is None else grad_norm > skip_grad_norm_above
+        )
+        ok = finite & ~too_large
 
         def apply(_):
             # optax mixes Python floats with its int32 count (``b1 ** count``), which
@@ -109,7 +120,11 @@ def make_train_step(
         def keep(_):
             return state.params, state.opt_state
 
-        params, opt_state = lax.cond(ok, apply, keep, None)
+        def keep_but_schedule(_):
+            return state.params, advance_schedule(state.opt_state)
+
+        branch = jnp.where(ok, 0, jnp.where(too_large, 1, 2))
+        params, opt_state = lax.switch(branch, (apply, keep_but_schedule, keep), None)
         skipped_now = (~ok).astype(jnp.int32)
         new_state = TrainState(
             step=state.step + 1,
@@ -118,15 +133,19 @@ def make_train_step(
             skipped=state.skipped + skipped_now,
             rng=state.rng,
         )
-        # Updates applied before this one = optax's schedule count.
-        lr = schedule(state.step - state.skipped)
+        count, new_count = schedule_count(state.opt_state), schedule_count(opt_state)
+        if count is None:  # an optimizer without a schedule state: updates applied so far
+            count = new_count = state.step - state.skipped
+        applied = new_state.step - new_state.skipped
         metrics = dict(
             metrics,
             loss=loss,
             grad_norm=grad_norm,
-            lr=jnp.asarray(lr, jnp.float32),
+            lr=jnp.asarray(schedule(count), jnp.float32),
             skipped=skipped_now.astype(jnp.float32),
             skipped_total=new_state.skipped.astype(jnp.float32),
+            skipped_grad_norm=too_large.astype(jnp.float32),
+            skipped_grad_norm_total=(new_count - applied).astype(jnp.float32),
         )
         return new_state, metrics
 

@@ -4,6 +4,7 @@
 from llrmpp_jax.data.formats.colmap import read_colmap_model, read_colmap_scene, write_colmap_scene
 from llrmpp_jax.data.formats.long_lrm import (
     cached_kmeans_inputs,
+    read_kmeans_index,
     read_long_lrm_index,
     read_long_lrm_scene,
     write_long_lrm_index,
@@ -17,6 +18,7 @@ __all__ = [
     "cached_kmeans_inputs",
     "read_colmap_model",
     "read_colmap_scene",
+    "read_kmeans_index",
     "read_long_lrm_index",
     "read_long_lrm_scene",
     "read_nerfstudio_scene",

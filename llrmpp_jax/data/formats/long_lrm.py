@@ -18,18 +18,23 @@ import numpy as np
 
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.data.selection import checked_inputs
 
 SCENE_JSON = "opencv_cameras.json"
 
 
-def _load(path: str) -> dict:
+def _read_json(path: str, what: str):
     try:
         with open(path) as f:
-            data = json.load(f)
+            return json.load(f)
     except FileNotFoundError:
-        raise FileNotFoundError(f"Long-LRM scene file not found: {path}") from None
+        raise FileNotFoundError(f"{what} not found: {path}") from None
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from None
+
+
+def _load(path: str) -> dict:
+    data = _read_json(path, "Long-LRM scene file")
     if isinstance(data, list):  # LaCT: bare list of frames
         data = {"scene_name": os.path.basename(os.path.dirname(os.path.abspath(path))), "frames": data}
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
@@ -86,9 +91,34 @@ def read_long_lrm_scene(json_path: str, missing: Missing = "skip", depth_scale: 
     )
 
 
-def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int) -> list[int] | None:
-    """The ``fold_<every>_kmeans_<num_inputs>_input`` indices cached in a scene JSON, if any."""
-    return _load(json_path).get(f"fold_{every}_kmeans_{num_inputs}_input")
+def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int, num_frames: int) -> np.ndarray | None:
+    """The ``fold_<every>_kmeans_<num_inputs>_input`` indices cached in a scene JSON, sorted
+    int64, or None if the JSON has none. ``num_frames``: frames of the scene as read.
+
+    Raises:
+      ValueError (one line): the indices are not ``num_inputs`` integers in ``[0,
+        num_frames)``, or the reader skipped frames (missing images), so they no longer
+        index the scene.
+    """
+    data = _load(json_path)
+    key = f"fold_{every}_kmeans_{num_inputs}_input"
+    if key not in data:
+        return None
+    if len(data["frames"]) != num_frames:
+        raise ValueError(
+            f"{json_path}: '{key}' indexes the JSON's {len(data['frames'])} frames but {num_frames} were read "
+            f"(frames without images are skipped); restore the images or delete the key to recompute it"
+        )
+    return checked_inputs(data[key], num_frames, num_inputs, f"{json_path}: '{key}'")
+
+
+def read_kmeans_index(path: str) -> dict[str, dict]:
+    """Long-LRM's file of precomputed evaluation inputs (``data/dl3dv_fold_8_kmeans_input_idx.json``:
+    a list of ``{"scene_name", "fold_8_kmeans_<n>_input": [...]}``) keyed by scene name."""
+    entries = _read_json(path, "k-means index file")
+    if not isinstance(entries, list) or not all(isinstance(e, dict) and "scene_name" in e for e in entries):
+        raise ValueError(f"{path}: expected a list of objects with a 'scene_name' (Long-LRM's k-means index)")
+    return {e["scene_name"]: e for e in entries}
 
 
 def write_long_lrm_scene(
