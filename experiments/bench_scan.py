@@ -5,13 +5,17 @@ Defaults are the paper's per-block sizes (D=768 -> d_inner 1536, headdim 64 -> 2
 d_state 256, chunk 256, ngroups 1, batch 1) at L in {4096, 16384, 65536}: the full sweep,
 for accelerators. On a small CPU box use the reduced preset::
 
-    python experiments/bench_scan.py --preset cpu          # ~ a few minutes on 2 cores
+    python experiments/bench_scan.py --preset cpu          # ~ 10 minutes on 2 cores
     python experiments/bench_scan.py --out /tmp/scan.json  # full sweep (GPU/TPU)
 
 Writes JSON (``--out``): device, sizes, a jitted matmul's GFLOP/s measured in the same run,
 and per (L, method, pass) the median/min wall time, compile time, analytic GFLOP and
-achieved GFLOP/s (also as a fraction of the matmul rate). Runs predicted to need more
-than ``--mem-limit-gb`` of activations are skipped and recorded as such.
+achieved GFLOP/s (also as a fraction of the matmul rate), and a ``summary`` per L: the
+sequential / chunked forward time ratio and the chunked scan's fraction of the matmul rate.
+Runs predicted to need more than ``--mem-limit-gb`` of activations are skipped and
+recorded as such. The sequential forward at L > ``--sequential-slice`` is timed on the
+first ``slice`` tokens and scaled by ``L / slice`` (``extrapolated_from_L`` in its row):
+it is a ``lax.scan`` whose every step costs the same, so its time is linear in L.
 
 FLOP model (multiply-add = 2 FLOP, matmuls only; elementwise work is not counted): per
 chunk of Q tokens, ``C.B`` 2*Q^2*g*n, scores@x 2*Q^2*nh*P, chunk states and state->output
@@ -47,8 +51,8 @@ METHODS = {
 }
 PRESETS = {
     "full": dict(lengths=[4096, 16384, 65536], repeats=5, mem_limit_gb=60.0, matmul_n=8192),
-    # 2-core CPU: paper widths, the two shorter lengths, sequential forward only at 4096.
-    "cpu": dict(lengths=[4096, 16384], repeats=2, mem_limit_gb=3.0, matmul_n=2048),
+    # 2-core CPU: paper widths; the sequential reference is timed on 4096-token slices.
+    "cpu": dict(lengths=[4096, 16384, 65536], repeats=2, mem_limit_gb=4.0, matmul_n=2048),
 }
 
 
@@ -132,6 +136,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")
     ap.add_argument("--mem-limit-gb", type=float, help="override the preset's activation budget")
     ap.add_argument("--no-backward", action="store_true", help="forward only")
+    ap.add_argument("--sequential-slice", type=int, default=4096,
+                    help="time the sequential forward on this many tokens when L is longer and scale "
+                         "linearly by L / slice (its per-step cost does not depend on L)")
     args = ap.parse_args()
 
     preset = PRESETS[args.preset]
@@ -162,8 +169,12 @@ def main() -> None:
             for name, fn, fn_args in passes:
                 row = {"L": L, "method": method, "pass": name}
                 need = _activation_bytes(method, name == "fwd+bwd", L, b, nh, P, g, n, Q)
-                if args.preset == "cpu" and method == "sequential" and L > 4096:
-                    row["skipped"] = "cpu preset: sequential reference only at L <= 4096"
+                sliced = method == "sequential" and name == "fwd" and L > args.sequential_slice
+                if sliced:
+                    m = args.sequential_slice
+                    part = _time(fn, tuple(a[:, :m] if a.ndim > 1 else a for a in fn_args), repeats)
+                    row.update({k: v * L / m if k.startswith("seconds") else v for k, v in part.items()})
+                    row["extrapolated_from_L"] = m
                 elif need > mem_limit:
                     row["skipped"] = (
                         f"predicted activations {need / 2**30:.1f} GiB > limit {mem_limit / 2**30:.1f} GiB"
@@ -188,6 +199,23 @@ def main() -> None:
                 results.append(row)
         del x, dt, B, C, w
 
+    def seconds(L, method, name):
+        rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, method, name)]
+        return rows[0].get("seconds_min") if rows else None
+
+    def fraction(L, name):
+        rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, "chunked", name)]
+        return rows[0].get("fraction_of_matmul") if rows else None
+
+    summary = []
+    for L in lengths:
+        seq, chk = seconds(L, "sequential", "fwd"), seconds(L, "chunked", "fwd")
+        summary.append({
+            "L": L, "sequential_over_chunked_fwd": seq / chk if seq and chk else None,
+            "chunked_fraction_of_matmul_fwd": fraction(L, "fwd"),
+            "chunked_fraction_of_matmul_fwd_bwd": fraction(L, "fwd+bwd"),
+        })
+        print(json.dumps(summary[-1]), flush=True)
     report = {
         "benchmark": "ssd_scan",
         "device": str(jax.devices()[0]),
@@ -206,6 +234,7 @@ def main() -> None:
         "matmul_reference": matmul,
         "flop_model": "matmul FLOPs only (see bench_scan.py docstring); fwd+bwd = 3x fwd",
         "results": results,
+        "summary": summary,
     }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
