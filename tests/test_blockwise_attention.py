@@ -190,3 +190,13 @@ def test_bad_input_one_line():
         with pytest.raises(ValueError, match=message) as e:
             call()
         assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("backend,impl", [("gpu", "cudnn"), ("tpu", "blockwise"), ("cpu", "blockwise")])
+def test_for_accelerators_picks_the_kernel_per_backend(backend, impl):
+    from llrmpp_jax import config as C
+
+    m = C.for_accelerators(C.tiny(), backend)
+    assert m.backbone.transformer.attention_impl == impl and m.decoder.transformer.attention_impl == impl
+    assert m.backbone.remat and m.decoder.remat
+    assert C.tiny().backbone.transformer.attention_impl == "blockwise"  # the default everywhere
