@@ -8,7 +8,10 @@ run), and the blockwise kernel's compile and run times (``block_until_ready``) a
 runs this with its scale's arguments.
 
 Usage: ``python experiments/bench_attention.py [--lengths 8192 32768 131072]
-[--run-lengths 4096 8192] [--block 512] [--out PATH]``.
+[--run-lengths 4096 8192] [--block 512] [--heads 12] [--head-dim 64] [--out PATH]``.
+The decoder's global blocks (paper: E = 256, 4 heads of 64, 8,160 tokens per target at
+960x544): ``--heads 4 --lengths 8160 --run-lengths --out
+experiments/results/bench_attention_decoder.json``.
 """
 
 from __future__ import annotations
@@ -27,11 +30,14 @@ def main() -> None:
     ap.add_argument("--run-lengths", type=int, nargs="*", default=[4096, 8192],
                     help="sequence lengths at which the blockwise kernel is also run and timed")
     ap.add_argument("--block", type=int, default=512, help="blockwise query and key block size")
+    ap.add_argument("--heads", type=int, default=12, help="attention heads (paper backbone 12, decoder 4)")
+    ap.add_argument("--head-dim", type=int, default=64, help="channels per head")
     ap.add_argument("--repeats", type=int, default=2, help="timed runs after one warm-up")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_attention.json"))
     args = ap.parse_args()
     env = environment()
-    result = attention_benchmark(args.lengths, args.run_lengths, block=args.block, repeats=args.repeats)
+    result = attention_benchmark(args.lengths, args.run_lengths, heads=args.heads, head_dim=args.head_dim,
+                                 block=args.block, repeats=args.repeats)
     result["environment"] = env
     result["load_average_at_end"] = list(os.getloadavg())
     with open(args.out, "w") as f:
