@@ -52,7 +52,7 @@ def environment() -> dict:
     import jax
 
     versions = {}
-    for pkg in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy"):
+    for pkg in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy"):  # None: not installed
         try:
             versions[pkg] = importlib.metadata.version(pkg)
         except importlib.metadata.PackageNotFoundError:
@@ -61,7 +61,8 @@ def environment() -> dict:
     return {
         "backend": jax.default_backend(), "device": str(dev), "device_kind": dev.device_kind,
         "device_count": jax.device_count(), "host": platform.machine(), "cpu_count": os.cpu_count(),
-        "versions": versions, "default_matmul_precision": str(jax.config.jax_default_matmul_precision),
+        "versions": versions,
+        "default_matmul_precision": jax.config.jax_default_matmul_precision or "default (backend's own)",
         "load_average": list(os.getloadavg()),
     }
 

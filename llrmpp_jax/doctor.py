@@ -18,7 +18,6 @@ the count of non-finite outputs) and passes at ``error <= tolerance``.
 from __future__ import annotations
 
 import dataclasses
-import importlib.metadata
 import time
 from collections.abc import Callable
 
@@ -140,18 +139,14 @@ CHECKS: dict[str, tuple[Callable[[], float], float]] = {
 
 def environment_lines() -> list[str]:
     """Versions, backend, devices and the default matmul precision, one per line."""
-    vers = []
-    for pkg in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint"):
-        try:
-            vers.append(f"{pkg} {importlib.metadata.version(pkg)}")
-        except importlib.metadata.PackageNotFoundError:
-            vers.append(f"{pkg} (not installed)")
-    precision = jax.config.jax_default_matmul_precision or "default (backend's own)"
+    from llrmpp_jax.bench import environment
+
+    env = environment()
     return [
-        "versions: " + ", ".join(vers),
-        f"backend: {jax.default_backend()}",
+        "versions: " + ", ".join(f"{k} {v or '(not installed)'}" for k, v in env["versions"].items()),
+        f"backend: {env['backend']}",
         "devices: " + ", ".join(f"{d} ({d.device_kind})" for d in jax.devices()),
-        f"default matmul precision: {precision}",
+        f"default matmul precision: {env['default_matmul_precision']}",
     ]
 
 
