@@ -44,11 +44,12 @@ stage-4 step, written as JSON.
    (``--paper-max-rss-gb``). If it compiles, XLA's memory analysis is reported
    (``"source": "xla_compiled_cpu"``). Always reported beside it: an **estimate** from
    ``jax.eval_shape`` (parameter, gradient and AdamW bytes, and the sizes of the main
-   activations), labelled ``"estimate"``. The CPU compile uses the XLA attention path
-   (``attention_impl=None`` as the experiment file sets), which materialises
-   ``[heads, L, L]`` logits (1.6 TB per block at L = 261,122 in bf16), which is what
-   XLA's number measures; on GPU the cuDNN flash kernel (``attention_impl="cudnn"``)
-   avoids that term, and the estimate gives the rest.
+   activations), labelled ``"estimate"``. The experiment file sets
+   ``config.for_accelerators``, which picks the cuDNN flash kernel on GPU and the pure-JAX
+   blockwise kernel elsewhere, with remat in the backbone and the decoder: compiled on CPU,
+   the step therefore uses blockwise attention, and XLA's number is the memory of the step
+   as it runs without cuDNN (the plain XLA path would hold ``[heads, L, L]`` logits, 1.6 TB
+   per block at L = 261,122 in bf16; ``transformer_attention_logits_xla_per_block``).
 
 Usage: ``python experiments/bench_train.py [--out PATH] [--quick] [--skip-paper]
 [--steps N] [--mid-sizes 256,192] [--max-step-gb G] [--max-rss-gb G] [--paper-timeout S]
@@ -317,15 +318,19 @@ def paper_estimate() -> dict:
         "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w],
         "dtype": "bfloat16 compute, float32 params/optimizer" if exp.bf16 else "float32",
         "backbone_remat": cfg.backbone.remat, "decoder_remat": cfg.decoder.remat,
+        "attention_impl": {"backbone": cfg.backbone.transformer.attention_impl,
+                           "decoder": cfg.decoder.transformer.attention_impl},
         "perceptual_weight": exp.perceptual_weight,
         "params": n_params, "backbone_tokens": seq, "gaussians": n_gauss, "splat_capacity": capacity,
         "transformer_blocks": n_t, "state_bytes": state_bytes, "activation_bytes": acts,
         "estimate_terms": terms,
         "estimate_bytes_without_backbone_attention_logits": int(sum(terms.values())),
         "note": ("estimate_terms: tensors live together at the peak of the backward (see the code's "
-                 "comment); the XLA attention path adds transformer_attention_logits_xla_per_block "
-                 "(x2-3: logits, probabilities, their gradient) on top; the perceptual term's VGG16 "
-                 "activations (8 targets x 2 images at 544x960) are not counted"),
+                 "comment); the XLA attention path (attention_impl 'xla') adds "
+                 "transformer_attention_logits_xla_per_block (x2-3: logits, probabilities, their "
+                 "gradient) on top, the blockwise and cuDNN kernels only O(L) buffers (see "
+                 "bench_attention.json); the perceptual term's VGG16 activations (8 targets x 2 "
+                 "images at 544x960) are not counted"),
     }
 
 
