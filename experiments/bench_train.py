@@ -13,10 +13,12 @@ stage-4 step, written as JSON.
      weight 0** (the VGG term is left out to keep the CPU run short; its cost does not
      depend on the model).
 
-   At 256x256 the backbone's two global-attention blocks see L = 8,194 tokens and the
-   XLA attention path materialises ``[4, L, L]`` float32 logits (1.07 GB each, dozens
-   of them live in the backward), so XLA's peak is ~17.2 GiB with or without remat --
-   more than this shared box can give. A case whose XLA peak exceeds ``--max-step-gb``
+   At 256x256 the backbone's two global-attention blocks see L = 8,194 tokens. The XLA
+   attention path materialised ``[4, L, L]`` float32 logits (1.07 GB each, dozens of them
+   live in the backward): XLA's peak was ~17.2 GiB with or without remat (rows
+   ``*_xla_attention``). With the blockwise kernel (now the default) the peak is 12.1 GiB
+   (12.2 with remat) and linear in the token count (3.0 GiB at 128x128): no longer
+   attention-bound, and still above the 12 GiB run limit on this shared box. A case whose XLA peak exceeds ``--max-step-gb``
    (default 12) is compiled and analysed but its steps are not run (``steps_run`` says
    why); 192x192 (L = 4,610) is the largest default size that runs here. Remat does not
    lower XLA's peak in these cases: the peak is inside one global-attention block's
