@@ -5,13 +5,19 @@ Defaults are the paper's per-block sizes (D=768 -> d_inner 1536, headdim 64 -> 2
 d_state 256, chunk 256, ngroups 1, batch 1) at L in {4096, 16384, 65536}: the full sweep,
 for accelerators. On a small CPU box use the reduced preset::
 
-    python experiments/bench_scan.py --preset cpu          # ~ a few minutes on 2 cores
+    python experiments/bench_scan.py --preset cpu          # ~ 10 minutes on 2 cores
     python experiments/bench_scan.py --out /tmp/scan.json  # full sweep (GPU/TPU)
 
-Writes JSON (``--out``): device, sizes, a jitted matmul's GFLOP/s measured in the same run,
-and per (L, method, pass) the median/min wall time, compile time, analytic GFLOP and
-achieved GFLOP/s (also as a fraction of the matmul rate). Runs predicted to need more
-than ``--mem-limit-gb`` of activations are skipped and recorded as such.
+Writes JSON (``--out``): device, sizes, a jitted matmul's GFLOP/s measured in the same run
+(per L, interleaved with the scans: every round runs the matmul and each scan once, so a
+busy shared machine loads all of them alike), and per (L, method, pass) the median/min
+wall time, compile time, analytic GFLOP and
+achieved GFLOP/s (also as a fraction of the matmul rate), and a ``summary`` per L: the
+sequential / chunked forward time ratio and the chunked scan's fraction of the matmul rate.
+Runs predicted to need more than ``--mem-limit-gb`` of activations are skipped and
+recorded as such. The sequential forward at L > ``--sequential-slice`` is timed on the
+first ``slice`` tokens and scaled by ``L / slice`` (``extrapolated_from_L`` in its row):
+it is a ``lax.scan`` whose every step costs the same, so its time is linear in L.
 
 FLOP model (multiply-add = 2 FLOP, matmuls only; elementwise work is not counted): per
 chunk of Q tokens, ``C.B`` 2*Q^2*g*n, scores@x 2*Q^2*nh*P, chunk states and state->output
@@ -47,8 +53,8 @@ METHODS = {
 }
 PRESETS = {
     "full": dict(lengths=[4096, 16384, 65536], repeats=5, mem_limit_gb=60.0, matmul_n=8192),
-    # 2-core CPU: paper widths, the two shorter lengths, sequential forward only at 4096.
-    "cpu": dict(lengths=[4096, 16384], repeats=2, mem_limit_gb=3.0, matmul_n=2048),
+    # 2-core CPU: paper widths; the sequential reference is timed on 4096-token slices.
+    "cpu": dict(lengths=[4096, 16384, 65536], repeats=2, mem_limit_gb=4.0, matmul_n=2048),
 }
 
 
@@ -79,31 +85,6 @@ def _activation_bytes(
     return 4.0 * (quad * (4 if backward else 2) + states)
 
 
-def _time(fn, args, repeats: int) -> dict:
-    t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))  # warm-up
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - t0)
-    return {
-        "seconds_median": statistics.median(times),
-        "seconds_min": min(times),
-        "compile_seconds": compile_s,
-    }
-
-
-def _matmul_gflops(n: int, dtype, repeats: int) -> dict:
-    key_a, key_b = jax.random.split(jax.random.key(1))
-    a = jax.random.normal(key_a, (n, n), dtype)
-    b = jax.random.normal(key_b, (n, n), dtype)
-    t = _time(lambda x, y: x @ y, (a, b), repeats)
-    return {"n": n, **t, "gflops": 2.0 * n**3 / t["seconds_min"] / 1e9}
-
-
 def _inputs(L: int, b: int, nh: int, P: int, g: int, n: int, dtype):
     rng = np.random.default_rng(0)
     x = rng.standard_normal((b, L, nh, P))
@@ -132,6 +113,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")
     ap.add_argument("--mem-limit-gb", type=float, help="override the preset's activation budget")
     ap.add_argument("--no-backward", action="store_true", help="forward only")
+    ap.add_argument("--sequential-slice", type=int, default=4096,
+                    help="time the sequential forward on this many tokens when L is longer and scale "
+                         "linearly by L / slice (its per-step cost does not depend on L)")
     args = ap.parse_args()
 
     preset = PRESETS[args.preset]
@@ -143,12 +127,18 @@ def main() -> None:
     nh, P, g, n = d_inner // args.headdim, args.headdim, args.ngroups, args.d_state
     Q, b = args.chunk, args.batch
 
-    matmul = _matmul_gflops(preset["matmul_n"], dtype, repeats)
-    print(f"matmul {matmul['n']}^3 {args.dtype}: {matmul['gflops']:.1f} GFLOP/s", flush=True)
-    results = []
+    # Timings interleave: per L every job is compiled first, then each of `repeats` rounds
+    # runs the matmul reference and every job once, so on a shared, busy machine the ratios
+    # compare runs made under the same load (min over rounds is reported with the median).
+    ka, kb = jax.random.split(jax.random.key(1))
+    mm_n = preset["matmul_n"]
+    mm_args = (jax.random.normal(ka, (mm_n, mm_n), dtype), jax.random.normal(kb, (mm_n, mm_n), dtype))
+    mm = jax.jit(lambda a, b_: a @ b_).lower(*mm_args).compile()
+    results, matmul_by_L = [], {}
     for L in lengths:
         x, dt, A, B, C, D = _inputs(L, b, nh, P, g, n, dtype)
         w = jnp.asarray(np.random.default_rng(1).standard_normal(x.shape), dtype)
+        jobs = []  # (row, compiled, args, time scale)
         for method in args.methods:
             fwd = functools.partial(METHODS[method], Q=Q)
 
@@ -161,33 +151,73 @@ def main() -> None:
                 passes.append(("fwd+bwd", jax.grad(loss, argnums=(0, 1, 2, 3, 4)), (x, dt, A, B, C, D, w)))
             for name, fn, fn_args in passes:
                 row = {"L": L, "method": method, "pass": name}
+                results.append(row)
                 need = _activation_bytes(method, name == "fwd+bwd", L, b, nh, P, g, n, Q)
-                if args.preset == "cpu" and method == "sequential" and L > 4096:
-                    row["skipped"] = "cpu preset: sequential reference only at L <= 4096"
+                scale = 1.0
+                if method == "sequential" and name == "fwd" and L > args.sequential_slice:
+                    m = args.sequential_slice
+                    fn_args = tuple(a[:, :m] if a.ndim > 1 else a for a in fn_args)
+                    row["extrapolated_from_L"], scale = m, L / m
                 elif need > mem_limit:
                     row["skipped"] = (
                         f"predicted activations {need / 2**30:.1f} GiB > limit {mem_limit / 2**30:.1f} GiB"
                     )
-                else:
-                    try:
-                        row.update(_time(fn, fn_args, repeats))
-                    except Exception as e:  # noqa: BLE001 - out-of-memory etc. are recorded, not fatal
-                        row["skipped"] = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
-                if "seconds_min" in row:
-                    gflop = _flops(method, L, b, nh, P, g, n, Q) * (3 if name == "fwd+bwd" else 1) / 1e9
-                    row["gflop"] = gflop
-                    row["gflops_achieved"] = gflop / row["seconds_min"]
-                    row["fraction_of_matmul"] = row["gflops_achieved"] / matmul["gflops"]
-                    print(
-                        f"L={L:6d} {method:20s} {name:8s} {row['seconds_min'] * 1e3:10.1f} ms "
-                        f"{row['gflops_achieved']:8.1f} GFLOP/s (compile {row['compile_seconds']:.1f} s)",
-                        flush=True,
-                    )
-                else:
                     print(f"L={L:6d} {method:20s} {name:8s} skipped: {row['skipped']}", flush=True)
-                results.append(row)
+                    continue
+                try:
+                    t0 = time.perf_counter()
+                    compiled = jax.jit(fn).lower(*fn_args).compile()
+                    row["compile_seconds"] = time.perf_counter() - t0
+                    jax.block_until_ready(compiled(*fn_args))  # warm-up
+                    jobs.append((row, compiled, fn_args, scale))
+                except Exception as e:  # noqa: BLE001 - out-of-memory etc. are recorded, not fatal
+                    row["skipped"] = f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"
+        times = {id(j[0]): [] for j in jobs}
+        mm_times = []
+        jax.block_until_ready(mm(*mm_args))
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(mm(*mm_args))
+            mm_times.append(time.perf_counter() - t0)
+            for row, compiled, fn_args, scale in jobs:
+                t0 = time.perf_counter()
+                jax.block_until_ready(compiled(*fn_args))
+                times[id(row)].append((time.perf_counter() - t0) * scale)
+        matmul = {"n": mm_n, "seconds_min": min(mm_times), "gflops": 2.0 * mm_n**3 / min(mm_times) / 1e9}
+        matmul_by_L[L] = matmul
+        print(f"L={L:6d} matmul {mm_n}^3 {args.dtype}: {matmul['gflops']:.1f} GFLOP/s", flush=True)
+        for row, _, _, _ in jobs:
+            ts = times[id(row)]
+            row.update(seconds_median=statistics.median(ts), seconds_min=min(ts))
+            gflop = _flops(row["method"], L, b, nh, P, g, n, Q) * (3 if row["pass"] == "fwd+bwd" else 1) / 1e9
+            row["gflop"] = gflop
+            row["gflops_achieved"] = gflop / row["seconds_min"]
+            row["fraction_of_matmul"] = row["gflops_achieved"] / matmul["gflops"]
+            print(
+                f"L={L:6d} {row['method']:20s} {row['pass']:8s} {row['seconds_min'] * 1e3:10.1f} ms "
+                f"{row['gflops_achieved']:8.1f} GFLOP/s = {row['fraction_of_matmul']:.2f} x matmul "
+                f"(compile {row['compile_seconds']:.1f} s)",
+                flush=True,
+            )
         del x, dt, B, C, w
 
+    def seconds(L, method, name):
+        rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, method, name)]
+        return rows[0].get("seconds_min") if rows else None
+
+    def fraction(L, name):
+        rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, "chunked", name)]
+        return rows[0].get("fraction_of_matmul") if rows else None
+
+    summary = []
+    for L in lengths:
+        seq, chk = seconds(L, "sequential", "fwd"), seconds(L, "chunked", "fwd")
+        summary.append({
+            "L": L, "sequential_over_chunked_fwd": seq / chk if seq and chk else None,
+            "chunked_fraction_of_matmul_fwd": fraction(L, "fwd"),
+            "chunked_fraction_of_matmul_fwd_bwd": fraction(L, "fwd+bwd"),
+        })
+        print(json.dumps(summary[-1]), flush=True)
     report = {
         "benchmark": "ssd_scan",
         "device": str(jax.devices()[0]),
@@ -203,9 +233,10 @@ def main() -> None:
             "ngroups": g, "chunk_size": Q, "batch": b, "dtype": args.dtype,
         },
         "repeats": repeats,
-        "matmul_reference": matmul,
+        "matmul_reference_by_L": matmul_by_L,
         "flop_model": "matmul FLOPs only (see bench_scan.py docstring); fwd+bwd = 3x fwd",
         "results": results,
+        "summary": summary,
     }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:

@@ -13,10 +13,12 @@ stage-4 step, written as JSON.
      weight 0** (the VGG term is left out to keep the CPU run short; its cost does not
      depend on the model).
 
-   At 256x256 the backbone's two global-attention blocks see L = 8,194 tokens and the
-   XLA attention path materialises ``[4, L, L]`` float32 logits (1.07 GB each, dozens
-   of them live in the backward), so XLA's peak is ~17.2 GiB with or without remat --
-   more than this shared box can give. A case whose XLA peak exceeds ``--max-step-gb``
+   At 256x256 the backbone's two global-attention blocks see L = 8,194 tokens. The XLA
+   attention path materialised ``[4, L, L]`` float32 logits (1.07 GB each, dozens of them
+   live in the backward): XLA's peak was ~17.2 GiB with or without remat (rows
+   ``*_xla_attention``). With the blockwise kernel (now the default) the peak is 12.1 GiB
+   (12.2 with remat) and linear in the token count (3.0 GiB at 128x128): no longer
+   attention-bound, and still above the 12 GiB run limit on this shared box. A case whose XLA peak exceeds ``--max-step-gb``
    (default 12) is compiled and analysed but its steps are not run (``steps_run`` says
    why); 192x192 (L = 4,610) is the largest default size that runs here. Remat does not
    lower XLA's peak in these cases: the peak is inside one global-attention block's
@@ -44,11 +46,12 @@ stage-4 step, written as JSON.
    (``--paper-max-rss-gb``). If it compiles, XLA's memory analysis is reported
    (``"source": "xla_compiled_cpu"``). Always reported beside it: an **estimate** from
    ``jax.eval_shape`` (parameter, gradient and AdamW bytes, and the sizes of the main
-   activations), labelled ``"estimate"``. The CPU compile uses the XLA attention path
-   (``attention_impl=None`` as the experiment file sets), which materialises
-   ``[heads, L, L]`` logits (1.6 TB per block at L = 261,122 in bf16), which is what
-   XLA's number measures; on GPU the cuDNN flash kernel (``attention_impl="cudnn"``)
-   avoids that term, and the estimate gives the rest.
+   activations), labelled ``"estimate"``. The experiment file sets
+   ``config.for_accelerators``, which picks the cuDNN flash kernel on GPU and the pure-JAX
+   blockwise kernel elsewhere, with remat in the backbone and the decoder: compiled on CPU,
+   the step therefore uses blockwise attention, and XLA's number is the memory of the step
+   as it runs without cuDNN (the plain XLA path would hold ``[heads, L, L]`` logits, 1.6 TB
+   per block at L = 261,122 in bf16; ``transformer_attention_logits_xla_per_block``).
 
 Usage: ``python experiments/bench_train.py [--out PATH] [--quick] [--skip-paper]
 [--steps N] [--mid-sizes 256,192] [--max-step-gb G] [--max-rss-gb G] [--paper-timeout S]
@@ -317,15 +320,19 @@ def paper_estimate() -> dict:
         "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w],
         "dtype": "bfloat16 compute, float32 params/optimizer" if exp.bf16 else "float32",
         "backbone_remat": cfg.backbone.remat, "decoder_remat": cfg.decoder.remat,
+        "attention_impl": {"backbone": cfg.backbone.transformer.attention_impl,
+                           "decoder": cfg.decoder.transformer.attention_impl},
         "perceptual_weight": exp.perceptual_weight,
         "params": n_params, "backbone_tokens": seq, "gaussians": n_gauss, "splat_capacity": capacity,
         "transformer_blocks": n_t, "state_bytes": state_bytes, "activation_bytes": acts,
         "estimate_terms": terms,
         "estimate_bytes_without_backbone_attention_logits": int(sum(terms.values())),
         "note": ("estimate_terms: tensors live together at the peak of the backward (see the code's "
-                 "comment); the XLA attention path adds transformer_attention_logits_xla_per_block "
-                 "(x2-3: logits, probabilities, their gradient) on top; the perceptual term's VGG16 "
-                 "activations (8 targets x 2 images at 544x960) are not counted"),
+                 "comment); the XLA attention path (attention_impl 'xla') adds "
+                 "transformer_attention_logits_xla_per_block (x2-3: logits, probabilities, their "
+                 "gradient) on top, the blockwise and cuDNN kernels only O(L) buffers (see "
+                 "bench_attention.json); the perceptual term's VGG16 activations (8 targets x 2 "
+                 "images at 544x960) are not counted"),
     }
 
 

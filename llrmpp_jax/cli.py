@@ -199,6 +199,21 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from llrmpp_jax.bench import BENCHMARKS, run_benchmarks
+
+    only = tuple(args.only.split(",")) if args.only else BENCHMARKS
+    run_benchmarks(args.scale, args.out, only)
+    print(f"wrote {os.path.join(args.out, 'bench.json')}")
+    return 0
+
+
+def cmd_doctor(args) -> int:
+    from llrmpp_jax.doctor import run_checks
+
+    return 0 if all(r.ok for r in run_checks()) else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -248,6 +263,15 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
     d.add_argument("--steps", type=int, default=None, help="override the number of training steps")
     d.set_defaults(fn=cmd_demo)
+
+    b = sub.add_parser("bench", help="attention, scan, splat and model benchmarks at one scale, as JSON")
+    b.add_argument("--scale", required=True, help="cpu (a small CPU box, minutes) or paper (one accelerator)")
+    b.add_argument("--out", default="runs/bench", help="folder for bench.json and one JSON per benchmark")
+    b.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model")
+    b.set_defaults(fn=cmd_bench)
+
+    g = sub.add_parser("doctor", help="versions and devices, then kernel-vs-reference checks on this device")
+    g.set_defaults(fn=cmd_doctor)
     return p
 
 

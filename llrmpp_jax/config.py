@@ -52,10 +52,25 @@ class TransformerConfig:
     mlp_ratio: int = 4
     qk_norm: bool = True  # RMSNorm per head on q and k (LVSM); Long-LRM itself has none
     norm_eps: float = 1e-5
-    # Global-attention kernel for jax.nn.dot_product_attention: None/"xla" materialises
-    # [nh, L, L] logits (fine for the decoder and tests); "cudnn" is the flash kernel (GPU,
-    # bf16/fp16), needed at the paper's backbone sequence lengths (32k-261k tokens).
-    attention_impl: str | None = None
+    # Global-attention kernel (nn.attention.multi_head_attention): "blockwise" is
+    # FlashAttention-2 in pure JAX (any backend and dtype, memory linear in L, the default);
+    # "cudnn" the cuDNN flash kernel (NVIDIA GPU, bf16/fp16 only; for_accelerators picks it
+    # there); "xla" materialises [nh, L, L] logits (quadratic memory: short L only).
+    attention_impl: str = "blockwise"
+    attention_block_q: int = 512  # blockwise: queries per block
+    attention_block_k: int = 512  # blockwise: keys per block (logits block [nh, bq, bk])
+
+    def __post_init__(self) -> None:
+        if self.attention_impl not in ("xla", "cudnn", "blockwise"):
+            raise ValueError(
+                f"TransformerConfig.attention_impl must be 'xla', 'cudnn' or 'blockwise', "
+                f"got {self.attention_impl!r}"
+            )
+        if self.attention_block_q < 1 or self.attention_block_k < 1:
+            raise ValueError(
+                f"TransformerConfig: attention block sizes must be >= 1, got "
+                f"attention_block_q={self.attention_block_q}, attention_block_k={self.attention_block_k}"
+            )
 
 
 @dataclass(frozen=True)
@@ -174,16 +189,26 @@ class ModelConfig:
         return math.lcm(self.token_stride, self.decoder.token_stride)
 
 
-def for_accelerators(model: ModelConfig) -> ModelConfig:
-    """Flash attention (cuDNN, bf16) in every global-attention block and remat everywhere:
-    XLA's plain attention would hold [heads, L, L] scores (L = 261K backbone tokens at
-    stage 4, ~1.5 TiB per block), see experiments/results/bench_train.json."""
-    flash = replace(model.backbone.transformer, attention_impl="cudnn")
+def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelConfig:
+    """Memory-efficient attention in every global-attention block and remat everywhere.
+
+    ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
+    (``attention_impl="cudnn"``; the run's compute dtype must be bf16/fp16), anywhere else
+    (TPU, CPU) the pure-JAX blockwise kernel, which needs no vendor library and works in
+    any dtype. XLA's plain attention would hold [heads, L, L] scores (L = 261K backbone
+    tokens at stage 4, ~1.5 TiB per block), see experiments/results/bench_train.json.
+    """
+    if backend is None:
+        import jax
+
+        backend = jax.default_backend()
+    impl = "cudnn" if backend == "gpu" else "blockwise"
     return replace(
         model,
-        backbone=replace(model.backbone, transformer=flash, remat=True),
-        decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl="cudnn"),
-                          remat=True),
+        backbone=replace(model.backbone, transformer=replace(model.backbone.transformer, attention_impl=impl),
+                         remat=True),
+        decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl=impl),
+                        remat=True),
     )
 
 

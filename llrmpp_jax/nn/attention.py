@@ -28,7 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import Array, Bool, Float, Int
+from llrmpp_jax.nn.blockwise_attention import blockwise_attention
 from llrmpp_jax.nn.norms import RMSNorm
+
+# Global-attention kernels of multi_head_attention (TransformerConfig.attention_impl).
+ATTENTION_IMPLEMENTATIONS = ("xla", "cudnn", "blockwise")
 
 # Long-LRM ``_init_weights``: Linear weights ~ N(0, 0.02).
 DENSE_INIT = nn.initializers.normal(stddev=0.02)
@@ -41,21 +45,34 @@ def multi_head_attention(
     *,
     bias: Float[Array, "... nh Lq Lk"] | None = None,
     mask: Bool[Array, "... nh Lq Lk"] | None = None,
-    implementation: str | None = None,
+    implementation: str = "blockwise",
+    block_q: int = 512,
+    block_k: int = 512,
 ) -> Float[Array, "... Lq nh hd"]:
     """``softmax(q k^T * hd^-0.5 + bias, where mask) v`` for every head.
 
-    Wraps ``jax.nn.dot_product_attention``. ``bias`` / ``mask`` are ``[nh, Lq, Lk]``
-    (shared over the batch) or ``[..., nh, Lq, Lk]`` with the batch dims of ``q``; a
-    size-1 head or query axis broadcasts. ``mask`` is True where a key takes part; a
-    query whose keys are all masked gets the mean of ``v`` (library behaviour).
+    ``bias`` / ``mask`` are ``[nh, Lq, Lk]`` (shared over the batch) or
+    ``[..., nh, Lq, Lk]`` with the batch dims of ``q``; a size-1 head or query axis
+    broadcasts. ``mask`` is True where a key takes part; a query whose keys are all
+    masked gets the mean of ``v`` (library behaviour).
 
-    Precision: the library computes logits in ``promote(dtype, float32)`` but the
-    softmax always in float32, so float64 inputs are accurate to ~1e-7, not 1e-15.
-    Memory: the ``"xla"`` implementation materialises ``[B, nh, Lq, Lk]`` logits;
-    ``implementation="cudnn"`` (GPU, bf16/fp16 inputs) is the flash-attention kernel
-    that long sequences need.
+    ``implementation`` (one of :data:`ATTENTION_IMPLEMENTATIONS`):
+
+    * ``"blockwise"`` -- :func:`~llrmpp_jax.nn.blockwise_attention.blockwise_attention`,
+      FlashAttention-2 in pure JAX on any backend and dtype: memory linear in L, blocks
+      of ``block_q`` queries x ``block_k`` keys.
+    * ``"xla"`` -- ``jax.nn.dot_product_attention``'s XLA path; materialises
+      ``[B, nh, Lq, Lk]`` logits (quadratic memory).
+    * ``"cudnn"`` -- the library's cuDNN flash kernel (NVIDIA GPU, bf16/fp16 inputs).
+
+    Precision: logits and softmax in ``promote(dtype, float32)`` (blockwise) or softmax
+    always in float32 (library), so float64 inputs are accurate to ~1e-7 with the latter.
     """
+    if implementation not in ATTENTION_IMPLEMENTATIONS:
+        raise ValueError(
+            f"multi_head_attention: implementation must be one of {ATTENTION_IMPLEMENTATIONS}, "
+            f"got {implementation!r}"
+        )
     if q.ndim < 3 or k.ndim != q.ndim or v.shape != k.shape:
         raise ValueError(
             f"multi_head_attention: q, k, v must be [..., L, nh, hd] with equal ranks and "
@@ -81,18 +98,18 @@ def multi_head_attention(
             )
         return a[None] if a.ndim == 3 else a.reshape(nb, *a.shape[-3:])
 
-    # The library promotes logits to >= float32 internally, which strict dtype promotion
-    # (our test configuration) rejects for float64/bfloat16 inputs; that promotion is the
-    # intended behaviour, so allow it for this call only.
-    with jax.numpy_dtype_promotion("standard"):
-        out = jax.nn.dot_product_attention(
-            q.reshape(nb, lq, nh, hd),
-            k.reshape(nb, lk, nh, hd),
-            v.reshape(nb, lk, nh, hd),
-            bias=to_4d(bias, "bias"),
-            mask=to_4d(mask, "mask"),
-            implementation=implementation,
-        )
+    q4, k4, v4 = q.reshape(nb, lq, nh, hd), k.reshape(nb, lk, nh, hd), v.reshape(nb, lk, nh, hd)
+    bias4, mask4 = to_4d(bias, "bias"), to_4d(mask, "mask")
+    if implementation == "blockwise":
+        out = blockwise_attention(q4, k4, v4, bias=bias4, mask=mask4, block_q=block_q, block_k=block_k)
+    else:
+        # The library promotes logits to >= float32 internally, which strict dtype promotion
+        # (our test configuration) rejects for float64/bfloat16 inputs; that promotion is the
+        # intended behaviour, so allow it for this call only.
+        with jax.numpy_dtype_promotion("standard"):
+            out = jax.nn.dot_product_attention(
+                q4, k4, v4, bias=bias4, mask=mask4, implementation=implementation
+            )
     return out.reshape(*batch, lq, nh, hd)
 
 
@@ -239,23 +256,27 @@ class Attention(nn.Module):
 
     Params: ``qkv/kernel [D, 3D]``, ``proj/kernel [D, D]`` and, with ``qk_norm``,
     ``q_norm/scale [hd]``, ``k_norm/scale [hd]``. ``dtype`` is the compute dtype of the
-    projections (None: from input and params); ``implementation`` goes to
-    :func:`multi_head_attention`.
+    projections (None: from input and params); ``implementation`` and the block sizes
+    ``(block_q, block_k)`` go to :func:`multi_head_attention`.
     """
 
     dim: int
     head_dim: int
     qk_norm: bool
     norm_eps: float = 1e-5
-    implementation: str | None = None
+    implementation: str = "blockwise"
     dtype: jnp.dtype | None = None
+    block_sizes: tuple[int, int] = (512, 512)
 
     @nn.compact
     def __call__(self, x: Float[Array, "... L D"]) -> Float[Array, "... L D"]:
         _num_heads(self.dim, self.head_dim, "Attention")
         _check_width(x, self.dim, "Attention")
         q, k, v = _qkv_heads(x, self.dim, self.head_dim, self.qk_norm, self.norm_eps, self.dtype)
-        o = multi_head_attention(q, k, v, implementation=self.implementation)
+        o = multi_head_attention(
+            q, k, v, implementation=self.implementation,
+            block_q=self.block_sizes[0], block_k=self.block_sizes[1],
+        )
         return _out_proj(o, self.dim, self.dtype)
 
 

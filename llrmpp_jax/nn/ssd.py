@@ -77,6 +77,24 @@ def segment_sum(a: Float[Array, "... T"]) -> Float[Array, "... T T"]:
     return jnp.where(on_or_below, sums, -jnp.inf)
 
 
+def _compensated_cumsum(a: Float[Array, "... T"]) -> tuple[Float[Array, "... T"], Float[Array, "... T"]]:
+    """Inclusive running sum over the last axis as ``hi + lo`` (Kahan/TwoSum): ``hi`` the
+    float running sum, ``lo`` its accumulated rounding error, so ``hi + lo`` is exact to
+    ~eps^2 relative and differences ``(hi_i - hi_j) + (lo_i - lo_j)`` lose nothing to
+    cancellation. A ``lax.scan`` over T on ``[...]``-sized slices (cheap: no T x T work)."""
+
+    def step(carry, a_t):
+        hi, lo = carry
+        s = hi + a_t
+        bp = s - hi
+        lo = lo + ((hi - (s - bp)) + (a_t - bp))  # TwoSum: exact error of hi + a_t
+        return (s, lo), (s, lo)
+
+    zeros = jnp.zeros(a.shape[:-1], a.dtype)
+    _, (hi, lo) = jax.lax.scan(step, (zeros, zeros), jnp.moveaxis(a, -1, 0))
+    return jnp.moveaxis(hi, 0, -1), jnp.moveaxis(lo, 0, -1)
+
+
 def _inter_chunk_states(
     chunk_log_decay: Float[Array, "b c g h"],
     chunk_states: Float[Array, "b c g h P n"],
@@ -144,10 +162,22 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     xdt = xc.astype(acc) * dtc[..., None]  # [b, c, Q, g, hg, P]
 
     # 1. Intra-chunk (diagonal blocks): y_l = sum_{s<=l} (C_l . B_s) decay(s->l) dt_s x_s.
-    decay = jnp.exp(segment_sum(jnp.moveaxis(dA, 2, -1)))  # [b, c, g, hg, l, s]
+    #    decay(s->l) = exp(cs_l - cs_s) from the chunk's running sum cs, carried as an
+    #    unevaluated pair hi + lo (compensated), so the difference keeps full precision even
+    #    where cs reaches -1e4; the scores are then one fused elementwise pass over the
+    #    [hg, Q, Q] blocks (a masked cumsum over them costs several passes, see segment_sum).
+    hi, lo = _compensated_cumsum(jnp.moveaxis(dA, 2, -1))  # [b, c, g, hg, Q]
+    seg = (hi[..., :, None] - hi[..., None, :]) + (lo[..., :, None] - lo[..., None, :])
+    causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, 1, 1, Q, Q)  # s <= l
     CB = jnp.einsum("bclgn,bcsgn->bcgls", Cc, Bc, preferred_element_type=acc)
-    scores = (CB[:, :, :, None] * decay).astype(cd)
-    y = jnp.einsum("bcghls,bcsghp->bclghp", scores, xdt.astype(cd), preferred_element_type=acc)
+    # min(seg, 0): seg > 0 only above the diagonal, where exp could overflow (and poison the
+    # backward of the where with inf * 0).
+    decay = jnp.exp(jnp.minimum(seg, jnp.zeros((), acc)))
+    scores = jnp.where(causal, CB[:, :, :, None] * decay, jnp.zeros((), acc)).astype(cd)
+    # x moved to [b, c, g, hg, s, P] first: with the batch axes leading on both operands
+    # XLA:CPU emits one batched matmul instead of a strided loop (5-10x faster at paper sizes).
+    xdt_bt = jnp.moveaxis(xdt.astype(cd), 2, 4)
+    y = jnp.einsum("bcghls,bcghsp->bclghp", scores, xdt_bt, preferred_element_type=acc)
 
     # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T. The exponent
     #    sum_{k>l} dA_k is a reverse exclusive cumsum (no cancellation).

@@ -38,7 +38,7 @@ class TransformerBlock(nn.Module):
     ``attention="global"`` attends over all L tokens; ``attention="local"`` needs
     ``grid=(h, w)`` with ``L = h*w`` (row-major) and attends to ``num_neighbours``
     nearest grid tokens (:class:`LocalAttention`). ``cfg.attention_impl`` selects the
-    global-attention kernel (``None``/``"xla"``, or ``"cudnn"`` on GPU with bf16/fp16).
+    global-attention kernel (``"blockwise"``, ``"xla"``, or ``"cudnn"`` on GPU with bf16/fp16).
     ``dtype`` is the compute dtype of the Dense layers (None: from input and params);
     the residual stream keeps the dtype of ``x``.
 
@@ -59,7 +59,7 @@ class TransformerBlock(nn.Module):
         if self.attention == "global":
             attn = Attention(
                 self.dim, cfg.head_dim, cfg.qk_norm, cfg.norm_eps, cfg.attention_impl, self.dtype,
-                name="attn",
+                block_sizes=(cfg.attention_block_q, cfg.attention_block_k), name="attn",
             )
         elif self.attention == "local":
             if self.grid is None:

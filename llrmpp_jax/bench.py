@@ -1,0 +1,169 @@
+"""``llrmpp bench``: the project's benchmarks at one scale, as JSON.
+
+:func:`run_benchmarks` runs, each in its own process (so one's memory and compile caches
+do not colour the next):
+
+* ``attention`` -- :func:`attention_benchmark` (here, entry ``experiments/bench_attention.py``):
+  XLA's memory analysis of one global-attention forward+backward, plain (``"xla"``) vs
+  ``"blockwise"``, compile only, and compile / run times of the blockwise kernel.
+* ``scan``, ``splat``, ``model`` -- ``experiments/bench_{scan,splat,model}.py``.
+
+Each entry gets the scale's arguments (:data:`SCALES`), syncs with ``block_until_ready``
+and reports compile time apart from run time.
+
+The summary JSON (``<out>/bench.json``) records the device, library versions, load
+average before and after, and each benchmark's own JSON (also written beside it).
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+EXPERIMENTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
+BENCHMARKS = ("attention", "scan", "splat", "model")
+
+# scale -> benchmark -> command-line arguments of experiments/bench_<benchmark>.py.
+SCALES: dict[str, dict[str, list[str]]] = {
+    # A 2-core CPU box in minutes: memory analysis up to 131k tokens (compile only), runs to 8k.
+    "cpu": {
+        "attention": ["--lengths", "8192", "32768", "131072", "--run-lengths", "4096", "8192"],
+        "scan": ["--preset", "cpu"],
+        "splat": ["--quick", "--repeats", "2"],
+        "model": ["--configs", "tiny", "--views", "4", "--size", "64", "--repeats", "3", "--skip-flops"],
+    },
+    # One accelerator: the paper's sequence lengths run.
+    "paper": {
+        "attention": ["--lengths", "8192", "32768", "131072", "261122", "--run-lengths", "8192", "32768", "131072"],
+        "scan": ["--preset", "full"],
+        "splat": [],
+        "model": [],
+    },
+}
+
+
+def environment() -> dict:
+    """Device, platform, library versions, matmul precision and the 1/5/15-min load average."""
+    import jax
+
+    versions = {}
+    for pkg in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy"):  # None: not installed
+        try:
+            versions[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            versions[pkg] = None
+    dev = jax.devices()[0]
+    return {
+        "backend": jax.default_backend(), "device": str(dev), "device_kind": dev.device_kind,
+        "device_count": jax.device_count(), "host": platform.machine(), "cpu_count": os.cpu_count(),
+        "versions": versions,
+        "default_matmul_precision": jax.config.jax_default_matmul_precision or "default (backend's own)",
+        "load_average": list(os.getloadavg()),
+    }
+
+
+def timed(fn, *args, repeats: int = 3) -> dict:
+    """Compile ``jit(fn)`` for ``args`` and time ``repeats`` synced calls after a warm-up.
+
+    Returns ``compile_s`` (lower + compile), ``run_s_median`` / ``run_s_min`` (seconds per
+    call, ``block_until_ready``) and XLA's ``temp_bytes`` of the compiled program.
+    """
+    import jax
+
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    jax.block_until_ready(compiled(*args))
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        runs.append(time.perf_counter() - t0)
+    runs.sort()
+    return {"compile_s": compile_s, "run_s_median": runs[len(runs) // 2], "run_s_min": runs[0],
+            "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes)}
+
+
+def attention_fwd_bwd(implementation: str, block: int = 512):
+    """``(q, k, v, cotangent) -> (dq, dk, dv)`` of one global attention (a training step's
+    share of it): forward and backward through :func:`multi_head_attention`."""
+    import jax
+
+    from llrmpp_jax.nn.attention import multi_head_attention
+
+    def step(q, k, v, cot):
+        _, vjp = jax.vjp(
+            lambda q, k, v: multi_head_attention(q, k, v, implementation=implementation,
+                                                 block_q=block, block_k=block), q, k, v)
+        return vjp(cot)
+
+    return step
+
+
+def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192), heads: int = 12,
+                        head_dim: int = 64, block: int = 512, dtype: str = "float32", repeats: int = 2) -> dict:
+    """Memory of one attention fwd+bwd ``[1, L, heads, head_dim]`` (the paper backbone's
+    12 x 64 heads), plain vs blockwise, from XLA's ``memory_analysis()`` of the compiled
+    program (compile only: nothing is allocated); then compile and run times of the
+    blockwise kernel at ``run_lengths``. ``temp_bytes`` is XLA's scratch on top of the
+    arguments (q, k, v, cotangent) and outputs (dq, dk, dv)."""
+    import jax
+    import jax.numpy as jnp
+
+    dt = jnp.dtype(dtype)
+    rows = []
+    for length in lengths:
+        x = jax.ShapeDtypeStruct((1, length, heads, head_dim), dt)
+        row = {"L": length, "logits_bytes_per_copy": heads * length * length * 4}
+        for impl in ("xla", "blockwise"):
+            t0 = time.perf_counter()
+            compiled = jax.jit(attention_fwd_bwd(impl, block)).lower(x, x, x, x).compile()
+            ma = compiled.memory_analysis()
+            row[impl] = {"temp_bytes": int(ma.temp_size_in_bytes),
+                         "argument_bytes": int(ma.argument_size_in_bytes),
+                         "output_bytes": int(ma.output_size_in_bytes),
+                         "compile_s": time.perf_counter() - t0}
+        rows.append(row)
+    runs = []
+    key = jax.random.key(0)
+    for length in run_lengths:
+        q, k, v, cot = (jax.random.normal(kk, (1, length, heads, head_dim), dt) for kk in jax.random.split(key, 4))
+        runs.append({"L": length, **timed(attention_fwd_bwd("blockwise", block), q, k, v, cot, repeats=repeats)})
+    temps = [r["blockwise"]["temp_bytes"] for r in rows]
+    per_token = [t / r["L"] for t, r in zip(temps, rows)]
+    return {"heads": heads, "head_dim": head_dim, "block": block, "dtype": dtype, "memory": rows,
+            "blockwise_temp_bytes_per_token": per_token, "blockwise_runs": runs}
+
+
+def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS) -> dict:
+    """Run the ``only`` benchmarks at ``scale`` (a key of :data:`SCALES`); write
+    ``<out_dir>/bench_<name>.json`` for each and ``<out_dir>/bench.json`` (the summary)."""
+    if scale not in SCALES:
+        raise ValueError(f"bench: unknown scale {scale!r}, expected one of {sorted(SCALES)}")
+    unknown = [b for b in only if b not in BENCHMARKS]
+    if unknown:
+        raise ValueError(f"bench: unknown benchmark(s) {unknown}, expected a subset of {list(BENCHMARKS)}")
+    os.makedirs(out_dir, exist_ok=True)
+    summary = {"scale": scale, "environment_at_start": environment(), "benchmarks": {}}
+    for name in only:
+        out = os.path.join(out_dir, f"bench_{name}.json")
+        cmd = [sys.executable, os.path.join(EXPERIMENTS, f"bench_{name}.py"), *SCALES[scale][name], "--out", out]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        entry = {"command": cmd, "wall_s": time.perf_counter() - t0, "exit": proc.returncode}
+        if proc.returncode == 0 and os.path.exists(out):
+            with open(out) as f:
+                entry["result"] = json.load(f)
+        else:
+            entry["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+        summary["benchmarks"][name] = entry
+        print(f"bench {name}: exit {proc.returncode} in {entry['wall_s']:.0f} s -> {out}", flush=True)
+    summary["load_average_at_end"] = list(os.getloadavg())
+    with open(os.path.join(out_dir, "bench.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    return summary

@@ -1,0 +1,243 @@
+"""Blockwise (FlashAttention-2) multi-head attention in pure JAX, for any backend.
+
+``softmax(q k^T * hd^-0.5 + bias, where mask) v`` without ever holding the ``[Lq, Lk]``
+logits: queries go in blocks of ``block_q``, keys in blocks of ``block_k``; each query
+block keeps a running row maximum ``m``, row sum ``l`` and un-normalised output ``acc``
+(online softmax, Dao 2023 Alg. 1) while it scans over the key blocks. The forward saves
+only the output and the row statistics ``(m, l)`` (FlashAttention keeps their log-sum-exp
+``m + log l``; the pair also stays exact for an all-masked row); the backward
+(:func:`jax.custom_vjp`, Alg. 2) recomputes every block's probabilities from them.
+Both passes are ``lax.scan`` loops, so the compiled program does not grow with L, and
+the largest temporary is one block's ``[B, nh, block_q, block_k]`` logits.
+
+Memory (fwd + bwd) is linear in L: q, k, v, the output, ``(m, l)`` and the gradients, plus
+one logits block per loop step. An optional ``bias`` / ``mask`` of ``[Lq, Lk]`` size is a
+hook for short sequences (the caller's own array is already quadratic).
+
+Numerics match :func:`jax.nn.dot_product_attention`: logits, softmax statistics and the
+accumulators are in ``promote(dtype, float32)``, the output in ``q``'s dtype; a masked
+logit becomes ``-0.7 * finfo.max`` (so a query whose keys are all masked gets the mean
+of ``v``, as the library does) and receives no gradient. Keys added to pad L up to a
+multiple of ``block_k`` are removed with ``-inf`` (they never enter a softmax).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from llrmpp_jax.array_typing import Array, Bool, Float
+
+
+def _acc_dtype(dtype) -> jnp.dtype:
+    """Accumulation dtype: float32, or the input's own if wider (float64)."""
+    return jnp.dtype(dtype) if jnp.finfo(dtype).bits > 32 else jnp.dtype(jnp.float32)
+
+
+def _pad_to(x: Array, axis: int, multiple: int) -> Array:
+    extra = -x.shape[axis] % multiple
+    if extra == 0 or x.shape[axis] == 1:  # size-1 axes broadcast and are never padded
+        return x
+    widths = [(0, 0)] * x.ndim
+    widths[axis] = (0, extra)
+    return jnp.pad(x, widths)
+
+
+def _to_blocks(x: Array, block: int) -> Array:
+    """``[B, L, nh, hd]`` (L a multiple of ``block``) -> ``[L/block, B, block, nh, hd]``."""
+    b, length = x.shape[:2]
+    return x.reshape(b, length // block, block, *x.shape[2:]).swapaxes(0, 1)
+
+
+def _from_blocks(x: Array) -> Array:
+    """Inverse of :func:`_to_blocks`."""
+    x = x.swapaxes(0, 1)
+    return x.reshape(x.shape[0], x.shape[1] * x.shape[2], *x.shape[3:])
+
+
+def _slice_qk(a: Array, i: Array, bq: int, j: Array, bk: int) -> Array:
+    """Block ``(i, j)`` of a ``[Bb, Hb, Qb, Lk]`` bias/mask (a size-1 Qb stays size 1)."""
+    qsize = 1 if a.shape[2] == 1 else bq
+    qstart = 0 if a.shape[2] == 1 else i * bq
+    return lax.dynamic_slice(a, (0, 0, qstart, j * bk), (a.shape[0], a.shape[1], qsize, bk))
+
+
+def _block_logits(q_i, k_j, i, j, bias, mask, bq, bk, lk, scale, acc):
+    """Scaled, biased, masked logits ``[B, nh, bq, bk]`` of query block i vs key block j,
+    and the where-kept mask (None without a user mask)."""
+    s = jnp.einsum("bqhd,bkhd->bhqk", q_i, k_j, preferred_element_type=acc) * scale
+    if bias is not None:
+        s = s + _slice_qk(bias, i, bq, j, bk).astype(acc)
+    keep = None
+    if mask is not None:
+        keep = _slice_qk(mask, i, bq, j, bk)
+        s = jnp.where(keep, s, jnp.asarray(-0.7 * jnp.finfo(acc).max, acc))
+    if lk % bk:  # padded keys of the last block: out of every softmax
+        real = (j * bk + jnp.arange(bk)) < lk
+        s = jnp.where(real.reshape(1, 1, 1, bk), s, jnp.asarray(-jnp.inf, acc))
+    return s, keep
+
+
+def _forward(q, k, v, bias, mask, bq, bk, lk):
+    """Padded inputs -> (output ``[B, Lq_pad, nh, hd]``, softmax stats ``(m, l)``).
+
+    ``m``, ``l``: row maximum and row sum of ``exp(s - m)``, each ``[Lq_pad/bq, B, nh, bq]``.
+    """
+    acc = _acc_dtype(q.dtype)
+    scale = jnp.asarray(q.shape[-1] ** -0.5, acc)
+    qb, kb, vb = _to_blocks(q, bq), _to_blocks(k, bk), _to_blocks(v, bk)
+    b, nh, hd = q.shape[0], q.shape[2], q.shape[3]
+
+    def q_block(_, xs):
+        q_i, i = xs
+
+        def k_block(carry, ys):
+            m, l, o = carry
+            k_j, v_j, j = ys
+            s, _ = _block_logits(q_i, k_j, i, j, bias, mask, bq, bk, lk, scale, acc)
+            m_new = jnp.maximum(m, s.max(axis=-1))
+            alpha = jnp.exp(m - m_new)
+            p = jnp.exp(s - m_new[..., None])
+            l = alpha * l + p.sum(axis=-1)
+            pv = jnp.einsum("bhqk,bkhd->bqhd", p.astype(v.dtype), v_j, preferred_element_type=acc)
+            o = alpha.transpose(0, 2, 1)[..., None] * o + pv
+            return (m_new, l, o), None
+
+        init = (
+            jnp.full((b, nh, bq), -jnp.inf, acc),
+            jnp.zeros((b, nh, bq), acc),
+            jnp.zeros((b, bq, nh, hd), acc),
+        )
+        (m, l, o), _ = lax.scan(k_block, init, (kb, vb, jnp.arange(kb.shape[0])))
+        o = o / l.transpose(0, 2, 1)[..., None]
+        # (m, l) rather than lse = m + log(l): for an all-masked row m = -0.7 * max and
+        # m + log(l) would round back to m, losing the 1/l of the uniform softmax.
+        return None, (o.astype(q.dtype), (m, l))
+
+    _, (ob, stats) = lax.scan(q_block, None, (qb, jnp.arange(qb.shape[0])))
+    return _from_blocks(ob), stats
+
+
+def _backward(q, k, v, bias, mask, o, stats, do, bq, bk, lk):
+    """Padded inputs, output, softmax stats and output cotangent -> (dq, dk, dv, dbias)."""
+    acc = _acc_dtype(q.dtype)
+    scale = jnp.asarray(q.shape[-1] ** -0.5, acc)
+    b, nh = q.shape[0], q.shape[2]
+    # D_i = rowsum(dO * O): the softmax Jacobian's diagonal correction, one per query.
+    delta = jnp.einsum("bqhd,bqhd->bhq", do.astype(acc), o.astype(acc))
+    qb, dob = _to_blocks(q, bq), _to_blocks(do, bq)
+    delta_b = delta.reshape(b, nh, -1, bq).transpose(2, 0, 1, 3)
+    kb, vb = _to_blocks(k, bk), _to_blocks(v, bk)
+    nq = qb.shape[0]
+
+    def k_block(carry, ys):
+        dq, dbias = carry
+        k_j, v_j, j = ys
+
+        def q_block(inner, xs):
+            dk_j, dv_j, dq, dbias = inner
+            q_i, do_i, (m_i, l_i), delta_i, i = xs
+            s, keep = _block_logits(q_i, k_j, i, j, bias, mask, bq, bk, lk, scale, acc)
+            p = jnp.exp(s - m_i[..., None]) / l_i[..., None]  # [B, nh, bq, bk]
+            dv_j = dv_j + jnp.einsum("bhqk,bqhd->bkhd", p.astype(do.dtype), do_i, preferred_element_type=acc)
+            dp = jnp.einsum("bqhd,bkhd->bhqk", do_i, v_j, preferred_element_type=acc)
+            ds = p * (dp - delta_i[..., None])
+            if keep is not None:
+                ds = jnp.where(keep, ds, jnp.zeros((), acc))
+            dsq = ds.astype(q.dtype)
+            dq_i = jnp.einsum("bhqk,bkhd->bqhd", dsq, k_j, preferred_element_type=acc) * scale
+            dq = lax.dynamic_update_slice_in_dim(
+                dq, lax.dynamic_slice_in_dim(dq, i * bq, bq, axis=1) + dq_i, i * bq, axis=1
+            )
+            dk_j = dk_j + jnp.einsum("bhqk,bqhd->bkhd", dsq, q_i, preferred_element_type=acc) * scale
+            if dbias is not None:
+                # Sum over the axes the bias broadcasts along (batch, head, query).
+                axes = tuple(ax for ax in range(3) if dbias.shape[ax] == 1)
+                db = ds.sum(axis=axes, keepdims=True)
+                qstart = 0 if dbias.shape[2] == 1 else i * bq
+                start = (0, 0, qstart, j * bk)
+                dbias = lax.dynamic_update_slice(dbias, lax.dynamic_slice(dbias, start, db.shape) + db, start)
+            return (dk_j, dv_j, dq, dbias), None
+
+        zeros = jnp.zeros(k_j.shape, acc)
+        (dk_j, dv_j, dq, dbias), _ = lax.scan(
+            q_block, (zeros, zeros, dq, dbias), (qb, dob, stats, delta_b, jnp.arange(nq))
+        )
+        return (dq, dbias), (dk_j, dv_j)
+
+    dbias0 = None if bias is None else jnp.zeros(bias.shape, acc)
+    (dq, dbias), (dkb, dvb) = lax.scan(
+        k_block, (jnp.zeros(q.shape, acc), dbias0), (kb, vb, jnp.arange(kb.shape[0]))
+    )
+    dk, dv = _from_blocks(dkb), _from_blocks(dvb)
+    if dbias is not None:
+        dbias = dbias.astype(bias.dtype)
+    return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), dbias
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7))
+def _attention(q, k, v, bias, mask, bq, bk, lk):
+    return _forward(q, k, v, bias, mask, bq, bk, lk)[0]
+
+
+def _attention_fwd(q, k, v, bias, mask, bq, bk, lk):
+    o, stats = _forward(q, k, v, bias, mask, bq, bk, lk)
+    return o, (q, k, v, bias, mask, o, stats)
+
+
+def _attention_bwd(bq, bk, lk, res, do):
+    q, k, v, bias, mask, o, stats = res
+    dq, dk, dv, dbias = _backward(q, k, v, bias, mask, o, stats, do, bq, bk, lk)
+    return dq, dk, dv, dbias, None
+
+
+_attention.defvjp(_attention_fwd, _attention_bwd)
+
+
+def blockwise_attention(
+    q: Float[Array, "B Lq nh hd"],
+    k: Float[Array, "B Lk nh hd"],
+    v: Float[Array, "B Lk nh hd"],
+    *,
+    bias: Float[Array, "Bb Hb Qb Lk"] | None = None,
+    mask: Bool[Array, "Bb Hb Qb Lk"] | None = None,
+    block_q: int = 512,
+    block_k: int = 512,
+) -> Float[Array, "B Lq nh hd"]:
+    """``softmax(q k^T * hd^-0.5 + bias, where mask) v`` in query x key blocks.
+
+    ``q``: ``[B, Lq, nh, hd]``; ``k``, ``v``: ``[B, Lk, nh, hd]``; ``bias`` / ``mask``
+    ``[Bb, Hb, Qb, Lk]`` with ``Bb in (1, B)``, ``Hb in (1, nh)``, ``Qb in (1, Lq)``
+    (``mask`` True where a key takes part). Block sizes need not divide L (the last block
+    is padded; a block larger than L shrinks to L). Differentiable in q, k, v and bias
+    with a memory-linear backward (see the module docstring).
+    """
+    if block_q < 1 or block_k < 1:
+        raise ValueError(f"blockwise_attention: block sizes must be >= 1, got block_q={block_q}, block_k={block_k}")
+    if q.ndim != 4 or k.ndim != 4 or v.shape != k.shape or q.shape[0] != k.shape[0] or q.shape[2:] != k.shape[2:]:
+        raise ValueError(
+            f"blockwise_attention: expected q [B, Lq, nh, hd] and k = v [B, Lk, nh, hd], got "
+            f"q {q.shape}, k {k.shape}, v {v.shape}"
+        )
+    if not q.dtype == k.dtype == v.dtype:
+        raise ValueError(f"blockwise_attention: q, k, v dtypes differ: {q.dtype}, {k.dtype}, {v.dtype}")
+    b, lq, nh, _ = q.shape
+    lk = k.shape[1]
+    for name, a in (("bias", bias), ("mask", mask)):
+        if a is not None and (
+            a.ndim != 4 or a.shape[0] not in (1, b) or a.shape[1] not in (1, nh)
+            or a.shape[2] not in (1, lq) or a.shape[3] != lk
+        ):
+            raise ValueError(
+                f"blockwise_attention: {name} has shape {a.shape}, expected [B|1, nh|1, Lq|1, Lk] "
+                f"= {(b, nh, lq, lk)}"
+            )
+    bq, bk = min(block_q, lq), min(block_k, lk)
+    qp = _pad_to(q, 1, bq)
+    kp, vp = _pad_to(k, 1, bk), _pad_to(v, 1, bk)
+    biasp = None if bias is None else _pad_to(_pad_to(bias, 2, bq), 3, bk)
+    maskp = None if mask is None else _pad_to(_pad_to(mask, 2, bq), 3, bk)
+    return _attention(qp, kp, vp, biasp, maskp, bq, bk, lk)[:, :lq]

@@ -1,0 +1,40 @@
+"""``llrmpp doctor``: passes on this machine, and fails naming a check that is broken."""
+
+import pytest
+
+from llrmpp_jax import doctor
+from llrmpp_jax.cli import main
+from llrmpp_jax.nn import blockwise_attention as BA
+
+
+@pytest.mark.slow
+def test_doctor_passes_here(capsys):
+    """Every check within its tolerance on this CPU (about 25 s of CPU time incl. compile)."""
+    assert main(["doctor"]) == 0
+    out = capsys.readouterr().out
+    assert "backend: cpu" in out and "default matmul precision" in out
+    for name in doctor.CHECKS:
+        assert any(line.startswith("ok") and f" {name} " in line for line in out.splitlines()), name
+    assert "all checks passed" in out
+
+
+def test_doctor_fails_naming_the_broken_check(monkeypatch, capsys):
+    """A blockwise kernel that is off by 1e-3 (a TF32-sized error) fails the attention check
+    and only it; the slow splat and model checks are left out to keep the test short."""
+    real = BA.blockwise_attention
+    monkeypatch.setattr(BA, "blockwise_attention", lambda *a, **kw: real(*a, **kw) * 1.001)
+    monkeypatch.setattr(doctor, "CHECKS", {n: doctor.CHECKS[n] for n in ("scan", "attention")})
+    assert main(["doctor"]) == 1
+    lines = capsys.readouterr().out.splitlines()
+    assert [ln.split()[:2] for ln in lines if ln.startswith(("ok", "FAIL"))] == [["ok", "scan"], ["FAIL", "attention"]]
+    assert lines[-1] == "doctor: FAILED: attention"
+
+
+def test_doctor_reports_a_crashing_check(monkeypatch, capsys):
+    def broken() -> float:
+        raise RuntimeError("kernel exploded")
+
+    monkeypatch.setattr(doctor, "CHECKS", {"scan": (broken, 1e-4)})
+    assert main(["doctor"]) == 1
+    out = capsys.readouterr().out
+    assert "scan: raised RuntimeError: kernel exploded" in out and "FAIL scan" in out
