@@ -125,7 +125,7 @@ def _reconstruct(args):
     ins, tgs = select_views(scene, args.num_inputs, inputs)
     params, cfg = _load_params(args.checkpoint, args.config)
     _, _, _, out_hw = view_size(scene, int(ins[0]), size, cfg.size_multiple, args.square_crop)
-    print("\n".join(camera_report(scene, ins, tgs, out_hw, notes).lines()), flush=True)
+    print("\n".join(camera_report(scene, ins, tgs, out_hw, notes, not args.no_normalize).lines()), flush=True)
     rec = reconstruct_scene(params, cfg, scene, ins, tgs, size, square_crop=args.square_crop,
                             normalize=not args.no_normalize, repeats=args.repeats,
                             scene_path=os.path.abspath(args.scene), scene_format=kind)
@@ -151,7 +151,9 @@ def cmd_render(args) -> int:
     import numpy as np
 
     from llrmpp_jax.capture import load_gs, path_cameras, render_views
+    from llrmpp_jax.capture.render import target_photos, view_metrics, write_video
     from llrmpp_jax.data.image_io import write_depth, write_image
+    from llrmpp_jax.metrics import load_lpips_params
 
     if args.gaussians:
         saved = load_gs(args.gaussians)
@@ -179,23 +181,33 @@ def cmd_render(args) -> int:
             write_depth(os.path.join(args.out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
     print(f"wrote {len(names)} {args.path} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
     if args.path == "targets":
-        from llrmpp_jax.capture.render import target_photos
-        from llrmpp_jax.evaluate import image_metrics
-        from llrmpp_jax.metrics import load_lpips_params
-
-        photos = target_photos(saved, idx)
-        per_view = [{"frame": n, **image_metrics(views.rgb[i:i + 1], photos[i:i + 1], load_lpips_params())}
-                    for i, n in enumerate(names)]
+        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, target_photos(saved, idx),
+                                                                            load_lpips_params()))]
         mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
         with open(os.path.join(args.out, "metrics.json"), "w") as f:
             json.dump({"mean": mean, "per_view": per_view}, f, indent=1)
         print(f"held-out targets ({len(names)}): PSNR {mean['psnr']:.2f}  SSIM {mean['ssim']:.4f}  "
               f"LPIPS {mean['lpips']:.4f}")
     if args.video:
-        from llrmpp_jax.capture.render import write_video
-
         write_video(args.video, views.rgb, args.fps)
         print(f"wrote {args.video} ({len(names)} frames at {args.fps:g} fps)")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from llrmpp_jax.capture import load_gs
+    from llrmpp_jax.export_ply import export_ply
+    from llrmpp_jax.model import partition_logits
+
+    saved = load_gs(args.gaussians)
+    logits = None
+    if saved.model.head.mode == "feature":
+        if not args.checkpoint:
+            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (for the partition logits)")
+        params, _ = _load_params(args.checkpoint, args.config)
+        logits = partition_logits(params, saved.model, saved.gaussians)
+    n = export_ply(args.ply, saved.gaussians, saved.model, saved.world_from_scene, logits)
+    print(f"wrote {n:,} {saved.model.head.mode}-mode Gaussians in the capture's world frame to {args.ply}")
     return 0
 
 
@@ -307,6 +319,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", action="store_true", help="no progress bar")
     r.add_argument("--out", required=True, help="folder for the frames")
     r.set_defaults(fn=cmd_render)
+
+    x = sub.add_parser("export", help="a .gs file -> PLY (standard 3DGS layout in colour mode) in the world frame")
+    x.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct or refine")
+    x.add_argument("--ply", required=True, help="the PLY file to write")
+    x.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
+    x.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+    x.set_defaults(fn=cmd_export)
 
     c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) -> verified params folder")
     c.add_argument("--checkpoint", required=True, help="official .pt/.pth or a .npz of the state_dict")

@@ -102,8 +102,9 @@ def _short(name: str) -> str:
 
 
 def camera_report(scene: Scene, inputs: np.ndarray, targets: np.ndarray, view_hw: tuple[int, int],
-                  missing: tuple[str, ...] = ()) -> CameraReport:
-    """The camera sanity report of ``scene`` with the chosen views (host-side, no compile)."""
+                  missing: tuple[str, ...] = (), normalize: bool = True) -> CameraReport:
+    """The camera sanity report of ``scene`` with the chosen views (host-side, no compile);
+    ``normalize=False``: the capture's frame is kept (scale 1)."""
     sizes: dict[str, int] = {}
     for h, w in scene.hw.tolist():
         sizes[f"{w}x{h}"] = sizes.get(f"{w}x{h}", 0) + 1
@@ -115,7 +116,7 @@ def camera_report(scene: Scene, inputs: np.ndarray, targets: np.ndarray, view_hw
     k = scene.intrinsics
     spread = {name: (float(k[:, i].min()), float(k[:, i].max())) for i, name in enumerate(("fx", "fy", "cx", "cy"))}
     pos = scene.c2w[inputs, :3, 3]
-    *_, scale = normalize_scene(scene.c2w[inputs])
+    scale = normalize_scene(scene.c2w[inputs])[-1] if normalize else 1.0
     return CameraReport(
         scene=scene.name, num_frames=len(scene), missing=tuple(missing), image_sizes=sizes, distortion=lens,
         intrinsics_spread=spread, extent=float((pos.max(0) - pos.min(0)).max()), scale=float(scale),

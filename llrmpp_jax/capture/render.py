@@ -171,3 +171,15 @@ def target_photos(saved: SavedScene, frames: np.ndarray) -> Float[np.ndarray, "T
         raise ValueError(f"{saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
                          f"({len(saved.frame_names)}); reconstruct again")
     return load_views(scene, frames, saved.resized_hw, saved.crop_box, saved.image_hw, False)[0]
+
+
+def view_metrics(rgb: Float[np.ndarray, "T H W 3"], photos: Float[np.ndarray, "T H W 3"],
+                 lpips_params: dict | None) -> list[dict[str, float]]:
+    """Per view ``{"psnr", "ssim"[, "lpips"]}`` of renders against photos (all views at once)."""
+    from llrmpp_jax.metrics import lpips, psnr, ssim
+
+    p, t = jnp.asarray(rgb, jnp.float32), jnp.asarray(photos, jnp.float32)
+    cols = {"psnr": psnr(p, t), "ssim": ssim(p, t)}
+    if lpips_params is not None:
+        cols["lpips"] = lpips(lpips_params, p, t)
+    return [{k: float(v[i]) for k, v in cols.items()} for i in range(rgb.shape[0])]
