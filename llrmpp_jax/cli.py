@@ -151,7 +151,7 @@ def cmd_render(args) -> int:
     import numpy as np
 
     from llrmpp_jax.capture import load_gs, path_cameras, render_views
-    from llrmpp_jax.capture.render import target_photos, view_metrics, write_video
+    from llrmpp_jax.capture.render import frame_photos, view_metrics, write_video
     from llrmpp_jax.data.image_io import write_depth, write_image
     from llrmpp_jax.metrics import load_lpips_params
 
@@ -181,7 +181,7 @@ def cmd_render(args) -> int:
             write_depth(os.path.join(args.out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
     print(f"wrote {len(names)} {args.path} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
     if args.path == "targets":
-        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, target_photos(saved, idx),
+        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, frame_photos(saved, idx),
                                                                             load_lpips_params()))]
         mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
         with open(os.path.join(args.out, "metrics.json"), "w") as f:
@@ -208,6 +208,37 @@ def cmd_export(args) -> int:
         logits = partition_logits(params, saved.model, saved.gaussians)
     n = export_ply(args.ply, saved.gaussians, saved.model, saved.world_from_scene, logits)
     print(f"wrote {n:,} {saved.model.head.mode}-mode Gaussians in the capture's world frame to {args.ply}")
+    return 0
+
+
+def cmd_refine(args) -> int:
+    import dataclasses
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    from llrmpp_jax.capture import load_gs, save_gs
+    from llrmpp_jax.capture.render import frame_photos
+    from llrmpp_jax.gaussians import Gaussians
+    from llrmpp_jax.params_io import check_params_fit
+    from llrmpp_jax.refine import heldout_psnr, refine
+
+    saved = load_gs(args.gaussians)
+    cfg = saved.model
+    params, _ = _load_params(args.checkpoint, args.config)
+    check_params_fit(params, cfg, args.checkpoint)
+    if len(saved.targets) == 0:
+        raise UserError(f"{args.gaussians}: no held-out targets to measure the refinement on")
+    views = {}
+    for what, idx in (("inputs", saved.inputs), ("targets", saved.targets)):
+        views[what] = (jnp.asarray(frame_photos(saved, idx, args.scene)[None]),
+                       jnp.asarray(saved.c2w[idx][None], jnp.float32), jnp.asarray(saved.intrinsics[idx][None], jnp.float32))
+    g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
+    print(f"PSNR before {heldout_psnr(params, cfg, g, *views['targets']):.2f}", flush=True)
+    g, info = refine(params, cfg, g, *views["inputs"], steps=args.steps, progress=not args.quiet)
+    print(f"PSNR after {heldout_psnr(params, cfg, g, *views['targets']):.2f}")
+    save_gs(args.out, dataclasses.replace(saved, gaussians=Gaussians(*(np.asarray(x[0]) for x in g))))
+    print(f"{info.steps} steps, input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f}; wrote {args.out}")
     return 0
 
 
@@ -326,6 +357,16 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
     x.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
     x.set_defaults(fn=cmd_export)
+
+    f = sub.add_parser("refine", help="optimise a .gs file's Gaussians against its input views (optimistix)")
+    f.add_argument("--checkpoint", required=True, help="the model (a training workdir or a params folder)")
+    f.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+    f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
+    f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
+    f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
+    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.add_argument("--out", required=True, help="the refined .gs file to write")
+    f.set_defaults(fn=cmd_refine)
 
     c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) -> verified params folder")
     c.add_argument("--checkpoint", required=True, help="official .pt/.pth or a .npz of the state_dict")

@@ -156,9 +156,10 @@ def write_video(path: str, frames: Float[np.ndarray, "N H W 3"], fps: float) -> 
     writer.close()
 
 
-def target_photos(saved: SavedScene, frames: np.ndarray) -> Float[np.ndarray, "T H W 3"]:
+def frame_photos(saved: SavedScene, frames: np.ndarray, scene_path: str | None = None) -> Float[np.ndarray, "T H W 3"]:
     """The capture's photos of ``frames``, brought to the view size exactly as the inputs
-    were (re-read from ``saved.scene_path``; ``ValueError`` if its frames changed)."""
+    were, re-read from ``scene_path`` (default ``saved.scene_path``); ``ValueError`` if
+    its frames are not those reconstructed."""
     import warnings
 
     from llrmpp_jax.data.formats import read_scene
@@ -166,9 +167,9 @@ def target_photos(saved: SavedScene, frames: np.ndarray) -> Float[np.ndarray, "T
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # dropped frames were reported at reconstruction
-        scene = read_scene(saved.scene_path, saved.scene_format)
+        scene = read_scene(scene_path or saved.scene_path, saved.scene_format)
     if scene.frame_names != saved.frame_names:
-        raise ValueError(f"{saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
+        raise ValueError(f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
                          f"({len(saved.frame_names)}); reconstruct again")
     return load_views(scene, frames, saved.resized_hw, saved.crop_box, saved.image_hw, False)[0]
 
