@@ -168,7 +168,8 @@ def frame_photos(saved: SavedScene, frames: np.ndarray, scene_path: str | None =
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # dropped frames were reported at reconstruction
         scene = read_scene(scene_path or saved.scene_path, saved.scene_format)
-    if scene.frame_names != saved.frame_names:
+    base = lambda names: [os.path.basename(n) for n in names]  # noqa: E731  the folder may have moved
+    if base(scene.frame_names) != base(saved.frame_names):
         raise ValueError(f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
                          f"({len(saved.frame_names)}); reconstruct again")
     return load_views(scene, frames, saved.resized_hw, saved.crop_box, saved.image_hw, False)[0]
