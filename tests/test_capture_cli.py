@@ -4,6 +4,7 @@ and every bad input as one line with exit status 2."""
 
 import json
 import os
+import re
 
 import imageio_ffmpeg
 import jax.numpy as jnp
@@ -79,7 +80,8 @@ def test_golden_through_the_cli(golden, tmp_path):
 @pytest.mark.parametrize("capture", [FOX, BEER], ids=["fox_nerfstudio", "beer_colmap"])
 def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     """reconstruct -> render targets (metrics, frames named after the photos) -> spline
-    video (decodes to --frames frames) + depth EXR -> export PLY (standard 3DGS fields)."""
+    video (decodes to --frames frames) + depth EXR -> export PLY (standard 3DGS fields) ->
+    refine (prints held-out PSNR before/after; the input-view loss falls)."""
     params_dir, _ = golden
     gs = str(tmp_path / "s.gs")
     assert main(["reconstruct", "--checkpoint", params_dir, "--scene", capture, "--num-inputs", "4",
@@ -114,6 +116,16 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     import plyfile
 
     assert list(plyfile.PlyData.read(ply)["vertex"].data.dtype.names) == standard_fields(3)
+
+    capsys.readouterr()
+    refined = str(tmp_path / "r.gs")
+    assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--scene", capture, "--steps", "3",
+                 "--quiet", "--out", refined]) == 0
+    out = capsys.readouterr().out
+    before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))
+    loss0, loss1 = (float(v) for v in re.search(r"input-view loss (\S+) -> (\S+);", out).groups())
+    assert np.isfinite([before, after]).all() and loss1 < loss0  # 3 steps lower the loss on the inputs
+    assert load_gs(refined).gaussians.means.shape == saved.gaussians.means.shape
 
 
 def _tiny_scene(tmp_path, n=6, h=32, w=48):
