@@ -46,10 +46,11 @@ def golden(tmp_path_factory):
     return str(out), str(exp)
 
 
+@pytest.mark.slow
 def test_golden_through_the_cli(golden, tmp_path):
     """convert -> reconstruct (golden inputs, capture frame kept) equals the official
     Gaussians to 1e-4 relative (float32); render --gaussians equals model.render called
-    directly, to the 8-bit PNG's rounding (0.5/255)."""
+    directly, to the 8-bit PNG's rounding (0.5/255); render --scene gives the same PNGs."""
     params_dir, _ = golden
     inp = np.load(os.path.join(GOLDEN, "inputs.npz"))
     out = np.load(os.path.join(GOLDEN, "outputs.npz"))
@@ -74,6 +75,13 @@ def test_golden_through_the_cli(golden, tmp_path):
     for i, name in enumerate(("frame_00000", "frame_00001")):
         got = read_image(str(tmp_path / "f" / f"{name}.png"))
         assert np.max(np.abs(got - np.clip(np.asarray(want[i]), 0, 1))) <= 0.5 / 255 + 1e-6
+    # straight from the capture: the same frames
+    assert main(["render", "--scene", str(tmp_path / "scene"), "--checkpoint", params_dir, "--inputs", "0,1",
+                 "--size", "32x48", "--no-normalize", "--repeats", "1", "--path", "inputs", "--quiet",
+                 "--out", str(tmp_path / "direct")]) == 0
+    for name in ("frame_00000", "frame_00001"):
+        np.testing.assert_array_equal(read_image(str(tmp_path / "direct" / f"{name}.png")),
+                                      read_image(str(tmp_path / "f" / f"{name}.png")))
 
 
 @pytest.mark.slow
