@@ -1,0 +1,327 @@
+"""The live viewer: a viser web page whose view is rendered by our model.
+
+The browser does the orbit / pan / zoom (viser's camera controls) and reports its camera;
+the server renders that camera with :class:`~llrmpp_jax.viewer.render.ViewRenderer` and
+sends the image back as the page's background. The input cameras are drawn as frustums
+(with their thumbnails), the Gaussian centres as a point cloud; the panel chooses RGB or
+depth, the render height while the camera moves and once it stops, the partition count S,
+and shows the time per frame.
+
+Responsiveness: each browser tab has one render worker thread (rendering never runs on
+viser's event loop). Camera messages only overwrite the tab's pending request, so a
+worker that falls behind skips straight to the latest camera. While the camera moves the
+worker renders at the "moving" height; once the camera has been still for
+``still_seconds`` it renders the same camera at full height. Each (size, output, S) is
+compiled once (cached by the renderer); while a first compile runs the page shows a
+progress notification.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import socket
+import sys
+import threading
+import time
+from typing import NamedTuple
+
+import numpy as np
+import viser
+import viser.transforms as vtf
+
+from llrmpp_jax.viewer.render import OUTPUTS, Frame, ViewKey, ViewRenderer, display_image, viewport_camera
+from llrmpp_jax.viewer.scene import ViewerScene, gaussian_centres
+
+
+class PortInUseError(OSError):
+    """The requested port is taken; the message names it and a free one to use instead."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewerSettings:
+    """Initial state of the panel (all but the point budget can be changed in the page)."""
+
+    height: int = 256  # render height (px) once the camera is still
+    moving_height: int = 128  # render height while the camera moves
+    still_seconds: float = 0.25  # camera unchanged this long -> full-height render
+    output: str = "rgb"
+    partitions: int | None = None  # None: the model's S
+    show_points: bool = True
+    show_cameras: bool = True
+    max_points: int = 100_000
+    image_format: str = "png"  # how frames travel to the page: "png" (lossless) or "jpeg" (smaller)
+
+
+class ViewRequest(NamedTuple):
+    """A browser camera: OpenCV c2w, vertical field of view (radians), width / height."""
+
+    c2w: np.ndarray
+    fov_y: float
+    aspect: float
+    moving: bool
+
+
+def check_port(host: str, port: int) -> None:
+    """:class:`PortInUseError` if ``port`` cannot be bound on ``host`` (0 = any free port)."""
+    if port == 0:
+        return
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind((host, port))
+    except OSError as e:
+        if e.errno != errno.EADDRINUSE:
+            raise
+        free = next((p for p in range(port + 1, min(port + 100, 65536)) if _port_free(host, p)), None)
+        hint = f"; try --port {free}" if free else ""
+        raise PortInUseError(f"port {port} on {host} is already in use{hint}") from None
+
+
+def _port_free(host: str, port: int) -> bool:
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind((host, port))
+        return True
+    except OSError:
+        return False
+
+
+def camera_c2w(wxyz: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """viser camera (``P_world = R p_camera + t``, OpenCV axes) -> c2w ``[4, 4]`` float32."""
+    c2w = np.eye(4, dtype=np.float32)
+    c2w[:3, :3] = vtf.SO3(np.asarray(wxyz, np.float64)).as_matrix()
+    c2w[:3, 3] = position
+    return c2w
+
+
+def _request(camera: viser.CameraHandle, moving: bool) -> ViewRequest:
+    return ViewRequest(camera_c2w(camera.wxyz, camera.position), float(camera.fov), float(camera.aspect), moving)
+
+
+class _Session:
+    """One browser tab: its pending request and its render worker."""
+
+    def __init__(self, viewer: Viewer, client: viser.ClientHandle):
+        self.viewer, self.client = viewer, client
+        self._cond = threading.Condition()
+        self._pending: ViewRequest | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"llrmpp-view-{client.client_id}", daemon=True)
+        self._thread.start()
+
+    def request(self, req: ViewRequest) -> None:
+        """Replace the pending request (an older one not yet started is dropped)."""
+        with self._cond:
+            self._pending = req
+            self._cond.notify()
+
+    def close(self, wait: bool = False) -> None:
+        """Stop the worker after its current render (``wait``: until it has stopped)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        if wait:
+            self._thread.join()
+
+    def _run(self) -> None:
+        last: ViewRequest | None = None  # the last camera, if only rendered at the moving height
+        while True:
+            with self._cond:
+                if self._pending is None and not self._closed:
+                    self._cond.wait(timeout=self.viewer.settings.still_seconds if last else None)
+                if self._closed:
+                    return
+                req, self._pending = self._pending, None
+            if req is None:  # still for still_seconds after a moving render: full height
+                req, last = last._replace(moving=False), None
+            elif req.moving and self.viewer._moving.value != self.viewer._height.value:
+                last = req
+            try:
+                self.viewer._render_for(self.client, req)
+            except Exception as e:  # keep the worker alive; say what went wrong in the page and on stderr
+                self.viewer._report(f"render failed: {type(e).__name__}: {e}")
+                print(f"llrmpp view: render failed: {e!r}", file=sys.stderr)
+
+
+class Viewer:
+    """Serve ``scene`` rendered by ``renderer`` on ``http://host:port`` (viser).
+
+    Starts serving on construction; :meth:`stop` shuts it down. ``port=0`` picks a free
+    port (see :attr:`port`). A taken port raises :class:`PortInUseError` before anything
+    starts.
+    """
+
+    def __init__(self, renderer: ViewRenderer, scene: ViewerScene, *, host: str = "0.0.0.0", port: int = 8080,
+                 settings: ViewerSettings = ViewerSettings()):
+        cfg = renderer.cfg
+        m = cfg.size_multiple
+        if settings.height % m or settings.moving_height % m:
+            raise ValueError(f"viewer heights must be multiples of {m}, got {settings.height} and "
+                             f"{settings.moving_height}")
+        check_port(host, port)
+        self.renderer, self.scene, self.settings = renderer, scene, settings
+        self._lock = threading.Lock()
+        self._last: Frame | None = None  # the latest frame sent to any tab
+        self._frame_count = 0
+        self._frame_cond = threading.Condition(self._lock)
+        self._sessions: dict[int, _Session] = {}
+        self.server = viser.ViserServer(host=host, port=port, label="llrmpp view", verbose=False)
+        if port and self.server.get_port() != port:  # taken between our check and viser's bind
+            self.server.stop()
+            raise PortInUseError(f"port {port} on {host} is already in use; try --port {self.server.get_port() + 1}")
+        self._add_scene()
+        self._add_gui()
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    # -- scene --------------------------------------------------------------------------
+    def _add_scene(self) -> None:
+        sc, s = self.scene, self.settings
+        centres = sc.input_c2w[:, :3, 3]
+        extent = float(np.linalg.norm(centres.max(axis=0) - centres.min(axis=0))) or 1.0
+        up = -sc.input_c2w[:, :3, 1].mean(axis=0)  # mean of the inputs' up (-y) axes
+        self.server.scene.set_up_direction(up / max(np.linalg.norm(up), 1e-12))
+        h, w = sc.input_hw
+        self._frustums = []
+        for i, (c2w, k) in enumerate(zip(sc.input_c2w, sc.input_intrinsics)):
+            self._frustums.append(self.server.scene.add_camera_frustum(
+                f"/inputs/{i}", fov=float(2.0 * np.arctan(h / (2.0 * k[1]))), aspect=w / h, scale=0.08 * extent,
+                wxyz=vtf.SO3.from_matrix(c2w[:3, :3].astype(np.float64)).wxyz, position=c2w[:3, 3],
+                image=None if sc.thumbnails is None else sc.thumbnails[i], visible=s.show_cameras,
+                color=(200, 60, 40)))
+        points, colours = gaussian_centres(self.renderer.cfg, sc.gaussians, s.max_points, np.random.default_rng(0))
+        self._points = self.server.scene.add_point_cloud(
+            "/gaussians", points, colours, point_size=0.004 * extent, point_shape="rounded", visible=s.show_points)
+        # New tabs open at the first input camera.
+        c2w, k = sc.input_c2w[0], sc.input_intrinsics[0]
+        cam = self.server.initial_camera
+        cam.fov = float(2.0 * np.arctan(h / (2.0 * k[1])))
+        cam.position = c2w[:3, 3]
+        cam.look_at = c2w[:3, 3] + c2w[:3, 2] * extent
+        cam.up = -c2w[:3, 1]
+
+    # -- panel --------------------------------------------------------------------------
+    def _add_gui(self) -> None:
+        gui, s, m = self.server.gui, self.settings, self.renderer.cfg.size_multiple
+        top = max(1024, s.height)
+        self._output = gui.add_dropdown("view", OUTPUTS, initial_value=s.output)
+        self._height = gui.add_slider("height (still)", min=m, max=top, step=m, initial_value=s.height)
+        self._moving = gui.add_slider("height (moving)", min=m, max=top, step=m, initial_value=s.moving_height)
+        most = self.renderer.max_partitions
+        self._partitions = gui.add_slider("partitions S", min=1, max=max(most, 2), step=1,
+                                          initial_value=most if s.partitions is None else s.partitions,
+                                          disabled=most == 1)
+        show_points = gui.add_checkbox("Gaussian centres", initial_value=s.show_points)
+        show_cameras = gui.add_checkbox("input cameras", initial_value=s.show_cameras)
+        self._readout = gui.add_markdown("waiting for the browser's camera...")
+
+        @show_points.on_update
+        def _(_) -> None:
+            self._points.visible = show_points.value
+
+        @show_cameras.on_update
+        def _(_) -> None:
+            for f in self._frustums:
+                f.visible = show_cameras.value
+
+        for handle in (self._output, self._height, self._partitions):
+            handle.on_update(lambda _: self._rerender_all())
+
+    def _rerender_all(self) -> None:
+        for client in self.server.get_clients().values():
+            if client.client_id in self._sessions:
+                self._sessions[client.client_id].request(_request(client.camera, moving=False))
+
+    def _report(self, text: str) -> None:
+        self._readout.content = text
+
+    # -- clients ------------------------------------------------------------------------
+    def _connect(self, client: viser.ClientHandle) -> None:
+        session = _Session(self, client)
+        self._sessions[client.client_id] = session
+        client.camera.on_update(lambda cam: session.request(_request(cam, moving=True)))
+        session.request(_request(client.camera, moving=False))
+
+    def _disconnect(self, client: viser.ClientHandle) -> None:
+        session = self._sessions.pop(client.client_id, None)
+        if session is not None:
+            session.close()
+
+    def _render_for(self, client: viser.ClientHandle, req: ViewRequest) -> None:
+        """Render ``req`` with the panel's current settings and show it in ``client``'s page."""
+        height = int(self._moving.value if req.moving else self._height.value)
+        output, partitions = str(self._output.value), int(self._partitions.value)
+        partitions = min(partitions, self.renderer.max_partitions)
+        height, width, intrinsics = viewport_camera(req.fov_y, req.aspect, height, self.renderer.cfg.size_multiple)
+        key = ViewKey(height, width, output, partitions)
+        if not self.renderer.is_compiled(key):
+            what = f"{width}x{height} {output}, S={partitions}"
+            self._report(f"compiling the renderer for {what} (once per size)...")
+            note = client.add_notification("Compiling", f"first view at {what}; later views reuse it", loading=True,
+                                           with_close_button=False)
+            try:
+                compile_s = self.renderer.compile(key)
+            finally:
+                note.remove()
+        else:
+            compile_s = 0.0
+        frame = self.renderer.render(key, req.c2w, intrinsics)
+        frame = dataclasses.replace(frame, compile_s=compile_s)
+        client.scene.set_background_image(display_image(frame.image, output), format=self.settings.image_format)
+        compiled = f" (compiled in {compile_s:.1f} s)" if compile_s else ""
+        self._report(f"**{1e3 * frame.render_s:.0f} ms** per frame at {width}x{height} {output}, "
+                     f"S={partitions}{' (moving)' if req.moving else ''}{compiled}")
+        with self._frame_cond:
+            self._last = frame
+            self._frame_count += 1
+            self._frame_cond.notify_all()
+
+    # -- control from Python ------------------------------------------------------------
+    @property
+    def frame_count(self) -> int:
+        """Frames rendered and sent so far (all tabs)."""
+        with self._lock:
+            return self._frame_count
+
+    def wait_for_frame(self, after: int, timeout: float) -> Frame:
+        """Block until more than ``after`` frames have been sent; the latest one
+        (``TimeoutError`` after ``timeout`` seconds)."""
+        with self._frame_cond:
+            if not self._frame_cond.wait_for(lambda: self._frame_count > after, timeout=timeout):
+                raise TimeoutError(f"no frame after frame {after} within {timeout} s")
+            return self._last
+
+    def set_camera(self, c2w: np.ndarray, fov_y: float | None = None) -> None:
+        """Move every open tab's camera to the OpenCV ``c2w [4, 4]`` (and vertical field
+        of view, radians) and render it at full height."""
+        c2w = np.asarray(c2w, np.float64)
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                cam = client.camera
+                look = float(np.linalg.norm(cam.look_at - cam.position)) or 1.0
+                if fov_y is not None:
+                    cam.fov = fov_y
+                cam.position = c2w[:3, 3]
+                cam.look_at = c2w[:3, 3] + c2w[:3, 2] * look
+                cam.up_direction = -c2w[:3, 1]
+            session = self._sessions.get(client.client_id)
+            if session is not None:
+                session.request(_request(cam, moving=False))
+
+    def serve_forever(self) -> None:
+        """Block until Ctrl-C, then stop."""
+        try:
+            while True:
+                time.sleep(3600.0)
+        finally:
+            self.stop()
+
+    def stop(self) -> None:
+        self.server.stop()
+        for session in list(self._sessions.values()):
+            session.close(wait=True)
+        self._sessions.clear()
