@@ -26,41 +26,22 @@ def _experiment(path: str):
     return load_experiment(path)
 
 
-def _params_from_checkpoint(exp, checkpoint: str):
-    """Latest verified parameters of the last stage found under ``checkpoint`` (a workdir,
-    its ``checkpoints`` folder, or one stage's folder)."""
-    import jax
+def _load_params(checkpoint: str, config: str | None):
+    """``(params, model config)`` from a training workdir or a params folder (detected);
+    ``config`` (an experiment file) is needed only for a bare params folder."""
+    from llrmpp_jax.params_io import load_params
 
-    from llrmpp_jax import train as T
-    from llrmpp_jax.model import init_params
-
-    candidates = [checkpoint, os.path.join(checkpoint, "checkpoints")]
-    for base in candidates:
-        for stage in reversed(exp.stages):
-            d = os.path.join(base, stage.name)
-            if os.path.isdir(d):
-                checkpoint = d
-                break
-        else:
-            continue
-        break
     if not os.path.isdir(checkpoint):
         raise UserError(f"checkpoint folder not found: {checkpoint}")
-    stage = exp.stages[-1]
-    h, w = stage.resize_h, stage.resize_w or stage.resize_h
-    params = jax.eval_shape(lambda k: init_params(k, exp.model, stage.num_inputs, h, w), jax.random.key(0))
-    opt = T.make_optimizer(T.OptimizerConfig(total_steps=max(stage.steps, 1), warmup_steps=0))
-    template = jax.eval_shape(lambda p: T.init_train_state(p, opt, jax.random.key(0)), params)
-    restored = T.restore_checkpoint(os.path.abspath(checkpoint), template)
-    if restored is None:
-        raise UserError(f"no checkpoint in {checkpoint}")
-    return restored.state.params
+    return load_params(checkpoint, _experiment(config).model if config else None)
 
 
 def cmd_train(args) -> int:
     from llrmpp_jax.trainer import train
 
     exp = _experiment(args.config)
+    if args.data:
+        exp = _with_data(exp, args.data, args.format, exp.data.num_eval_scenes)
     if args.distributed:
         import jax
 
@@ -69,14 +50,25 @@ def cmd_train(args) -> int:
     return 0
 
 
-def _load_scene(kind: str, path: str):
-    from llrmpp_jax.trainer import READERS
+def _with_data(exp, path: str, kind: str, max_scenes: int):
+    """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``)."""
+    from llrmpp_jax.experiment import replace
 
-    if kind not in READERS:
-        raise UserError(f"--format must be one of {sorted(READERS)}, got {kind!r}")
     if not os.path.exists(path):
-        raise UserError(f"scene not found: {path}")
-    return READERS[kind](path)
+        raise UserError(f"dataset path does not exist: {path}")
+    return replace(exp, data=replace(exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes))
+
+
+def _read_capture(path: str, kind: str):
+    """``(scene, notes)``: the scene at ``path``, and the reader's warnings (dropped frames)."""
+    import warnings
+
+    from llrmpp_jax.data.formats import read_scene
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = read_scene(path, kind)
+    return scene, tuple(str(w.message) for w in caught)
 
 
 def cmd_eval(args) -> int:
@@ -87,13 +79,12 @@ def cmd_eval(args) -> int:
 
     exp = _experiment(args.config)
     if args.data:
-        if not os.path.exists(args.data):
-            raise UserError(f"dataset path does not exist: {args.data}")
-        exp = E.replace(exp, data=E.replace(exp.data, kind=args.format, path=args.data, eval_path=args.data,
-                                            num_eval_scenes=args.max_scenes))
-    params = _params_from_checkpoint(exp, args.checkpoint)
-    samples, names = eval_samples(exp, exp.stages[-1])
-    rows, summary, _ = evaluate(params, exp.model, samples, load_lpips_params(), names)
+        exp = _with_data(exp, args.data, args.format, args.max_scenes)
+    if args.num_inputs:
+        exp = E.replace(exp, stages=(*exp.stages[:-1], E.replace(exp.stages[-1], num_inputs=args.num_inputs)))
+    params, cfg = _load_params(args.checkpoint, args.config)
+    samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
+    rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "per_scene.csv"), "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -105,52 +96,162 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _parse_size(text: str) -> tuple[int, int | None]:
+    try:
+        parts = [int(v) for v in text.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) not in (1, 2):
+        raise UserError(f"--size must be H or HxW (e.g. 256 or 256x448), got {text!r}")
+    return parts[0], (parts[1] if len(parts) == 2 else None)
+
+
+def _reconstruct(args):
+    """Read, check and report the capture, then reconstruct it (shared by ``reconstruct``
+    and ``render --scene``); every check runs before the model compiles."""
+    from llrmpp_jax.capture import camera_report, reconstruct_scene, select_views
+    from llrmpp_jax.capture.reconstruct import view_size
+    from llrmpp_jax.data.formats import detect_format
+
+    size = _parse_size(args.size)
+    inputs = None
+    if args.inputs:
+        try:
+            inputs = [int(v) for v in args.inputs.split(",")]
+        except ValueError:
+            raise UserError(f"--inputs must be comma-separated frame indices, got {args.inputs!r}") from None
+    kind = detect_format(args.scene) if args.format == "auto" else args.format
+    scene, notes = _read_capture(args.scene, kind)
+    ins, tgs = select_views(scene, args.num_inputs, inputs)
+    params, cfg = _load_params(args.checkpoint, args.config)
+    _, _, _, out_hw = view_size(scene, int(ins[0]), size, cfg.size_multiple, args.square_crop)
+    print("\n".join(camera_report(scene, ins, tgs, out_hw, notes, not args.no_normalize).lines()), flush=True)
+    rec = reconstruct_scene(params, cfg, scene, ins, tgs, size, square_crop=args.square_crop,
+                            normalize=not args.no_normalize, repeats=args.repeats,
+                            scene_path=os.path.abspath(args.scene), scene_format=kind)
+    print(f"reconstruct: compile {rec.compile_s:.2f} s, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
+          f"synced runs), {rec.saved.gaussians.means.shape[0]:,} Gaussians", flush=True)
+    return params, rec
+
+
+def cmd_reconstruct(args) -> int:
+    from llrmpp_jax.capture import save_gs
+
+    _, rec = _reconstruct(args)
+    save_gs(args.out, rec.saved)
+    if args.timing:
+        with open(args.timing, "w") as f:
+            json.dump({"compile_s": rec.compile_s, "run_s": rec.run_s, "runs_s": rec.runs_s,
+                       "view_hw": rec.saved.image_hw, "num_inputs": len(rec.saved.inputs)}, f, indent=1)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_render(args) -> int:
     import numpy as np
 
-    from llrmpp_jax.data import ViewGeometry, eval_views, make_sample
+    from llrmpp_jax.capture import load_gs, path_cameras, render_views
+    from llrmpp_jax.capture.render import frame_photos, view_metrics, write_video
     from llrmpp_jax.data.image_io import write_depth, write_image
-    from llrmpp_jax.evaluate import predict
-    from llrmpp_jax.experiment import replace
+    from llrmpp_jax.metrics import load_lpips_params
 
-    exp = _experiment(args.config)
-    scene = _load_scene(args.format, args.scene)
-    params = _params_from_checkpoint(exp, args.checkpoint)
-    stage = exp.stages[-1]
-    inputs, targets = eval_views(scene.c2w, stage.num_inputs)
-    geom = ViewGeometry(resize_h=stage.resize_h, resize_w=stage.resize_w, multiple=exp.model.size_multiple,
-                        square_crop=stage.square_crop)
-    outputs = ("rgb", "depth") if args.depth else ("rgb",)
-    if args.depth and "depth" not in exp.model.outputs:
-        raise UserError(f"--depth: the model of {args.config} has no depth head (outputs={exp.model.outputs})")
-    cfg = replace(exp.model, outputs=outputs)
-    sample = make_sample(scene, inputs, targets, geom)
-    out = predict(params, cfg, {k: v[None] for k, v in sample.items()})
+    if args.gaussians:
+        saved = load_gs(args.gaussians)
+        params = _load_params(args.checkpoint, args.config)[0] if args.checkpoint else {}
+        if saved.model.head.mode == "feature" and not args.checkpoint:
+            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (its decoder renders it)")
+        if args.checkpoint:
+            from llrmpp_jax.params_io import check_params_fit
+
+            check_params_fit(params, saved.model, args.checkpoint)
+    else:
+        if not args.checkpoint:
+            raise UserError("render --scene needs --checkpoint (the model that reconstructs it)")
+        params, rec = _reconstruct(args)
+        saved = rec.saved
+    c2w, intr, names, idx = path_cameras(saved, args.path, args.frames)
+    views = render_views(params, saved, c2w, intr, names, depth=args.depth, progress=not args.quiet)
     os.makedirs(args.out, exist_ok=True)
-    for i, t in enumerate(targets):
-        write_image(os.path.join(args.out, f"frame_{t:05d}.png"), np.clip(np.asarray(out["rgb"][0, i]), 0, 1))
+    what = {"llrmpp:depth": "camera z (OpenCV, along the optical axis) in the capture's world units; "
+                            "0 = no Gaussian along the ray",
+            "llrmpp:capture_units_per_scene_unit": f"{1.0 / saved.scene_scale:.9g}"}
+    for i, name in enumerate(views.names):
+        write_image(os.path.join(args.out, f"{name}.png"), views.rgb[i])
         if args.depth:
-            write_depth(os.path.join(args.out, f"depth_{t:05d}.exr"), np.asarray(out["depth"][0, i, ..., 0]), scale=None)
-    print(f"wrote {len(targets)} views of {scene.name} to {args.out}")
+            write_depth(os.path.join(args.out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
+    print(f"wrote {len(names)} {args.path} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
+    if args.path == "targets":
+        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, frame_photos(saved, idx),
+                                                                            load_lpips_params()))]
+        mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
+        with open(os.path.join(args.out, "metrics.json"), "w") as f:
+            json.dump({"mean": mean, "per_view": per_view}, f, indent=1)
+        print(f"held-out targets ({len(names)}): PSNR {mean['psnr']:.2f}  SSIM {mean['ssim']:.4f}  "
+              f"LPIPS {mean['lpips']:.4f}")
+    if args.video:
+        write_video(args.video, views.rgb, args.fps)
+        print(f"wrote {args.video} ({len(names)} frames at {args.fps:g} fps)")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from llrmpp_jax.capture import load_gs
+    from llrmpp_jax.export_ply import export_ply
+    from llrmpp_jax.model import partition_logits
+
+    saved = load_gs(args.gaussians)
+    logits = None
+    if saved.model.head.mode == "feature":
+        if not args.checkpoint:
+            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (for the partition logits)")
+        params, _ = _load_params(args.checkpoint, args.config)
+        logits = partition_logits(params, saved.model, saved.gaussians)
+    n = export_ply(args.ply, saved.gaussians, saved.model, saved.world_from_scene, logits)
+    print(f"wrote {n:,} {saved.model.head.mode}-mode Gaussians in the capture's world frame to {args.ply}")
+    return 0
+
+
+def cmd_refine(args) -> int:
+    import dataclasses
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    from llrmpp_jax.capture import load_gs, save_gs
+    from llrmpp_jax.capture.render import frame_photos
+    from llrmpp_jax.gaussians import Gaussians
+    from llrmpp_jax.params_io import check_params_fit
+    from llrmpp_jax.refine import heldout_psnr, refine
+
+    saved = load_gs(args.gaussians)
+    cfg = saved.model
+    params, _ = _load_params(args.checkpoint, args.config)
+    check_params_fit(params, cfg, args.checkpoint)
+    if len(saved.targets) == 0:
+        raise UserError(f"{args.gaussians}: no held-out targets to measure the refinement on")
+    views = {}
+    for what, idx in (("inputs", saved.inputs), ("targets", saved.targets)):
+        views[what] = (jnp.asarray(frame_photos(saved, idx, args.scene)[None]),
+                       jnp.asarray(saved.c2w[idx][None], jnp.float32), jnp.asarray(saved.intrinsics[idx][None], jnp.float32))
+    g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
+    print(f"PSNR before {heldout_psnr(params, cfg, g, *views['targets']):.2f}", flush=True)
+    g, info = refine(params, cfg, g, *views["inputs"], steps=args.steps, progress=not args.quiet)
+    print(f"PSNR after {heldout_psnr(params, cfg, g, *views['targets']):.2f}")
+    save_gs(args.out, dataclasses.replace(saved, gaussians=Gaussians(*(np.asarray(x[0]) for x in g))))
+    print(f"{info.steps} steps, input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f}; wrote {args.out}")
     return 0
 
 
 def cmd_convert(args) -> int:
-    import numpy as np
-    import orbax.checkpoint as ocp
-
-    from llrmpp_jax import config as C
-    from llrmpp_jax.convert.long_lrm import convert_long_lrm
-    from llrmpp_jax.convert.table import load_torch_state_dict
+    from llrmpp_jax.convert.long_lrm import convert_checkpoint
 
     if not os.path.exists(args.checkpoint):
         raise UserError(f"checkpoint file not found: {args.checkpoint}")
-    cfg = _experiment(args.config).model if args.config else C.long_lrm()
-    params = convert_long_lrm(load_torch_state_dict(args.checkpoint), cfg, source=args.checkpoint)
-    out = os.path.abspath(args.out)
-    ocp.StandardCheckpointer().save(out, params)
-    n = sum(int(np.prod(v.shape)) for v in __import__("jax").tree.leaves(params))
-    print(f"converted {n:,} parameters to {out}")
+    cfg = _experiment(args.config or os.path.join(EXPERIMENTS, "long_lrm.py")).model
+    count, unused = convert_checkpoint(args.checkpoint, args.out, cfg, allow_unused=args.allow_unused)
+    if unused:
+        print(f"ignored {len(unused)} key(s) outside the model: {', '.join(unused[:5])}" + (" ..." if len(unused) > 5 else ""))
+    print(f"converted {count:,} parameters to {os.path.abspath(args.out)} (written, read back and verified)")
     return 0
 
 
@@ -189,6 +290,9 @@ def cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from llrmpp_jax.capture.render import PATHS
+    from llrmpp_jax.data.formats import FORMATS
+
     p = argparse.ArgumentParser(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -198,30 +302,77 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
     t.add_argument("--shard-map", action="store_true", help="use jit + shard_map over a device mesh instead of pmap")
     t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
+    t.add_argument("--data", default=None, help="train on this capture folder or dataset root instead of the config's data")
+    t.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
     t.set_defaults(fn=cmd_train)
 
     e = sub.add_parser("eval", help="metrics table over held-out scenes, per-scene CSV")
-    e.add_argument("--config", required=True)
-    e.add_argument("--checkpoint", required=True, help="a train workdir or a checkpoint folder")
+    e.add_argument("--config", required=True, help="experiment file (its data, stages and model)")
+    e.add_argument("--checkpoint", required=True, help="a training workdir or a params folder (detected)")
     e.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
-    e.add_argument("--format", default="long_lrm", help="format of --data: long_lrm, nerfstudio, colmap, scannet, re10k")
-    e.add_argument("--max-scenes", type=int, default=1000)
-    e.add_argument("--out", required=True)
+    e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
+    e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
+    e.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
+    e.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
     e.set_defaults(fn=cmd_eval)
 
-    r = sub.add_parser("render", help="novel views of one scene (PNG; --depth adds EXR depth)")
-    r.add_argument("--config", required=True)
-    r.add_argument("--checkpoint", required=True)
-    r.add_argument("--scene", required=True, help="scene path (transforms.json folder, COLMAP folder, ...)")
-    r.add_argument("--format", default="nerfstudio")
-    r.add_argument("--depth", action="store_true")
-    r.add_argument("--out", required=True)
+    def capture_args(q, required: bool) -> None:
+        q.add_argument("--checkpoint", required=required, default=None,
+                       help="a training workdir or a params folder (detected)")
+        q.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+        q.add_argument("--format", default="auto", choices=FORMATS, help="format of --scene (default: detected)")
+        q.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
+        q.add_argument("--inputs", default=None, help="input frame indices instead, e.g. 0,5,9")
+        q.add_argument("--size", default="256",
+                       help="view size: H (width keeps the capture's aspect) or HxW; multiples of the model's patch")
+        q.add_argument("--square-crop", action="store_true", help="centre-crop the views to a square")
+        q.add_argument("--no-normalize", action="store_true", help="keep the capture's world frame (no Long-LRM normalisation)")
+        q.add_argument("--repeats", type=int, default=3, help="timed reconstruction runs (the median is reported)")
+
+    rc = sub.add_parser("reconstruct", help="capture -> Gaussians (.gs), with a camera report and timings")
+    rc.add_argument("--scene", required=True, help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)")
+    capture_args(rc, required=True)
+    rc.add_argument("--timing", default=None, help="also write the timings to this JSON file")
+    rc.add_argument("--out", required=True, help="the .gs file to write")
+    rc.set_defaults(fn=cmd_reconstruct)
+
+    r = sub.add_parser("render", help="frames (PNG), video (MP4) and depth (EXR) of a .gs file or a capture")
+    src = r.add_mutually_exclusive_group(required=True)
+    src.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
+    src.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
+    capture_args(r, required=False)
+    r.add_argument("--path", default="targets", choices=PATHS,
+                   help="cameras: held-out targets (with metrics), inputs, a spline through the inputs, an orbit")
+    r.add_argument("--frames", type=int, default=60, help="views on a spline or orbit path")
+    r.add_argument("--video", default=None, help="also write the views as this MP4")
+    r.add_argument("--fps", type=float, default=30.0, help="frames per second of --video")
+    r.add_argument("--depth", action="store_true", help="also write <frame>_depth.exr (camera z, capture units)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar")
+    r.add_argument("--out", required=True, help="folder for the frames")
     r.set_defaults(fn=cmd_render)
 
-    c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) -> orbax params")
-    c.add_argument("--checkpoint", required=True)
-    c.add_argument("--config", default=None, help="experiment whose model matches (default: Long-LRM paper size)")
-    c.add_argument("--out", required=True)
+    x = sub.add_parser("export", help="a .gs file -> PLY (standard 3DGS layout in colour mode) in the world frame")
+    x.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct or refine")
+    x.add_argument("--ply", required=True, help="the PLY file to write")
+    x.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
+    x.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+    x.set_defaults(fn=cmd_export)
+
+    f = sub.add_parser("refine", help="optimise a .gs file's Gaussians against its input views (optimistix)")
+    f.add_argument("--checkpoint", required=True, help="the model (a training workdir or a params folder)")
+    f.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+    f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
+    f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
+    f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
+    f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.add_argument("--out", required=True, help="the refined .gs file to write")
+    f.set_defaults(fn=cmd_refine)
+
+    c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) -> verified params folder")
+    c.add_argument("--checkpoint", required=True, help="official .pt/.pth or a .npz of the state_dict")
+    c.add_argument("--config", default=None, help="experiment whose model matches (default: experiments/long_lrm.py)")
+    c.add_argument("--allow-unused", action="store_true", help="convert even if keys outside the model are present")
+    c.add_argument("--out", required=True, help="params folder to write")
     c.set_defaults(fn=cmd_convert)
 
     d = sub.add_parser("demo", help="train the demo on procedural scenes, evaluate, write pictures")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 from dataclasses import dataclass, field
 
 from llrmpp_jax.splat.config import SplatConfig
@@ -89,6 +90,25 @@ class BackboneConfig:
 def replace(cfg, **changes):
     """``dataclasses.replace`` re-exported so notebooks need one import."""
     return dataclasses.replace(cfg, **changes)
+
+
+def from_dict(cls: type, data: dict):
+    """Rebuild a (nested) config dataclass from ``dataclasses.asdict`` output read back
+    from JSON (lists become tuples). ``ValueError`` naming an unknown field."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown field(s) {unknown}")
+    kwargs = {}
+    for name, value in data.items():
+        kind = hints[name]
+        if dataclasses.is_dataclass(kind):
+            value = from_dict(kind, value)
+        elif isinstance(value, list):
+            value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
+        kwargs[name] = value
+    return cls(**kwargs)
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.synthetic import ProceduralConfig
 
-DATA_KINDS = ("procedural", "long_lrm", "nerfstudio", "colmap", "scannet", "re10k")
+DATA_KINDS = ("procedural", "auto", "long_lrm", "nerfstudio", "colmap", "scannet", "re10k")
 
 
 @dataclass(frozen=True)
@@ -26,7 +26,7 @@ class DataConfig:
     ``kind="procedural"``: endless seeded scenes (training seeds from 0, evaluation seeds
     from ``eval_seed_offset``, disjoint). Other kinds read scenes from ``path``: the
     Long-LRM ``.txt`` index (``long_lrm``) or a folder whose sub-folders are one scene each
-    (other kinds); ``eval_path`` the same for held-out scenes.
+    (other kinds; ``auto`` detects the format, see :func:`~llrmpp_jax.data.formats.read_scene`); ``eval_path`` the same for held-out scenes.
     """
 
     kind: str = "procedural"

@@ -14,10 +14,10 @@ grids in ``workdir/tb``, periodic evaluation on held-out scenes.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import jax
@@ -35,41 +35,11 @@ from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 
-READERS: dict[str, Callable] = {
-    "long_lrm": formats.read_long_lrm_scene,
-    "nerfstudio": formats.read_nerfstudio_scene,
-    "colmap": formats.read_colmap_scene,
-    "scannet": formats.read_scannet_scene,
-    "re10k": formats.read_re10k_scene,
-}
-
-
-def scene_paths(kind: str, path: str) -> list[str]:
-    """Scene locations of a dataset: the entries of a Long-LRM ``.txt`` index, else the
-    sub-folders of ``path`` (or ``path`` itself when it is one scene)."""
-    if not os.path.exists(path):
-        raise FileNotFoundError(f"dataset path does not exist: {path}")
-    if kind == "long_lrm" or path.endswith(".txt"):
-        paths = formats.read_long_lrm_index(path) if path.endswith(".txt") else [path]
-    elif os.path.isdir(path) and not _is_scene_dir(kind, path):
-        paths = sorted(os.path.join(path, d) for d in os.listdir(path) if os.path.isdir(os.path.join(path, d)))
-    else:
-        paths = [path]
-    if not paths:
-        raise ValueError(f"dataset {path} holds no scenes")
-    return paths
-
-
-def _is_scene_dir(kind: str, path: str) -> bool:
-    marker = {"nerfstudio": "transforms.json", "colmap": "sparse", "scannet": "pose"}.get(kind)
-    return marker is not None and os.path.exists(os.path.join(path, marker))
-
-
 def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
     if data.kind == "procedural":
         return _OffsetSource(ProceduralSource(data.procedural), data.eval_seed_offset if held_out else 0)
     path = data.eval_path if held_out and data.eval_path else data.path
-    return FileSource(scene_paths(data.kind, path), READERS[data.kind])
+    return FileSource(formats.dataset_scenes(path, data.kind), functools.partial(formats.read_scene, kind=data.kind))
 
 
 @dataclass(frozen=True)

@@ -113,3 +113,25 @@ def convert_long_lrm(state_dict, cfg, *, dtype=np.float32, source: str = "state_
     expected = jax.eval_shape(lambda k: init_params(k, cfg, 1, m, m), jax.random.key(0))
     return convert_state_dict(state_dict, long_lrm_rules(), expected=expected,
                               keep_prefixes=MODEL_PREFIXES, dtype=dtype, source=source)
+
+
+def unused_keys(state_dict) -> list[str]:
+    """Keys of ``state_dict`` outside the model's prefixes (loss networks, EMA copies, ...)."""
+    return sorted(k for k in state_dict if not k.startswith(MODEL_PREFIXES))
+
+
+def convert_checkpoint(path: str, out: str, cfg, *, allow_unused: bool = False) -> tuple[int, list[str]]:
+    """Long-LRM ``.pt``/``.npz`` at ``path`` -> a verified params folder at ``out`` (see
+    :func:`llrmpp_jax.params_io.save_params`). Returns ``(parameter count, unused keys)``;
+    unused keys are an error unless ``allow_unused``."""
+    from llrmpp_jax.convert.table import load_torch_state_dict
+    from llrmpp_jax.params_io import save_params
+
+    state_dict = load_torch_state_dict(path)
+    unused = unused_keys(state_dict)
+    if unused and not allow_unused:
+        more = " ..." if len(unused) > 5 else ""
+        raise ValueError(f"{path}: {len(unused)} key(s) outside the model's prefixes {MODEL_PREFIXES}: "
+                         f"{', '.join(unused[:5])}{more} (pass --allow-unused to convert anyway)")
+    params = convert_long_lrm(state_dict, cfg, source=path)
+    return save_params(out, params, cfg), unused

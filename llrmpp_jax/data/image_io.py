@@ -85,7 +85,7 @@ def read_depth(path: str, scale: float = 1e-3) -> Float[np.ndarray, "H W"]:
     return depth.astype(np.float32)
 
 
-def _write(path: str, pixels: np.ndarray, fmt: str) -> None:
+def _write(path: str, pixels: np.ndarray, fmt: str, attributes: dict[str, str] | None = None) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     h, w, c = pixels.shape
     out = oiio.ImageOutput.create(str(path))
@@ -94,6 +94,8 @@ def _write(path: str, pixels: np.ndarray, fmt: str) -> None:
     spec = oiio.ImageSpec(w, h, c, {"uint8": oiio.UINT8, "uint16": oiio.UINT16, "float": oiio.FLOAT}[fmt])
     if str(path).lower().endswith((".jpg", ".jpeg")):
         spec.attribute("Compression", "jpeg:95")
+    for name, value in (attributes or {}).items():
+        spec.attribute(name, str(value))
     ok = out.open(str(path), spec) and out.write_image(np.ascontiguousarray(pixels))
     err = out.geterror()
     out.close()
@@ -117,18 +119,20 @@ def write_image(path: str, image: Float[np.ndarray, "H W 3"], bits: int = 8) -> 
         raise ValueError(f"write_image {path}: bits must be 8, 16 or 32, got {bits}")
 
 
-def write_depth(path: str, depth: Float[np.ndarray, "H W"], scale: float | None = 1e-3) -> None:
+def write_depth(path: str, depth: Float[np.ndarray, "H W"], scale: float | None = 1e-3,
+                attributes: dict[str, str] | None = None) -> None:
     """Write a ``[H, W]`` depth map: ``scale`` given -> 16-bit integers ``round(depth / scale)``
-    (PNG; ``ValueError`` if a value exceeds 65535 units); ``scale=None`` -> float32 (EXR)."""
+    (PNG; ``ValueError`` if a value exceeds 65535 units); ``scale=None`` -> float32 (EXR).
+    ``attributes``: metadata written into the file's header (e.g. what the values mean)."""
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"write_depth {path}: depth must have shape [H, W], got {depth.shape}")
     if scale is None:
-        _write(path, depth[:, :, None], "float")
+        _write(path, depth[:, :, None], "float", attributes)
         return
     units = np.rint(depth.astype(np.float64) / scale)
     if units.max(initial=0.0) > 65535:
         raise ValueError(
             f"write_depth {path}: depth {float(depth.max())} m exceeds the 16-bit range at scale {scale} m/unit"
         )
-    _write(path, units.astype(np.uint16)[:, :, None], "uint16")
+    _write(path, units.astype(np.uint16)[:, :, None], "uint16", attributes)

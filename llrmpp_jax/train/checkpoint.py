@@ -270,3 +270,16 @@ def restore_checkpoint(
     raise CorruptCheckpointError(
         f"no valid checkpoint in {directory}: " + "; ".join(rejected)
     )
+
+
+def recorded_config(directory: str | os.PathLike) -> Any:
+    """The run config saved with the newest step under ``directory`` (JSON data), or None
+    when it holds no step. Read before restoring, to build the restore template."""
+    directory = Path(directory).absolute()
+    if not directory.is_dir():
+        return None
+    with _manager(directory) as mngr:
+        steps = mngr.all_steps()
+        if not steps:
+            return None
+        return mngr.restore(max(steps), args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta["config"]

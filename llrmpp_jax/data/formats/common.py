@@ -31,9 +31,9 @@ def present_mask(paths: Sequence[str], what: str, source: str, missing: Missing)
         absent = [p for p, k in zip(paths, keep) if not k]
         if missing == "error":
             raise FileNotFoundError(f"{source}: {len(absent)} {what} file(s) not found, first: {absent[0]}")
+        names = ", ".join(os.path.basename(p) for p in absent[:10]) + (" ..." if len(absent) > 10 else "")
         warnings.warn(
-            f"{source}: skipped {len(absent)} of {len(paths)} frames whose {what} file is missing "
-            f"(first: {absent[0]})",
+            f"{source}: skipped {len(absent)} of {len(paths)} frames whose {what} file is missing ({names})",
             stacklevel=3,
         )
     return keep

@@ -1,0 +1,102 @@
+"""The ``.gs`` scene file: reconstructed Gaussians plus everything needed to render them
+again, compare them with the photos, or put them back in the capture's world frame.
+
+Layout: an uncompressed NumPy ``.npz`` archive. ``header`` holds UTF-8 JSON with
+``format = "llrmpp-gaussians"``, ``version`` (:data:`GS_VERSION`; another version is
+refused), the model config, the scene's path and format, the frame names, the input and
+target frame lists and the view size and crop; the arrays are the Gaussians (one scene, no batch
+axis: ``means [N, 3]``, ``quats [N, 4]`` wxyz, ``scales [N, 3]`` linear, ``opacities [N]``,
+``features [N, F]``), the cameras of every frame in the normalised scene frame
+(``c2w [M, 4, 4]`` OpenCV, ``intrinsics [M, 4]`` pixels at the view size) and
+``world_from_scene [4, 4]``: the similarity taking normalised-scene points back to the
+capture's world (its scale ``1 / s`` turns scene units back into capture units).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import zipfile
+from dataclasses import dataclass
+
+import numpy as np
+
+from llrmpp_jax.array_typing import Float, Int
+from llrmpp_jax.config import ModelConfig, from_dict
+from llrmpp_jax.gaussians import Gaussians
+
+GS_FORMAT = "llrmpp-gaussians"
+GS_VERSION = 1
+_ARRAYS = ("means", "quats", "scales", "opacities", "features", "c2w", "intrinsics", "world_from_scene",
+           "inputs", "targets")
+
+
+@dataclass(frozen=True)
+class SavedScene:
+    """One reconstructed capture (what a ``.gs`` file holds).
+
+    ``gaussians`` has no batch axis (``means [N, 3]`` ...). ``c2w`` / ``intrinsics`` cover
+    every frame of the scene in the normalised frame; ``inputs`` / ``targets`` index them.
+    ``image_hw`` is the view size the intrinsics refer to; ``resized_hw`` and ``crop_box``
+    say how the photos were brought to it (:func:`~llrmpp_jax.data.preprocess.load_views`).
+    """
+
+    gaussians: Gaussians
+    model: ModelConfig
+    c2w: Float[np.ndarray, "M 4 4"]
+    intrinsics: Float[np.ndarray, "M 4"]
+    world_from_scene: Float[np.ndarray, "4 4"]
+    frame_names: tuple[str, ...]
+    inputs: Int[np.ndarray, "V"]
+    targets: Int[np.ndarray, "T"]
+    image_hw: tuple[int, int]
+    resized_hw: tuple[int, int]  # frames were resized to this, then cropped to crop_box, then
+    crop_box: tuple[int, int, int, int]  # (top, left, height, width) resized to image_hw
+    scene_path: str
+    scene_format: str
+
+    @property
+    def scene_scale(self) -> float:
+        """Normalised units per capture unit (the normalisation's ``s``)."""
+        return float(1.0 / np.cbrt(np.linalg.det(self.world_from_scene[:3, :3])))
+
+
+def save_gs(path: str, scene: SavedScene) -> None:
+    """Write ``scene`` to ``path`` (a ``.gs`` file, see the module doc)."""
+    header = {
+        "format": GS_FORMAT, "version": GS_VERSION, "model": dataclasses.asdict(scene.model),
+        "frame_names": list(scene.frame_names), "image_hw": list(scene.image_hw),
+        "resized_hw": list(scene.resized_hw), "crop_box": list(scene.crop_box),
+        "scene_path": scene.scene_path, "scene_format": scene.scene_format,
+    }
+    g = scene.gaussians
+    arrays = {name: np.asarray(getattr(g, name)) for name in Gaussians._fields}
+    arrays.update(c2w=scene.c2w, intrinsics=scene.intrinsics, world_from_scene=scene.world_from_scene,
+                  inputs=np.asarray(scene.inputs, np.int64), targets=np.asarray(scene.targets, np.int64))
+    with open(path, "wb") as f:
+        np.savez(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+
+
+def load_gs(path: str) -> SavedScene:
+    """Read a ``.gs`` file. ``ValueError`` (one line naming the file) if it is truncated,
+    not a ``.gs`` file, or of another version; ``FileNotFoundError`` if absent."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            header = json.loads(bytes(z["header"]).decode())
+            if header.get("format") != GS_FORMAT:
+                raise ValueError(f"{path}: not an llrmpp .gs file (format {header.get('format')!r})")
+            if header.get("version") != GS_VERSION:
+                raise ValueError(f"{path}: .gs version {header.get('version')}, this llrmpp reads version {GS_VERSION}")
+            arrays = {k: z[k] for k in _ARRAYS}
+    except FileNotFoundError:
+        raise FileNotFoundError(f".gs file not found: {path}") from None
+    except (zipfile.BadZipFile, EOFError, KeyError, OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: truncated or corrupt .gs file ({type(e).__name__}: {e})") from None
+    return SavedScene(
+        gaussians=Gaussians(**{k: arrays[k] for k in Gaussians._fields}),
+        model=from_dict(ModelConfig, header["model"]),
+        c2w=arrays["c2w"], intrinsics=arrays["intrinsics"], world_from_scene=arrays["world_from_scene"],
+        frame_names=tuple(header["frame_names"]), inputs=arrays["inputs"], targets=arrays["targets"],
+        image_hw=tuple(header["image_hw"]), resized_hw=tuple(header["resized_hw"]),
+        crop_box=tuple(header["crop_box"]), scene_path=header["scene_path"], scene_format=header["scene_format"],
+    )

@@ -1,0 +1,137 @@
+"""Model parameters as an artifact: a params folder, or the newest checkpoint of a training
+workdir, loaded the same way and checked against the model config before any compile.
+
+A **params folder** (written by :func:`save_params`, e.g. by ``llrmpp convert``) is an orbax
+``StandardCheckpointer`` tree plus ``llrmpp_params.json`` (the model config and the
+parameter count), so it needs no experiment file. A **training workdir** holds
+``checkpoints/<stage>/<step>/`` (see :mod:`llrmpp_jax.train.checkpoint`), each step
+recording the experiment it was trained with. :func:`load_params` tells them apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from llrmpp_jax.config import ModelConfig, from_dict
+
+PARAMS_META = "llrmpp_params.json"
+_FORMAT = 1
+
+
+def _flat(tree) -> dict[str, object]:
+    return {"/".join(str(getattr(k, "key", k)) for k in path): leaf
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def expected_shapes(cfg: ModelConfig) -> dict:
+    """``jax.eval_shape`` of the parameters of ``cfg`` (they do not depend on image size
+    or view count, so the smallest valid input is used)."""
+    from llrmpp_jax.model import init_params
+
+    m = cfg.size_multiple
+    return jax.eval_shape(lambda k: init_params(k, cfg, 1, m, m), jax.random.key(0))
+
+
+def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
+    """``ValueError`` naming the first parameter path whose presence or shape differs
+    between ``params`` (arrays or shape structs) and the model of ``cfg``, with both shapes."""
+    want, got = _flat(expected_shapes(cfg)), _flat(params)
+    for path in sorted(set(want) | set(got)):
+        w = tuple(want[path].shape) if path in want else None
+        g = tuple(got[path].shape) if path in got else None
+        if w != g:
+            w_txt = "absent" if w is None else str(w)
+            g_txt = "absent" if g is None else str(g)
+            raise ValueError(f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
+                             f"model {w_txt}, checkpoint {g_txt} (another architecture? pass the matching --config)")
+
+
+def save_params(path: str, params, cfg: ModelConfig) -> int:
+    """Write ``params`` (for the model of ``cfg``) as a params folder at ``path`` (replaced if
+    it exists), wait for orbax to finish, read it back and compare every leaf exactly.
+    Returns the number of parameters. ``ValueError`` if the read-back differs."""
+    check_params_fit(params, cfg, "save_params")
+    path = os.path.abspath(path)
+    host = jax.tree.map(np.asarray, params)
+    with ocp.StandardCheckpointer() as ckptr:
+        ckptr.save(path, host, force=True)
+        ckptr.wait_until_finished()
+    count = int(sum(np.size(x) for x in jax.tree.leaves(host)))
+    with open(os.path.join(path, PARAMS_META), "w") as f:
+        json.dump({"format": _FORMAT, "num_params": count, "model": dataclasses.asdict(cfg)}, f, indent=1)
+    back, _ = load_params(path)
+    mine, theirs = _flat(host), _flat(back)
+    bad = [k for k in mine if k not in theirs or not np.array_equal(mine[k], np.asarray(theirs[k]))]
+    if bad or set(theirs) != set(mine):
+        raise ValueError(f"{path}: params read back differ from those written (first: {(bad or ['tree'])[0]})")
+    return count
+
+
+def is_params_folder(path: str) -> bool:
+    return os.path.isfile(os.path.join(path, PARAMS_META)) or os.path.isfile(os.path.join(path, "_CHECKPOINT_METADATA"))
+
+
+def _load_params_folder(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig]:
+    meta_path = os.path.join(path, PARAMS_META)
+    if cfg is None:
+        if not os.path.isfile(meta_path):
+            raise ValueError(f"{path}: bare params folder without {PARAMS_META}; pass --config")
+        with open(meta_path) as f:
+            cfg = from_dict(ModelConfig, json.load(f)["model"])
+    with ocp.StandardCheckpointer() as ckptr:
+        saved = ckptr.metadata(path).item_metadata.tree
+        check_params_fit(saved, cfg, path)
+        target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype), saved)
+        params = ckptr.restore(path, target)
+    return params, cfg
+
+
+def _stage_dirs(workdir: str) -> list[str]:
+    base = os.path.join(workdir, "checkpoints") if os.path.isdir(os.path.join(workdir, "checkpoints")) else workdir
+    return [os.path.join(base, d) for d in sorted(os.listdir(base)) if os.path.isdir(os.path.join(base, d))]
+
+
+def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig]:
+    from llrmpp_jax import train as T
+
+    stages = [d for d in _stage_dirs(path) if T.recorded_config(d) is not None]
+    if not stages and T.recorded_config(path) is not None:
+        stages = [path]  # one stage's folder itself
+    if not stages:
+        raise ValueError(f"no checkpoint in {path} (expected a params folder or a training workdir)")
+    recorded = T.recorded_config(stages[0])
+    order = [s["name"] for s in recorded.get("stages", [])] if isinstance(recorded, dict) else []
+    stage_dir = max(stages, key=lambda d: order.index(os.path.basename(d)) if os.path.basename(d) in order else -1)
+    if cfg is None:
+        if not isinstance(recorded, dict) or "model" not in recorded:
+            raise ValueError(f"{stage_dir}: the checkpoint records no model config; pass --config")
+        cfg = from_dict(ModelConfig, recorded["model"])
+    opt = T.make_optimizer(T.OptimizerConfig(total_steps=1, warmup_steps=0))
+    template = jax.eval_shape(lambda p: T.init_train_state(p, opt, jax.random.key(0)), expected_shapes(cfg))
+    try:
+        restored = T.restore_checkpoint(os.path.abspath(stage_dir), template)
+    except T.IncompatibleCheckpointError as e:
+        raise ValueError(str(e)) from None
+    if restored is None:
+        raise ValueError(f"no checkpoint in {stage_dir}")
+    return restored.state.params, cfg
+
+
+def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelConfig]:
+    """``(params, model config)`` from a params folder or a training workdir (detected).
+
+    ``cfg`` None: the config recorded in the folder (``llrmpp_params.json``) or with the
+    workdir's checkpoint. Given: it must fit the saved shapes (``ValueError`` naming the
+    first mismatching parameter path and both shapes), else its own config is used as is.
+    """
+    if not os.path.isdir(path):
+        raise FileNotFoundError(f"checkpoint folder not found: {path}")
+    if is_params_folder(path):
+        return _load_params_folder(os.path.abspath(path), cfg)
+    return _load_workdir(path, cfg)
