@@ -255,3 +255,76 @@ def test_viewer_in_browser(demo, browser, tmp_path):
         np.testing.assert_allclose(frame.image, own2, atol=1e-5)
     finally:
         viewer.stop()
+
+
+# -- command line ---------------------------------------------------------------------------
+
+
+def _saved_scene(rng, cfg, feature_dim: int):
+    from llrmpp_jax.capture import SavedScene
+
+    n, v = 64, 3
+    g = Gaussians(rng.normal(size=(n, 3)).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                  np.full((n, 3), 0.05, np.float32), np.full((n,), 0.5, np.float32),
+                  rng.normal(size=(n, feature_dim)).astype(np.float32))
+    c2w = np.tile(np.eye(4, dtype=np.float32), (v, 1, 1))
+    c2w[:, 2, 3] = -3.0
+    return SavedScene(g, cfg, c2w, np.tile(np.float32([32, 32, 16, 16]), (v, 1)), np.eye(4), ("a", "b", "c"),
+                      np.arange(v), np.zeros(0, np.int64), (32, 32), (32, 32), (0, 0, 32, 32), "/no/capture", "colmap")
+
+
+def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):
+    """A port in use, a feature-mode .gs without a checkpoint, a .gs whose Gaussians or whose
+    checkpoint do not fit its model config: exit status 2 and one line each."""
+    from llrmpp_jax.capture import save_gs
+    from llrmpp_jax.cli import main
+    from llrmpp_jax.params_io import expected_shapes, save_params
+
+    cfg = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+
+    def one_line(argv, pattern):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1, err
+        assert __import__("re").search(pattern, err), err
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        taken = s.getsockname()[1]
+        one_line(["view", "--procedural", "0", "--random-init", "--host", "127.0.0.1", "--port", str(taken)],
+                 rf"port {taken} on 127.0.0.1 is already in use; try --port \d+")
+    good, bad = str(tmp_path / "good.gs"), str(tmp_path / "bad.gs")
+    save_gs(good, _saved_scene(rng, cfg, cfg.head.feature_dim))
+    save_gs(bad, _saved_scene(rng, cfg, 8))
+    one_line(["view", "--gaussians", good], r"good.gs: a feature-mode scene needs --checkpoint")
+    one_line(["view", "--gaussians", bad], r"bad.gs: Gaussians carry 8 values per Gaussian .* expects F=16 features")
+    narrow = C.replace(cfg, head=C.replace(cfg.head, feature_dim=8))
+    save_params(str(tmp_path / "narrow"), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), expected_shapes(narrow)),
+                narrow)
+    one_line(["view", "--gaussians", good, "--checkpoint", str(tmp_path / "narrow")],
+             r"narrow: parameters do not fit the model config: first mismatch")
+
+
+def test_cli_serves_the_page(tmp_path):
+    """``llrmpp view --procedural`` serves viser's page until interrupted."""
+    import signal
+    import subprocess
+    import sys
+    import urllib.request
+
+    proc = subprocess.Popen([sys.executable, "-m", "llrmpp_jax.cli", "view", "--procedural", "1", "--random-init",
+                             "--host", "127.0.0.1", "--port", "0", "--height", "64", "--moving-height", "32"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        while not line.startswith("llrmpp view:"):  # after viser's own banner
+            line = proc.stdout.readline()
+            assert line, proc.stderr.read()
+        assert "1,024 feature-mode Gaussians" in line, line
+        url = line.split(" at ")[1].split(" ")[0]
+        page = urllib.request.urlopen(url, timeout=30).read().decode()
+        assert "<html" in page.lower() and "viser" in page.lower()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=60) == 130

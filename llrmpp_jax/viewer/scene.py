@@ -3,6 +3,7 @@
 * :class:`ViewerScene` -- Gaussians (batch 1) + input cameras, their image size and
   optional thumbnails, in the scene's normalised frame.
 * :func:`check_gaussians` -- a scene's Gaussians against the model config (one line).
+* :func:`saved_view_scene` -- a ``.gs`` scene file's content (:class:`~llrmpp_jax.capture.SavedScene`).
 * :func:`procedural_view_scene` -- reconstruct a procedural scene with a model (a scene
   source that needs no files: tests, benchmarks, ``llrmpp view --procedural SEED``).
 * :func:`gaussian_centres` -- the Gaussians' centres with a colour each, for the point cloud.
@@ -12,10 +13,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import os
+
 import jax
 import numpy as np
 
 from llrmpp_jax.array_typing import Float
+from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data import ProceduralConfig, ViewGeometry, make_sample, procedural_scene, uniform_inputs
 from llrmpp_jax.gaussians import Gaussians
@@ -58,6 +62,23 @@ def check_gaussians(cfg: ModelConfig, gaussians: Gaussians, source: str) -> None
                          f"{what}; the scene was made with another model")
 
 
+def _uint8(images: Float[np.ndarray, "V H W 3"]) -> np.ndarray:
+    return np.round(np.clip(images, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def saved_view_scene(saved: SavedScene, input_images: Float[np.ndarray, "V H W 3"] | None = None) -> ViewerScene:
+    """The viewer's scene from a ``.gs`` file's content; ``input_images`` (the inputs as fed
+    to the model, in [0, 1]) become the frustums' thumbnails."""
+    return ViewerScene(
+        name=os.path.basename(saved.scene_path.rstrip("/")) or "scene",
+        gaussians=Gaussians(*(np.asarray(a)[None] for a in saved.gaussians)),
+        input_c2w=np.asarray(saved.c2w[saved.inputs], np.float32),
+        input_intrinsics=np.asarray(saved.intrinsics[saved.inputs], np.float32),
+        input_hw=tuple(saved.image_hw),
+        thumbnails=None if input_images is None else _uint8(input_images),
+    )
+
+
 def procedural_view_scene(params: dict, cfg: ModelConfig, seed: int, num_inputs: int = 4, size: int = 64,
                           num_frames: int = 16) -> ViewerScene:
     """Reconstruct procedural scene ``seed`` (``size x size``, ``num_frames`` frames) from
@@ -69,8 +90,7 @@ def procedural_view_scene(params: dict, cfg: ModelConfig, seed: int, num_inputs:
     sample = make_sample(scene, inputs, inputs[:1], ViewGeometry(resize_h=size, multiple=cfg.size_multiple))
     images, c2w, intrinsics = (sample[k] for k in ("input_images", "input_c2w", "input_intrinsics"))
     gaussians = jax.jit(reconstruct, static_argnums=1)(params, cfg, images[None], c2w[None], intrinsics[None])
-    thumbs = np.round(np.clip(images, 0.0, 1.0) * 255.0).astype(np.uint8)
-    return ViewerScene(scene.name, gaussians, c2w, intrinsics, (size, size), thumbs)
+    return ViewerScene(scene.name, gaussians, c2w, intrinsics, (size, size), _uint8(images))
 
 
 def gaussian_centres(cfg: ModelConfig, gaussians: Gaussians, max_points: int,
