@@ -20,8 +20,8 @@ from llrmpp_jax.geometry import project_points
 from llrmpp_jax.model import init_params, render
 from llrmpp_jax.splat.reference import render_features_reference
 from llrmpp_jax.viewer.render import ViewKey, ViewRenderer, display_image, render_view, viewport_camera
-from llrmpp_jax.viewer.scene import check_gaussians, gaussian_centres, procedural_view_scene
-from llrmpp_jax.viewer.server import PortInUseError, Viewer, ViewerSettings, check_port
+from llrmpp_jax.viewer.scene import check_gaussians, gaussian_centres, procedural_view_scene, saved_view_scene
+from llrmpp_jax.viewer.server import PortInUseError, RenderWorker, Viewer, ViewerSettings, ViewRequest, check_port
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -142,6 +142,32 @@ def test_gaussian_centres_colours(rng):
     assert pts.shape == (100, 3) and cols.shape == (100, 3)
     assert np.isin(pts, g.means[0].astype(np.float32)).all()
     assert (cols.min(axis=0) == 0).all() and (cols.max(axis=0) == 255).all()
+
+
+def test_worker_renders_the_latest_camera_then_full_height():
+    """Requests that arrive during a render are dropped but the latest; a moving render is
+    followed by the same camera at full height once no request came for ``still_seconds``."""
+    import threading
+
+    gate, done, rendered = threading.Event(), threading.Semaphore(0), []
+
+    def render(req):
+        gate.wait()
+        rendered.append(req)
+        done.release()
+
+    reqs = [ViewRequest(np.eye(4) * (i + 1), 1.0, 1.5, moving=i > 0) for i in range(6)]
+    worker = RenderWorker(render, still_seconds=0.05, name="test")
+    worker.request(reqs[0])
+    while not rendered and worker._pending is not None:  # the worker has taken request 0
+        threading.Event().wait(0.01)
+    for r in reqs[1:]:
+        worker.request(r)
+    gate.set()
+    for _ in range(3):
+        assert done.acquire(timeout=30)
+    worker.close(wait=True)
+    assert [(r.c2w[0, 0], r.moving) for r in rendered] == [(1.0, False), (6.0, True), (6.0, False)]
 
 
 def test_port_in_use_names_it_and_a_free_one():
@@ -268,9 +294,23 @@ def _saved_scene(rng, cfg, feature_dim: int):
                   np.full((n, 3), 0.05, np.float32), np.full((n,), 0.5, np.float32),
                   rng.normal(size=(n, feature_dim)).astype(np.float32))
     c2w = np.tile(np.eye(4, dtype=np.float32), (v, 1, 1))
-    c2w[:, 2, 3] = -3.0
-    return SavedScene(g, cfg, c2w, np.tile(np.float32([32, 32, 16, 16]), (v, 1)), np.eye(4), ("a", "b", "c"),
-                      np.arange(v), np.zeros(0, np.int64), (32, 32), (32, 32), (0, 0, 32, 32), "/no/capture", "colmap")
+    c2w[:, 2, 3] = -3.0 - np.arange(v)
+    intr = np.float32([32, 32, 16, 16]) * np.arange(1, v + 1, dtype=np.float32)[:, None]
+    return SavedScene(g, cfg, c2w, intr, np.eye(4), ("a", "b", "c"), np.array([0, 2]), np.array([1]),
+                      (32, 32), (32, 32), (0, 0, 32, 32), "/no/capture", "colmap")
+
+
+def test_saved_view_scene(rng):
+    cfg = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+    saved = _saved_scene(rng, cfg, cfg.head.feature_dim)
+    photos = rng.uniform(-0.1, 1.1, (2, 32, 32, 3)).astype(np.float32)
+    scene = saved_view_scene(saved, photos)
+    for got, want in zip(scene.gaussians, saved.gaussians):
+        np.testing.assert_array_equal(got, want[None])
+    np.testing.assert_array_equal(scene.input_c2w, saved.c2w[[0, 2]])
+    np.testing.assert_array_equal(scene.input_intrinsics, saved.intrinsics[[0, 2]])
+    np.testing.assert_array_equal(scene.thumbnails, display_image(photos.reshape(64, 32, 3), "rgb").reshape(2, 32, 32, 3))
+    assert scene.input_hw == (32, 32) and scene.name == "capture" and saved_view_scene(saved).thumbnails is None
 
 
 def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):

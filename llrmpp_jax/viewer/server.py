@@ -24,6 +24,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -47,7 +48,7 @@ class ViewerSettings:
     still_seconds: float = 0.25  # camera unchanged this long -> full-height render
     output: str = "rgb"
     partitions: int | None = None  # None: the model's S
-    show_points: bool = True
+    show_points: bool = False  # the centres are drawn over the render (no occlusion): off until asked for
     show_cameras: bool = True
     max_points: int = 100_000
     image_format: str = "png"  # how frames travel to the page: "png" (lossless) or "jpeg" (smaller)
@@ -98,15 +99,21 @@ def _request(camera: viser.CameraHandle, moving: bool) -> ViewRequest:
     return ViewRequest(camera_c2w(camera.wxyz, camera.position), float(camera.fov), float(camera.aspect), moving)
 
 
-class _Session:
-    """One browser tab: its pending request and its render worker."""
+class RenderWorker:
+    """One browser tab's render thread.
 
-    def __init__(self, viewer: Viewer, client: viser.ClientHandle):
-        self.viewer, self.client = viewer, client
+    :meth:`request` only replaces the pending request, so requests that arrive while a
+    render runs are dropped except the latest. After a ``moving`` request has been rendered
+    and nothing new arrived for ``still_seconds``, the same camera is rendered again with
+    ``moving=False`` (full height). ``render`` is called on the worker thread only.
+    """
+
+    def __init__(self, render: Callable[[ViewRequest], None], still_seconds: float, name: str):
+        self._render, self._still_seconds = render, still_seconds
         self._cond = threading.Condition()
         self._pending: ViewRequest | None = None
         self._closed = False
-        self._thread = threading.Thread(target=self._run, name=f"llrmpp-view-{client.client_id}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def request(self, req: ViewRequest) -> None:
@@ -124,23 +131,19 @@ class _Session:
             self._thread.join()
 
     def _run(self) -> None:
-        last: ViewRequest | None = None  # the last camera, if only rendered at the moving height
+        last: ViewRequest | None = None  # the latest camera, if rendered only while moving
         while True:
             with self._cond:
                 if self._pending is None and not self._closed:
-                    self._cond.wait(timeout=self.viewer.settings.still_seconds if last else None)
+                    self._cond.wait(timeout=self._still_seconds if last else None)
                 if self._closed:
                     return
                 req, self._pending = self._pending, None
             if req is None:  # still for still_seconds after a moving render: full height
                 req, last = last._replace(moving=False), None
-            elif req.moving and self.viewer._moving.value != self.viewer._height.value:
+            elif req.moving:
                 last = req
-            try:
-                self.viewer._render_for(self.client, req)
-            except Exception as e:  # keep the worker alive; say what went wrong in the page and on stderr
-                self.viewer._report(f"render failed: {type(e).__name__}: {e}")
-                print(f"llrmpp view: render failed: {e!r}", file=sys.stderr)
+            self._render(req)
 
 
 class Viewer:
@@ -164,7 +167,7 @@ class Viewer:
         self._last: Frame | None = None  # the latest frame sent to any tab
         self._frame_count = 0
         self._frame_cond = threading.Condition(self._lock)
-        self._sessions: dict[int, _Session] = {}
+        self._workers: dict[int, RenderWorker] = {}
         self.server = viser.ViserServer(host=host, port=port, label="llrmpp view", verbose=False)
         if port and self.server.get_port() != port:  # taken between our check and viser's bind
             self.server.stop()
@@ -192,10 +195,11 @@ class Viewer:
                 f"/inputs/{i}", fov=float(2.0 * np.arctan(h / (2.0 * k[1]))), aspect=w / h, scale=0.08 * extent,
                 wxyz=vtf.SO3.from_matrix(c2w[:3, :3].astype(np.float64)).wxyz, position=c2w[:3, 3],
                 image=None if sc.thumbnails is None else sc.thumbnails[i], visible=s.show_cameras,
-                color=(200, 60, 40)))
+                color=(200, 60, 40), thickness=1.5, thickness_units="screen"))
         points, colours = gaussian_centres(self.renderer.cfg, sc.gaussians, s.max_points, np.random.default_rng(0))
+        size = float(np.median(np.asarray(sc.gaussians.scales[0]).max(axis=-1)))  # a typical Gaussian's radius
         self._points = self.server.scene.add_point_cloud(
-            "/gaussians", points, colours, point_size=0.004 * extent, point_shape="rounded", visible=s.show_points)
+            "/gaussians", points, colours, point_size=size, point_shape="rounded", visible=s.show_points)
         # New tabs open at the first input camera.
         c2w, k = sc.input_c2w[0], sc.input_intrinsics[0]
         cam = self.server.initial_camera
@@ -233,23 +237,35 @@ class Viewer:
 
     def _rerender_all(self) -> None:
         for client in self.server.get_clients().values():
-            if client.client_id in self._sessions:
-                self._sessions[client.client_id].request(_request(client.camera, moving=False))
+            if client.client_id in self._workers:
+                self._workers[client.client_id].request(_request(client.camera, moving=False))
 
     def _report(self, text: str) -> None:
         self._readout.content = text
 
     # -- clients ------------------------------------------------------------------------
     def _connect(self, client: viser.ClientHandle) -> None:
-        session = _Session(self, client)
-        self._sessions[client.client_id] = session
-        client.camera.on_update(lambda cam: session.request(_request(cam, moving=True)))
-        session.request(_request(client.camera, moving=False))
+        worker = RenderWorker(lambda req: self._render_safely(client, req), self.settings.still_seconds,
+                              name=f"llrmpp-view-{client.client_id}")
+        self._workers[client.client_id] = worker
+
+        @client.camera.on_update
+        def _(camera: viser.CameraHandle) -> None:  # a lower-resolution render first unless both heights agree
+            worker.request(_request(camera, moving=self._moving.value != self._height.value))
+
+        worker.request(_request(client.camera, moving=False))
 
     def _disconnect(self, client: viser.ClientHandle) -> None:
-        session = self._sessions.pop(client.client_id, None)
-        if session is not None:
-            session.close()
+        worker = self._workers.pop(client.client_id, None)
+        if worker is not None:
+            worker.close()
+
+    def _render_safely(self, client: viser.ClientHandle, req: ViewRequest) -> None:
+        try:
+            self._render_for(client, req)
+        except Exception as e:  # keep the worker alive; say what went wrong in the page and on stderr
+            self._report(f"render failed: {type(e).__name__}: {e}")
+            print(f"llrmpp view: render failed: {e!r}", file=sys.stderr)
 
     def _render_for(self, client: viser.ClientHandle, req: ViewRequest) -> None:
         """Render ``req`` with the panel's current settings and show it in ``client``'s page."""
@@ -308,9 +324,9 @@ class Viewer:
                 cam.position = c2w[:3, 3]
                 cam.look_at = c2w[:3, 3] + c2w[:3, 2] * look
                 cam.up_direction = -c2w[:3, 1]
-            session = self._sessions.get(client.client_id)
-            if session is not None:
-                session.request(_request(cam, moving=False))
+            worker = self._workers.get(client.client_id)
+            if worker is not None:
+                worker.request(_request(cam, moving=False))
 
     def serve_forever(self) -> None:
         """Block until Ctrl-C, then stop."""
@@ -322,6 +338,6 @@ class Viewer:
 
     def stop(self) -> None:
         self.server.stop()
-        for session in list(self._sessions.values()):
-            session.close(wait=True)
-        self._sessions.clear()
+        for worker in list(self._workers.values()):
+            worker.close(wait=True)
+        self._workers.clear()
