@@ -438,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
     d.add_argument("--steps", type=int, default=None, help="override the number of training steps")
     d.set_defaults(fn=cmd_demo)
-    w = sub.add_parser("view", help="live viewer in the browser (viser): orbit a .gs file, a capture or a procedural scene")
+    w = sub.add_parser("view", help="live viewer in the browser (viser) of a .gs file, a capture or a procedural scene")
     src = w.add_mutually_exclusive_group(required=True)
     src.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
     src.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
