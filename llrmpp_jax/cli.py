@@ -291,15 +291,11 @@ def cmd_demo(args) -> int:
 
 def cmd_view(args) -> int:
     """The live viewer (:mod:`llrmpp_jax.viewer`) on a .gs file, a capture or a procedural scene."""
-    from llrmpp_jax.viewer.server import PortInUseError, Viewer, ViewerSettings, check_port
-
-    try:
-        check_port(args.host, args.port)
-    except PortInUseError as e:
-        raise UserError(str(e)) from None
     from llrmpp_jax.viewer.render import ViewRenderer
     from llrmpp_jax.viewer.scene import check_gaussians, procedural_view_scene, saved_view_scene
+    from llrmpp_jax.viewer.server import Viewer, ViewerSettings, check_port
 
+    check_port(args.host, args.port)  # before any loading or compiling
     if args.gaussians:
         from llrmpp_jax.capture import load_gs
         from llrmpp_jax.capture.render import frame_photos

@@ -5,6 +5,7 @@ import math
 import os
 import shutil
 import socket
+import time
 
 import jax
 import jax.numpy as jnp
@@ -200,7 +201,9 @@ def browser():
     chromium, driver = shutil.which("chromium"), shutil.which("chromedriver")
     if not (chromium and driver):
         msg = "chromium and chromedriver are needed (apt-get install chromium chromium-driver)"
-        pytest.fail(msg) if os.environ.get("CI") else pytest.skip(msg)
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
@@ -232,8 +235,6 @@ def _screen_vs_render(shot: np.ndarray, rgb: np.ndarray) -> float:
 def _wait_for_view(driver, path, rgb, others, deadline_s=30.0) -> tuple[np.ndarray, float]:
     """Screenshots until one correlates with ``rgb`` better than with any of ``others``
     (the page shows a frame shortly after the server sends it)."""
-    import time
-
     t_end = time.monotonic() + deadline_s
     while True:
         driver.save_screenshot(str(path))

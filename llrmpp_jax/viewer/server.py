@@ -35,7 +35,7 @@ from llrmpp_jax.viewer.render import OUTPUTS, Frame, ViewKey, ViewRenderer, disp
 from llrmpp_jax.viewer.scene import ViewerScene, gaussian_centres
 
 
-class PortInUseError(OSError):
+class PortInUseError(ValueError):
     """The requested port is taken; the message names it and a free one to use instead."""
 
 
@@ -63,28 +63,26 @@ class ViewRequest(NamedTuple):
     moving: bool
 
 
-def check_port(host: str, port: int) -> None:
-    """:class:`PortInUseError` if ``port`` cannot be bound on ``host`` (0 = any free port)."""
-    if port == 0:
-        return
+def _bind_error(host: str, port: int) -> OSError | None:
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
             s.bind((host, port))
     except OSError as e:
-        if e.errno != errno.EADDRINUSE:
-            raise
-        free = next((p for p in range(port + 1, min(port + 100, 65536)) if _port_free(host, p)), None)
-        hint = f"; try --port {free}" if free else ""
-        raise PortInUseError(f"port {port} on {host} is already in use{hint}") from None
+        return e
+    return None
 
 
-def _port_free(host: str, port: int) -> bool:
-    try:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind((host, port))
-        return True
-    except OSError:
-        return False
+def check_port(host: str, port: int) -> None:
+    """Raise if the page cannot be served on ``host:port`` (0 = any free port):
+    :class:`PortInUseError` naming a free port nearby if it is taken, ``ValueError`` for
+    any other reason the bind fails (a privileged port, an unknown host)."""
+    err = None if port == 0 else _bind_error(host, port)
+    if err is None:
+        return
+    if err.errno == errno.EADDRINUSE:
+        free = next((p for p in range(port + 1, min(port + 100, 65536)) if _bind_error(host, p) is None), None)
+        raise PortInUseError(f"port {port} on {host} is already in use" + (f"; try --port {free}" if free else ""))
+    raise ValueError(f"cannot serve on {host}:{port}: {err.strerror or err}")
 
 
 def camera_c2w(wxyz: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -156,17 +154,18 @@ class Viewer:
 
     def __init__(self, renderer: ViewRenderer, scene: ViewerScene, *, host: str = "0.0.0.0", port: int = 8080,
                  settings: ViewerSettings = ViewerSettings()):
-        cfg = renderer.cfg
-        m = cfg.size_multiple
-        if settings.height % m or settings.moving_height % m:
-            raise ValueError(f"viewer heights must be multiples of {m}, got {settings.height} and "
+        m, most = renderer.cfg.size_multiple, renderer.max_partitions
+        if settings.height <= 0 or settings.moving_height <= 0 or settings.height % m or settings.moving_height % m:
+            raise ValueError(f"viewer heights must be positive multiples of {m}, got {settings.height} and "
                              f"{settings.moving_height}")
+        if settings.output not in OUTPUTS or not 1 <= (settings.partitions or most) <= most:
+            raise ValueError(f"viewer output must be one of {OUTPUTS} and partitions in [1, {most}], got "
+                             f"{settings.output!r} and {settings.partitions}")
         check_port(host, port)
         self.renderer, self.scene, self.settings = renderer, scene, settings
-        self._lock = threading.Lock()
         self._last: Frame | None = None  # the latest frame sent to any tab
         self._frame_count = 0
-        self._frame_cond = threading.Condition(self._lock)
+        self._frame_cond = threading.Condition()
         self._workers: dict[int, RenderWorker] = {}
         self.server = viser.ViserServer(host=host, port=port, label="llrmpp view", verbose=False)
         if port and self.server.get_port() != port:  # taken between our check and viser's bind
@@ -215,7 +214,7 @@ class Viewer:
         self._output = gui.add_dropdown("view", OUTPUTS, initial_value=s.output)
         self._height = gui.add_slider("height (still)", min=m, max=top, step=m, initial_value=s.height)
         self._moving = gui.add_slider("height (moving)", min=m, max=top, step=m, initial_value=s.moving_height)
-        most = self.renderer.max_partitions
+        most = self.renderer.max_partitions  # 1 (colour mode, or S=1): a disabled slider, as min < max is needed
         self._partitions = gui.add_slider("partitions S", min=1, max=max(most, 2), step=1,
                                           initial_value=most if s.partitions is None else s.partitions,
                                           disabled=most == 1)
@@ -270,8 +269,7 @@ class Viewer:
     def _render_for(self, client: viser.ClientHandle, req: ViewRequest) -> None:
         """Render ``req`` with the panel's current settings and show it in ``client``'s page."""
         height = int(self._moving.value if req.moving else self._height.value)
-        output, partitions = str(self._output.value), int(self._partitions.value)
-        partitions = min(partitions, self.renderer.max_partitions)
+        output, partitions = str(self._output.value), min(int(self._partitions.value), self.renderer.max_partitions)
         height, width, intrinsics = viewport_camera(req.fov_y, req.aspect, height, self.renderer.cfg.size_multiple)
         key = ViewKey(height, width, output, partitions)
         if not self.renderer.is_compiled(key):
@@ -300,7 +298,7 @@ class Viewer:
     @property
     def frame_count(self) -> int:
         """Frames rendered and sent so far (all tabs)."""
-        with self._lock:
+        with self._frame_cond:
             return self._frame_count
 
     def wait_for_frame(self, after: int, timeout: float) -> Frame:
