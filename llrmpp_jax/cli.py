@@ -1,4 +1,6 @@
-"""``llrmpp``: train, eval, render, convert and demo from the command line.
+"""``llrmpp``: train, eval, reconstruct, render, export, refine, convert and demo from the
+command line; each command is a thin shell over a library function (``llrmpp_jax.capture``,
+``params_io``, ``export_ply``, ``refine``, ``trainer``, ``evaluate``).
 
 Every command validates its inputs before any compile time is spent; a bad path or config
 is one line on stderr (``llrmpp: error: ...``) and exit status 2, not a traceback.
@@ -154,15 +156,14 @@ def cmd_render(args) -> int:
     from llrmpp_jax.capture.render import frame_photos, view_metrics, write_video
     from llrmpp_jax.data.image_io import write_depth, write_image
     from llrmpp_jax.metrics import load_lpips_params
+    from llrmpp_jax.params_io import check_params_fit
 
     if args.gaussians:
         saved = load_gs(args.gaussians)
-        params = _load_params(args.checkpoint, args.config)[0] if args.checkpoint else {}
         if saved.model.head.mode == "feature" and not args.checkpoint:
             raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (its decoder renders it)")
+        params = _load_params(args.checkpoint, args.config)[0] if args.checkpoint else {}
         if args.checkpoint:
-            from llrmpp_jax.params_io import check_params_fit
-
             check_params_fit(params, saved.model, args.checkpoint)
     else:
         if not args.checkpoint:
@@ -170,6 +171,7 @@ def cmd_render(args) -> int:
         params, rec = _reconstruct(args)
         saved = rec.saved
     c2w, intr, names, idx = path_cameras(saved, args.path, args.frames)
+    photos = frame_photos(saved, idx) if args.path == "targets" else None  # read before compiling
     views = render_views(params, saved, c2w, intr, names, depth=args.depth, progress=not args.quiet)
     os.makedirs(args.out, exist_ok=True)
     what = {"llrmpp:depth": "camera z (OpenCV, along the optical axis) in the capture's world units; "
@@ -180,9 +182,8 @@ def cmd_render(args) -> int:
         if args.depth:
             write_depth(os.path.join(args.out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
     print(f"wrote {len(names)} {args.path} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
-    if args.path == "targets":
-        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, frame_photos(saved, idx),
-                                                                            load_lpips_params()))]
+    if photos is not None:
+        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, photos, load_lpips_params()))]
         mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
         with open(os.path.join(args.out, "metrics.json"), "w") as f:
             json.dump({"mean": mean, "per_view": per_view}, f, indent=1)
@@ -430,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(fn=cmd_convert)
 
     d = sub.add_parser("demo", help="train the demo on procedural scenes, evaluate, write pictures")
-    d.add_argument("--out", default="runs/demo")
+    d.add_argument("--out", default="runs/demo", help="workdir for the demo's checkpoints, pictures and metrics")
     d.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
     d.add_argument("--steps", type=int, default=None, help="override the number of training steps")
     d.set_defaults(fn=cmd_demo)

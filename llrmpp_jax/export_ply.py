@@ -49,10 +49,9 @@ import plyfile
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.formats.colmap import rotmat_to_qvec
-from llrmpp_jax.gaussians import Gaussians
+from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.splat.sh import num_sh_bases, sh_basis
 
-OPACITY_EPS = 2.0**-24  # float32 resolution just below 1: the logit stays within +-16.6
 _TAG = "llrmpp-jax"
 _GEOMETRY = ["x", "y", "z", "nx", "ny", "nz"]
 _SIMILARITY_TOL = 1e-5
@@ -177,7 +176,7 @@ def ply_fields(
     means = f64(g.means) @ rot.T * s + t
     quats = quat_multiply(rotmat_to_qvec(rot)[None], f64(g.quats))
     quats = quats / np.linalg.norm(quats, axis=-1, keepdims=True)
-    opac = np.clip(f64(g.opacities), OPACITY_EPS, 1.0 - OPACITY_EPS)
+    opac = np.clip(f64(g.opacities), OPACITY_LOGIT_EPS, 1.0 - OPACITY_LOGIT_EPS)
     cols = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2],
             "nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n)}
     if cfg.head.mode == "color":

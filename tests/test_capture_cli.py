@@ -4,6 +4,7 @@ and every bad input as one line with exit status 2."""
 
 import json
 import os
+import re
 
 import imageio_ffmpeg
 import jax.numpy as jnp
@@ -45,10 +46,11 @@ def golden(tmp_path_factory):
     return str(out), str(exp)
 
 
+@pytest.mark.slow
 def test_golden_through_the_cli(golden, tmp_path):
     """convert -> reconstruct (golden inputs, capture frame kept) equals the official
     Gaussians to 1e-4 relative (float32); render --gaussians equals model.render called
-    directly, to the 8-bit PNG's rounding (0.5/255)."""
+    directly, to the 8-bit PNG's rounding (0.5/255); render --scene gives the same PNGs."""
     params_dir, _ = golden
     inp = np.load(os.path.join(GOLDEN, "inputs.npz"))
     out = np.load(os.path.join(GOLDEN, "outputs.npz"))
@@ -73,13 +75,21 @@ def test_golden_through_the_cli(golden, tmp_path):
     for i, name in enumerate(("frame_00000", "frame_00001")):
         got = read_image(str(tmp_path / "f" / f"{name}.png"))
         assert np.max(np.abs(got - np.clip(np.asarray(want[i]), 0, 1))) <= 0.5 / 255 + 1e-6
+    # straight from the capture: the same frames
+    assert main(["render", "--scene", str(tmp_path / "scene"), "--checkpoint", params_dir, "--inputs", "0,1",
+                 "--size", "32x48", "--no-normalize", "--repeats", "1", "--path", "inputs", "--quiet",
+                 "--out", str(tmp_path / "direct")]) == 0
+    for name in ("frame_00000", "frame_00001"):
+        np.testing.assert_array_equal(read_image(str(tmp_path / "direct" / f"{name}.png")),
+                                      read_image(str(tmp_path / "f" / f"{name}.png")))
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("capture", [FOX, BEER], ids=["fox_nerfstudio", "beer_colmap"])
 def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     """reconstruct -> render targets (metrics, frames named after the photos) -> spline
-    video (decodes to --frames frames) + depth EXR -> export PLY (standard 3DGS fields)."""
+    video (decodes to --frames frames) + depth EXR -> export PLY (standard 3DGS fields) ->
+    refine (prints held-out PSNR before/after; the input-view loss falls)."""
     params_dir, _ = golden
     gs = str(tmp_path / "s.gs")
     assert main(["reconstruct", "--checkpoint", params_dir, "--scene", capture, "--num-inputs", "4",
@@ -114,6 +124,16 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     import plyfile
 
     assert list(plyfile.PlyData.read(ply)["vertex"].data.dtype.names) == standard_fields(3)
+
+    capsys.readouterr()
+    refined = str(tmp_path / "r.gs")
+    assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--scene", capture, "--steps", "3",
+                 "--quiet", "--out", refined]) == 0
+    out = capsys.readouterr().out
+    before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))
+    loss0, loss1 = (float(v) for v in re.search(r"input-view loss (\S+) -> (\S+);", out).groups())
+    assert np.isfinite([before, after]).all() and loss1 < loss0  # 3 steps lower the loss on the inputs
+    assert load_gs(refined).gaussians.means.shape == saved.gaussians.means.shape
 
 
 def _tiny_scene(tmp_path, n=6, h=32, w=48):

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from llrmpp_jax import config as C
@@ -106,3 +107,49 @@ def test_train_resume_and_eval(tmp_path):
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--out", str(tmp_path / "ev")]) == 0
     rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
     assert rows[0].startswith("scene,method,psnr,ssim,lpips") and len(rows) == 1 + 3
+
+
+@pytest.mark.slow
+def test_workdir_reconstruct_render_export_feature_mode(tmp_path):
+    """A training workdir records its experiment: reconstruct, render and export read it
+    with no --config (feature mode: the decoder renders, the PLY carries features and
+    partition logits)."""
+    from llrmpp_jax.capture import load_gs
+    from llrmpp_jax.data import in_memory_scene
+    from llrmpp_jax.data.formats import write_nerfstudio_scene
+    from llrmpp_jax.export_ply import read_ply
+    from llrmpp_jax.params_io import load_params
+    from llrmpp_jax.trainer import train
+
+    exp = _micro_experiment(1)
+    work = str(tmp_path / "run")
+    train(exp, work, progress=False)
+    _, cfg = load_params(work)
+    assert cfg == exp.model
+    rng = np.random.default_rng(3)
+    c2w = np.tile(np.eye(4), (9, 1, 1))
+    c2w[:, 0, 3] = np.linspace(-1.0, 1.0, 9)
+    scene = in_memory_scene("s", rng.uniform(0.2, 0.8, (9, 32, 32, 3)), c2w, np.tile([[30.0, 30, 16, 16]], (9, 1)))
+    write_nerfstudio_scene(scene, str(tmp_path / "ns"), bits=8)
+    gs = str(tmp_path / "s.gs")
+    assert main(["reconstruct", "--checkpoint", work, "--scene", str(tmp_path / "ns"), "--num-inputs", "2",
+                 "--size", "32", "--repeats", "1", "--out", gs]) == 0
+    assert load_gs(gs).model == exp.model
+    assert main(["render", "--gaussians", gs, "--path", "targets", "--quiet", "--out", str(tmp_path / "f")]) == 2
+    assert main(["render", "--gaussians", gs, "--checkpoint", work, "--path", "orbit", "--frames", "3", "--quiet",
+                 "--out", str(tmp_path / "f")]) == 0
+    assert sorted(os.listdir(tmp_path / "f")) == ["orbit_00000.png", "orbit_00001.png", "orbit_00002.png"]
+    assert main(["export", "--gaussians", gs, "--checkpoint", work, "--ply", str(tmp_path / "s.ply")]) == 0
+    back = read_ply(str(tmp_path / "s.ply"))
+    assert back.mode == "feature" and back.partition_logits.shape[1] == exp.model.decoder.partitions
+
+
+def test_train_data_reads_any_capture_through_read_scene():
+    """``train --data PATH --format auto``: the trainer's scenes come from read_scene, so a
+    COLMAP folder and a nerfstudio folder both load (the old COLMAP image_dir crash)."""
+    from conftest import shared_path
+    from llrmpp_jax.trainer import scene_source
+
+    for name, frames in (("beer", 71), ("fox", 50)):
+        source = scene_source(DataConfig(kind="auto", path=shared_path("data", name)))
+        assert len(source) == 1 and len(source.load(0)) == frames
