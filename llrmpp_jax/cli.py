@@ -316,6 +316,60 @@ def cmd_doctor(args) -> int:
     return 0 if all(r.ok for r in run_checks()) else 1
 
 
+def cmd_view(args) -> int:
+    """The live viewer (:mod:`llrmpp_jax.viewer`) on a .gs file, a capture or a procedural scene."""
+    from llrmpp_jax.viewer.render import ViewRenderer
+    from llrmpp_jax.viewer.scene import check_gaussians, procedural_view_scene, saved_view_scene
+    from llrmpp_jax.viewer.server import Viewer, ViewerSettings, check_port
+
+    check_port(args.host, args.port)  # before any loading or compiling
+    if args.gaussians:
+        from llrmpp_jax.capture import load_gs
+        from llrmpp_jax.capture.render import frame_photos
+        from llrmpp_jax.params_io import check_params_fit
+
+        saved = load_gs(args.gaussians)
+        cfg = saved.model
+        check_gaussians(cfg, saved_view_scene(saved).gaussians, args.gaussians)
+        if cfg.head.mode == "feature" and not args.checkpoint:
+            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (its decoder renders it)")
+        params = _load_params(args.checkpoint, args.config)[0] if args.checkpoint else {}
+        if args.checkpoint:
+            check_params_fit(params, cfg, args.checkpoint)
+        thumbnails = None
+        try:
+            thumbnails = frame_photos(saved, saved.inputs)
+        except (OSError, ValueError) as e:  # the capture moved or changed: frustums without thumbnails
+            print(f"llrmpp view: no input thumbnails ({e})", file=sys.stderr)
+        scene = saved_view_scene(saved, thumbnails)
+    elif args.scene:
+        if not args.checkpoint:
+            raise UserError("view --scene needs --checkpoint (the model that reconstructs it)")
+        params, rec = _reconstruct(args)
+        cfg, scene = rec.saved.model, saved_view_scene(rec.saved, rec.input_images)
+    else:
+        if args.checkpoint:
+            params, cfg = _load_params(args.checkpoint, args.config)
+        elif args.random_init:
+            import jax
+
+            from llrmpp_jax.model import init_params
+
+            cfg = _experiment(args.config or os.path.join(EXPERIMENTS, "demo.py")).model
+            m = cfg.size_multiple
+            params = init_params(jax.random.key(0), cfg, 1, m, m)
+        else:
+            raise UserError("view --procedural needs --checkpoint (or --random-init for an untrained model)")
+        scene = procedural_view_scene(params, cfg, args.procedural)
+    settings = ViewerSettings(height=args.height, moving_height=args.moving_height)
+    viewer = Viewer(ViewRenderer(params, cfg, scene.gaussians), scene, host=args.host, port=args.port,
+                    settings=settings)
+    print(f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "
+          f"http://localhost:{viewer.port} (Ctrl-C to stop)", flush=True)
+    viewer.serve_forever()
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from llrmpp_jax.capture.render import PATHS
     from llrmpp_jax.data.formats import FORMATS
@@ -424,6 +478,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("doctor", help="versions and devices, then kernel-vs-reference checks on this device")
     g.set_defaults(fn=cmd_doctor)
+
+    w = sub.add_parser("view", help="live viewer in the browser (viser) of a .gs file, a capture or a procedural scene")
+    src = w.add_mutually_exclusive_group(required=True)
+    src.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
+    src.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
+    src.add_argument("--procedural", type=int, default=None, metavar="SEED",
+                     help="reconstruct procedural scene SEED (64x64, 4 inputs) first")
+    capture_args(w, required=False)
+    w.add_argument("--random-init", action="store_true",
+                   help="with --procedural and no --checkpoint: an untrained model of --config (default: the demo's)")
+    w.add_argument("--host", default="0.0.0.0", help="interface to serve on (default: all)")
+    w.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
+    w.add_argument("--height", type=int, default=256, help="render height (px) once the camera stops")
+    w.add_argument("--moving-height", type=int, default=128, help="render height (px) while the camera moves")
+    w.set_defaults(fn=cmd_view)
     return p
 
 
