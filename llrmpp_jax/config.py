@@ -105,9 +105,10 @@ class GaussianHeadConfig:
     gaussians_per_token: int = 16  # K (feature mode)
     feature_dim: int = 32  # F (feature mode)
     sh_degree: int = 3  # color mode
-    # Offsets: offset_px = offset_scale * tanh(raw) * patch_size, i.e. at most offset_scale
-    # patch widths from the patch centre (our choice; the paper leaves it open).
-    offset_scale: float = 1.0
+    # Offsets from the patch centre, in pixels: offset_scale * tanh(raw) * patch_size (at most
+    # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
+    # paper's "move freely"). gaussians.py gives the measured difference.
+    offset_scale: float | None = 1.0
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2

@@ -97,7 +97,7 @@ def decode_gaussians(
             raw, [f, f + 2, f + 3, f + 7, f + 8], axis=-1
         )
         dist_raw = dist_raw[..., 0]
-        off = cfg.offset_scale * s * jnp.tanh(off)
+        off = s * off if cfg.offset_scale is None else cfg.offset_scale * s * jnp.tanh(off)
         u = cols + s / 2 + off[..., 0]
         vv = rows + s / 2 + off[..., 1]
     uv = jnp.stack([u, vv], axis=-1)  # [B, V, h, w, K, 2]
