@@ -129,10 +129,15 @@ class DecoderConfig:
     blocks: str = "LLGGG"  # L = local k-NN attention, G = global attention
     num_neighbours: int = 64  # k
     partitions: int = 2  # S (1 = no partitioning)
+    # Add a fixed 2-D sin-cos embedding of the token coordinates after the tokenizer: the
+    # paper's Table 5 "GGG" baseline (global attention with absolute positions); needs dim % 4 == 0.
+    absolute_positions: bool = False
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     remat: bool = False
 
     def __post_init__(self) -> None:
+        if self.absolute_positions and self.dim % 4:
+            raise ValueError(f"DecoderConfig: absolute_positions needs dim % 4 == 0, got dim={self.dim}")
         if self.token_stride % self.canvas_ratio:
             raise ValueError(
                 f"DecoderConfig: token_stride {self.token_stride} must be a multiple of "

@@ -2,6 +2,7 @@
 
 import os
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -150,3 +151,31 @@ def test_model_rejects_mismatched_cameras():
     images = jnp.zeros((1, 2, 32, 32, 3), jnp.float32) + 0.5
     with pytest.raises(ValueError, match=r"c2w must be \[B, V, 4, 4\]"):
         reconstruct(params, cfg, images, jnp.zeros((1, 3, 4, 4), jnp.float32), jnp.ones((1, 2, 4), jnp.float32))
+
+
+def test_absolute_positions_add_the_sincos_embedding(key):
+    """``absolute_positions``: the first block sees tokenizer output + the 2-D sin-cos table
+    (an independent formula in test_position_embedding), at two canvas sizes with one
+    parameter set; off, it sees the tokenizer output alone."""
+    from test_position_embedding import oracle
+
+    seen = []
+
+    def spy(next_fun, args, kwargs, context):
+        if context.module.name == "blocks_0" and context.method_name == "__call__":
+            seen.append(np.asarray(args[0], np.float64))
+        return next_fun(*args, **kwargs)
+
+    cfg = C.DecoderConfig(dim=32, blocks="GGG", partitions=1, transformer=C.TransformerConfig(head_dim=16))
+    with_pe = TargetDecoder(C.replace(cfg, absolute_positions=True))
+    params = with_pe.init(key, jnp.zeros((1, 1, 16, 24, 7), jnp.float32))["params"]
+    for hc, wc in ((16, 24), (28, 12)):  # token grids 4x6 and 7x3
+        x = jax.random.normal(jax.random.fold_in(key, hc), (1, 1, hc, wc, 7), jnp.float32)
+        seen.clear()
+        with nn.intercept_methods(spy):
+            out = with_pe.apply({"params": params}, x)["rgb"]
+            TargetDecoder(cfg).apply({"params": params}, x)
+        assert out.shape == (1, hc * 2, wc * 2, 3) and bool(jnp.all(jnp.isfinite(out)))
+        np.testing.assert_allclose(seen[0] - seen[1], oracle(hc // 4, wc // 4, 32)[None], atol=1e-6)
+    with pytest.raises(ValueError, match=r"absolute_positions needs dim % 4 == 0, got dim=30"):
+        C.DecoderConfig(dim=30, absolute_positions=True)
