@@ -5,7 +5,8 @@ notebook changes one value with ``dataclasses.replace`` and gets a new model. Pr
 
 * :func:`paper_dl3dv` -- Long-LRM++ on DL3DV (paper §4.1): D=768, 24 blocks ``{1T7M}x3``,
   d_state 256, expand 2, headdim 64, p=8, K=16, F=32, r=2, decoder ``LLGGG`` E=256, S=2.
-* :func:`long_lrm` -- the predecessor (colour Gaussians, ``mmmmmmmt``, token merge).
+* :func:`long_lrm` -- the predecessor (colour Gaussians, ``mmmmmmmt``, token merge);
+  :func:`long_lrm_i540` -- the same with its stage-3 Gaussian pruning.
 * :func:`tiny` -- a model that runs forward in well under a second on one CPU core.
 """
 
@@ -113,10 +114,23 @@ class GaussianHeadConfig:
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2
     opacity_bias: float = -2.0  # opacity = sigmoid(raw + bias)
+    # Long-LRM's pruning (colour mode, pruning.py), in training and evaluation: keep
+    # 1 - prune_ratio of the Gaussians, prune_random_ratio of those at random, the rest the
+    # most opaque. Its stage 3 (960x540, the released checkpoint) uses 0.6 / 0.1; 0: none.
+    prune_ratio: float = 0.0
+    prune_random_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("feature", "color"):
             raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+        if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
+            raise ValueError(
+                f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "
+                f"{self.prune_ratio} and {self.prune_random_ratio}"
+            )
+        if self.prune_ratio and self.mode != "color":
+            raise ValueError("GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; "
+                             f"mode={self.mode!r} needs prune_ratio=0")
 
 
 @dataclass(frozen=True)
@@ -160,8 +174,6 @@ class ModelConfig:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour mode only (Long-LRM: white)
 
     def __post_init__(self) -> None:
-        if self.head.mode == "color" and self.outputs != ("rgb",):
-            raise ValueError(f"ModelConfig: colour mode renders only ('rgb',), got outputs={self.outputs}")
         if self.head.mode == "feature" and self.decoder.token_stride % self.patch_size and \
                 self.patch_size % self.decoder.token_stride:
             raise ValueError(
@@ -212,6 +224,13 @@ def long_lrm() -> ModelConfig:
         ),
         head=GaussianHeadConfig(mode="color"),
     )
+
+
+def long_lrm_i540() -> ModelConfig:
+    """Long-LRM's stage 3 at 960x540 (``dl3dv_i540_32input_8target.yaml``, the released
+    checkpoint): :func:`long_lrm` with Gaussian pruning 0.6 / random 0.1 (facts §1.6)."""
+    base = long_lrm()
+    return replace(base, head=replace(base.head, prune_ratio=0.6, prune_random_ratio=0.1))
 
 
 def tiny() -> ModelConfig:
