@@ -6,13 +6,13 @@ units), ties broken by ``dy`` and then ``dx`` (both ascending, ``(dy, dx)`` = ne
 minus token). The self offset ``(0, 0)`` always comes first. A token whose ``k`` nearest
 offsets all fit inside the grid (an *interior* token) gets the same ordered offset set as
 every other interior token, so the layer is translation invariant there; a border token
-gets the nearest in-grid tokens instead, never fewer than ``kn``. The tables are NumPy,
+attends to its ``kn`` nearest in-grid tokens instead (nothing is masked). The tables are NumPy,
 built once per ``(h, w, k)`` at trace time, so shapes stay static under ``jit``.
 
 Relative position (AutoFocusFormer, facts §6.3): the logit of neighbour ``j`` gets
 ``MLP(dx, dy, |d|, dx/|d|, dy/|d|)`` of its true offset (0 features for the self offset).
-The MLP runs once per call on the distinct offsets of the grid (at most a few hundred)
-and the per-token biases are gathered from that table.
+The MLP runs once per call on the distinct offsets used on the grid (221 for k = 64 on a
+32x32 grid) and the per-token biases are gathered from that table.
 
 Parameter names mirror :class:`~llrmpp_jax.nn.attention.Attention` (``qkv``, ``proj``,
 ``q_norm``, ``k_norm``) plus ``rel_bias``.
