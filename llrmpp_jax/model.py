@@ -8,8 +8,9 @@ The pure API (``cfg`` is a static :class:`~llrmpp_jax.config.ModelConfig`):
   feature mode splats the S partition copies to ``(H/r, W/r)`` canvases and decodes them;
   colour mode (Long-LRM) splats SH colours directly over ``cfg.background``, and its depth
   is the expected camera z, ``sum_i w_i z_i / sum_i w_i`` (the accumulated z normalised
-  by the accumulated alpha, as gsplat's "ED" mode that Long-LRM-style depth supervision
-  uses), so the depth losses train it like the feature model's depth head.
+  by the accumulated alpha, gsplat's "ED" render mode), so the paper's depth losses train
+  it like the feature model's depth head: the colour-Gaussian depth rows of Tables 2 and 7.
+  (Long-LRM's own depth term supervises its Gaussian centres instead, facts §2.2.)
 
 Colour-mode configs with ``head.prune_ratio > 0`` (Long-LRM's stage 3) have their Gaussians
 pruned between the two calls by :func:`llrmpp_jax.pruning.prune_gaussians`; the trainer
