@@ -108,7 +108,7 @@ class GaussianHeadConfig:
     sh_degree: int = 3  # color mode
     # Offsets from the patch centre, in pixels: offset_scale * tanh(raw) * patch_size (at most
     # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
-    # paper's "move freely"). gaussians.py gives the measured difference.
+    # paper's "move freely"). Measured on the demo: 19.15 vs 19.18 dB, no difference (gaussians.py).
     offset_scale: float | None = 1.0
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)

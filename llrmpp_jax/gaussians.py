@@ -5,7 +5,14 @@ bias-free LayerNorm + linear. Per Gaussian, channels in this order:
 ``[feature F | offset 2 | distance 1 | quaternion 4 (wxyz) | opacity 1 | log-scale 3]``.
 The centre is ``o + distance * d`` where ``d`` is the unit ray of the token's view through
 the pixel position ``patch centre + offset``; ``offset = offset_scale * tanh(raw) * p``
-pixels (bounded so a Gaussian stays near its patch; our choice, the paper leaves it open).
+pixels (default: within one patch of its own), or ``raw * p`` unbounded with
+``offset_scale=None`` (the paper's offsets "move freely"; it gives no bound).
+
+The bound does not matter, measured: the demo config (``experiments/demo.py``) trained
+800 steps, seed 0, scored on its 16 held-out procedural scenes, gives 19.15 dB PSNR /
+0.362 SSIM with ``offset_scale=1`` and 19.18 dB / 0.362 unbounded (training PSNR curves
+within 0.1 dB of each other throughout; mean-colour baseline 17.29 dB). The bounded
+default is kept: it cannot send a Gaussian off-screen early in training, and costs nothing.
 
 Colour mode (Long-LRM, facts §1.6): the head predicts ``p_out**2`` Gaussians per token, one
 per pixel, channels ``[xyz 3 | SH (deg+1)^2*3 | log-scale 3 | quaternion 4 | opacity 1]``;
