@@ -181,34 +181,46 @@ def test_absolute_positions_add_the_sincos_embedding(key):
         C.DecoderConfig(dim=30, absolute_positions=True)
 
 
-def test_colour_mode_depth_equals_brute_force_and_trains(key):
-    """Colour-mode depth = accumulated camera z / accumulated alpha of the brute-force
-    splatter (``splat/reference.py``), on the golden Long-LRM Gaussians seen from their input
-    cameras (float64); the depth loss on it has finite, non-zero gradients."""
+def _golden_colour_scene():
+    """The golden Long-LRM Gaussians (float64) and their input cameras as render targets."""
     from llrmpp_jax.gaussians import Gaussians
-    from llrmpp_jax.splat.reference import render_features_reference
 
     out = np.load(shared_path("golden", "long_lrm_tiny", "outputs.npz"))
-    cfg = C.replace(golden_model_config(), outputs=("rgb", "depth"))
     g = Gaussians(jnp.asarray(out["xyz"]), jnp.asarray(out["render_quats"]), jnp.asarray(out["render_scales"]),
                   jnp.asarray(out["render_opacities"]), jnp.asarray(out["feature"].reshape(2, 3072, 48)))
     c2w = jnp.asarray(np.linalg.inv(out["render_viewmats"]))
     ks = out["render_Ks"]
     intr = jnp.asarray(np.stack([ks[..., 0, 0], ks[..., 1, 1], ks[..., 0, 2], ks[..., 1, 2]], -1))
+    return C.replace(golden_model_config(), outputs=("rgb", "depth")), g, c2w, intr
+
+
+def test_colour_mode_depth_equals_brute_force():
+    """Colour-mode depth = accumulated camera z / accumulated alpha of the brute-force
+    splatter (``splat/reference.py``), on the golden Long-LRM Gaussians seen from their input
+    cameras (float64)."""
+    from llrmpp_jax.splat.reference import render_features_reference
+
+    cfg, g, c2w, intr = _golden_colour_scene()
     h, w = 32, 48
     got = render({}, cfg, g, c2w, intr, h, w, ("depth",)).images
     assert set(got) == {"depth"} and got["depth"].shape == (2, 2, h, w, 1)
     reference = jax.jit(render_features_reference, static_argnums=(7, 8, 9))
     for b, t in ((0, 0), (1, 1)):
         _, trans, acc_z = reference(g.means[b], g.quats[b], g.scales[b], g.opacities[b],
-                                                    g.features[b, :, :3], c2w[b, t], intr[b, t], h, w, cfg.splat)
+                                    g.features[b, :, :3], c2w[b, t], intr[b, t], h, w, cfg.splat)
         alpha = 1.0 - np.asarray(trans)
         assert alpha.min() > 0.01  # every pixel is reached, so the division is well conditioned
         np.testing.assert_allclose(np.asarray(got["depth"][b, t, ..., 0]), np.asarray(acc_z) / alpha,
                                    rtol=1e-9, atol=0)
 
-    one = Gaussians(*(a[:1] for a in g))  # one scene, one target: the gradient check
-    target = got["depth"][:1, :1, ..., 0] * 1.1
+
+@pytest.mark.slow  # ~40 s idle: compiles the splatter's backward pass
+def test_colour_mode_depth_trains_with_the_depth_loss():
+    """The depth loss on colour-mode depth has finite, non-zero gradients w.r.t. the means."""
+    cfg, g, c2w, intr = _golden_colour_scene()
+    h, w = 32, 48
+    one = jax.tree.map(lambda a: a[:1], g)  # one scene, one target
+    target = render({}, cfg, one, c2w[:1, :1], intr[:1, :1], h, w, ("depth",)).images["depth"][..., 0] * 1.1
 
     def loss(means):
         d = render({}, cfg, one._replace(means=means), c2w[:1, :1], intr[:1, :1], h, w, ("depth",)).images["depth"]
