@@ -5,7 +5,8 @@ notebook changes one value with ``dataclasses.replace`` and gets a new model. Pr
 
 * :func:`paper_dl3dv` -- Long-LRM++ on DL3DV (paper §4.1): D=768, 24 blocks ``{1T7M}x3``,
   d_state 256, expand 2, headdim 64, p=8, K=16, F=32, r=2, decoder ``LLGGG`` E=256, S=2.
-* :func:`long_lrm` -- the predecessor (colour Gaussians, ``mmmmmmmt``, token merge).
+* :func:`long_lrm` -- the predecessor (colour Gaussians, ``mmmmmmmt``, token merge);
+  :func:`long_lrm_i540` -- the same with its stage-3 Gaussian pruning.
 * :func:`tiny` -- a model that runs forward in well under a second on one CPU core.
 """
 
@@ -140,17 +141,31 @@ class GaussianHeadConfig:
     gaussians_per_token: int = 16  # K (feature mode)
     feature_dim: int = 32  # F (feature mode)
     sh_degree: int = 3  # color mode
-    # Offsets: offset_px = offset_scale * tanh(raw) * patch_size, i.e. at most offset_scale
-    # patch widths from the patch centre (our choice; the paper leaves it open).
-    offset_scale: float = 1.0
+    # Offsets from the patch centre, in pixels: offset_scale * tanh(raw) * patch_size (at most
+    # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
+    # paper's "move freely"). Measured on the demo: 19.15 vs 19.18 dB, no difference (gaussians.py).
+    offset_scale: float | None = 1.0
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2
     opacity_bias: float = -2.0  # opacity = sigmoid(raw + bias)
+    # Long-LRM's pruning (colour mode, pruning.py), in training and evaluation: keep
+    # 1 - prune_ratio of the Gaussians, prune_random_ratio of those at random, the rest the
+    # most opaque. Its stage 3 (960x540, the released checkpoint) uses 0.6 / 0.1; 0: none.
+    prune_ratio: float = 0.0
+    prune_random_ratio: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in ("feature", "color"):
             raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+        if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
+            raise ValueError(
+                f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "
+                f"{self.prune_ratio} and {self.prune_random_ratio}"
+            )
+        if self.prune_ratio and self.mode != "color":
+            raise ValueError("GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; "
+                             f"mode={self.mode!r} needs prune_ratio=0")
 
 
 @dataclass(frozen=True)
@@ -163,10 +178,15 @@ class DecoderConfig:
     blocks: str = "LLGGG"  # L = local k-NN attention, G = global attention
     num_neighbours: int = 64  # k
     partitions: int = 2  # S (1 = no partitioning)
+    # Add a fixed 2-D sin-cos embedding of the token coordinates after the tokenizer: the
+    # paper's Table 5 "GGG" baseline (global attention with absolute positions); needs dim % 4 == 0.
+    absolute_positions: bool = False
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     remat: bool = False
 
     def __post_init__(self) -> None:
+        if self.absolute_positions and self.dim % 4:
+            raise ValueError(f"DecoderConfig: absolute_positions needs dim % 4 == 0, got dim={self.dim}")
         if self.token_stride % self.canvas_ratio:
             raise ValueError(
                 f"DecoderConfig: token_stride {self.token_stride} must be a multiple of "
@@ -189,8 +209,6 @@ class ModelConfig:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour mode only (Long-LRM: white)
 
     def __post_init__(self) -> None:
-        if self.head.mode == "color" and self.outputs != ("rgb",):
-            raise ValueError(f"ModelConfig: colour mode renders only ('rgb',), got outputs={self.outputs}")
         if self.head.mode == "feature" and self.decoder.token_stride % self.patch_size and \
                 self.patch_size % self.decoder.token_stride:
             raise ValueError(
@@ -251,6 +269,13 @@ def long_lrm() -> ModelConfig:
         ),
         head=GaussianHeadConfig(mode="color"),
     )
+
+
+def long_lrm_i540() -> ModelConfig:
+    """Long-LRM's stage 3 at 960x540 (``dl3dv_i540_32input_8target.yaml``, the released
+    checkpoint): :func:`long_lrm` with Gaussian pruning 0.6 / random 0.1 (facts §1.6)."""
+    base = long_lrm()
+    return replace(base, head=replace(base.head, prune_ratio=0.6, prune_random_ratio=0.1))
 
 
 def tiny() -> ModelConfig:

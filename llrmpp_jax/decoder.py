@@ -7,8 +7,10 @@ For one target camera and the S partition copies of the Gaussians:
 2. each copy is splatted to a feature canvas ``[H/r, W/r, F]`` and the target's Plücker
    rays ``[o x d, d]`` (through the canvas pixel centres) are concatenated -> F+6.
 3. decode each copy independently with the same decoder: patchify with patch ``q/r`` so
-   tokens are ``(H/q, W/q)``, linear to E, blocks (``L`` local k-NN attention with
-   relative-position bias, ``G`` global), QK-norm everywhere, final bias-free LayerNorm.
+   tokens are ``(H/q, W/q)``, linear to E (plus, with ``absolute_positions``, a fixed
+   2-D sin-cos embedding of the token coordinates, ``nn/position_embedding.py``), blocks
+   (``L`` local k-NN attention with relative-position bias, ``G`` global), QK-norm
+   everywhere, final bias-free LayerNorm.
 4. merge: ``Linear(E -> 1)`` on each decoded copy gives S logits per token, softmax over
    S, weighted sum of the S token maps, then the output linear to ``q*q*C`` values per
    token, unpatchified to ``[H, W, C]``.
@@ -28,6 +30,7 @@ from llrmpp_jax.config import DecoderConfig
 from llrmpp_jax.nn.backbone import parse_block_pattern
 from llrmpp_jax.nn.norms import LayerNorm
 from llrmpp_jax.nn.patchify import patchify, unpatchify
+from llrmpp_jax.nn.position_embedding import sincos_2d
 from llrmpp_jax.nn.transformer import TransformerBlock
 
 OUTPUT_CHANNELS = {"rgb": 3, "depth": 1}
@@ -67,6 +70,8 @@ class TargetDecoder(nn.Module):
         x = patchify(canvas.reshape(m * s, 1, hc, wc, -1), cp)  # [M*S, L, cp*cp*C]
         x = nn.Dense(cfg.dim, use_bias=False, name="tokenizer",
                      kernel_init=nn.initializers.normal(0.02))(x)
+        if cfg.absolute_positions:
+            x = x + jnp.asarray(sincos_2d(*grid, cfg.dim), x.dtype)[None]
         block_cls = nn.remat(TransformerBlock) if cfg.remat else TransformerBlock
         for i, kind in enumerate(parse_block_pattern(cfg.blocks, "LG")):
             x = block_cls(

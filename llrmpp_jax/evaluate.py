@@ -8,32 +8,45 @@ Baselines, measured on the same targets (they show whether the model learned any
 
 Metrics are per target view, then averaged per scene, then over scenes (Long-LRM's order):
 PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG; with a depth
-head, the depth metrics in metres (the sample's scene normalisation undone first).
+head, the depth metrics in metres (the sample's scene normalisation undone first). The
+model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from llrmpp_jax.array_typing import KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
 from llrmpp_jax.model import reconstruct, render
+from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 
 METHODS = ("model", "mean_colour", "nearest_view")
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
-def predict(params: dict, cfg: ModelConfig, sample: dict) -> dict[str, jax.Array]:
-    """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``."""
+def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None = None) -> dict[str, jax.Array]:
+    """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``,
+    plus ``dropped`` and ``gaussian_usage`` ``[B]``.
+
+    Colour-mode configs with ``head.prune_ratio > 0`` are pruned as in training
+    (``pruning.py``); ``key`` draws the random share (default ``jax.random.key(0)``, so an
+    evaluation is repeatable).
+    """
     g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
+    usage = gaussian_usage(g.opacities)
+    key = jax.random.key(0) if key is None else key
+    g = prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key)
     h, w = sample["target_images"].shape[2:4]
     out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
-    return dict(out.images, dropped=out.dropped)
+    return dict(out.images, dropped=out.dropped, gaussian_usage=usage)
 
 
 def baseline_predictions(sample: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -75,6 +88,7 @@ def evaluate(
         for method in METHODS:
             rows.append({"scene": name, "method": method,
                          **image_metrics(candidates[method], s["target_images"], lpips_params)})
+        rows[-len(METHODS)]["gaussian_usage"] = float(out["gaussian_usage"][0])
         if "depth" in out and "target_depth" in s:
             metres = np.float32(1.0) / s["scene_scale"]
             dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(s["target_depth"] * metres))
@@ -111,5 +125,6 @@ def format_table(summary: dict[str, dict[str, float]]) -> str:
     head = f"{'method':<14}" + "".join(f"{k:>10}" for k in keys)
     lines = [head, "-" * len(head)]
     for method, vals in summary.items():
-        lines.append(f"{method:<14}" + "".join(f"{vals[k]:>10.4f}" for k in keys))
+        # the baselines lack the model-only columns (gaussian_usage, depth metrics): nan
+        lines.append(f"{method:<14}" + "".join(f"{vals.get(k, math.nan):>10.4f}" for k in keys))
     return "\n".join(lines)

@@ -5,7 +5,16 @@ bias-free LayerNorm + linear. Per Gaussian, channels in this order:
 ``[feature F | offset 2 | distance 1 | quaternion 4 (wxyz) | opacity 1 | log-scale 3]``.
 The centre is ``o + distance * d`` where ``d`` is the unit ray of the token's view through
 the pixel position ``patch centre + offset``; ``offset = offset_scale * tanh(raw) * p``
-pixels (bounded so a Gaussian stays near its patch; our choice, the paper leaves it open).
+pixels (default: within one patch of its own), or ``raw * p`` unbounded with
+``offset_scale=None`` (the paper's offsets "move freely"; it gives no bound).
+
+The bound does not matter, measured: the demo config (``experiments/demo.py``) trained
+800 steps, seed 0, scored on its 16 held-out procedural scenes, gives 19.15 dB PSNR /
+0.362 SSIM with ``offset_scale=1`` and 19.18 dB / 0.362 unbounded (mean-colour baseline
+17.29 dB); the training PSNR, averaged per 100 steps, differs by at most 0.37 dB, with
+no sign either way. (Run before the decoder's local attention became exact k-NN; the
+offsets act before the decoder.) The bounded default is kept: it cannot send a Gaussian
+off-screen early in training.
 
 Colour mode (Long-LRM, facts §1.6): the head predicts ``p_out**2`` Gaussians per token, one
 per pixel, channels ``[xyz 3 | SH (deg+1)^2*3 | log-scale 3 | quaternion 4 | opacity 1]``;
@@ -101,7 +110,7 @@ def decode_gaussians(
             raw, [f, f + 2, f + 3, f + 7, f + 8], axis=-1
         )
         dist_raw = dist_raw[..., 0]
-        off = cfg.offset_scale * s * jnp.tanh(off)
+        off = s * off if cfg.offset_scale is None else cfg.offset_scale * s * jnp.tanh(off)
         u = cols + s / 2 + off[..., 0]
         vv = rows + s / 2 + off[..., 1]
     uv = jnp.stack([u, vv], axis=-1)  # [B, V, h, w, K, 2]

@@ -6,8 +6,16 @@ The pure API (``cfg`` is a static :class:`~llrmpp_jax.config.ModelConfig`):
 * :func:`reconstruct` -- ``(params, images, c2w, intrinsics) -> Gaussians`` (paper §3.1-3.2).
 * :func:`render` -- ``(params, gaussians, target cameras) -> RenderOutput`` (§3.2-3.3):
   feature mode splats the S partition copies to ``(H/r, W/r)`` canvases and decodes them;
-  colour mode (Long-LRM) splats SH colours directly over ``cfg.background``.
+  colour mode (Long-LRM) splats SH colours directly over ``cfg.background``, and its depth
+  is the expected camera z, ``sum_i w_i z_i / sum_i w_i`` (the accumulated z normalised
+  by the accumulated alpha, gsplat's "ED" render mode), so the paper's depth losses train
+  it like the feature model's depth head: the colour-Gaussian depth rows of Tables 2 and 7.
+  (Long-LRM's own depth term supervises its Gaussian centres instead, facts §2.2.)
 * :func:`partition_logits` -- feature mode: the S partition logits of each Gaussian.
+
+Colour-mode configs with ``head.prune_ratio > 0`` (Long-LRM's stage 3) have their Gaussians
+pruned between the two calls by :func:`llrmpp_jax.pruning.prune_gaussians`; the trainer
+and the evaluator do it (``reconstruct`` returns every Gaussian).
 
 Cameras are OpenCV c2w ``[..., 4, 4]`` and pixel intrinsics ``[..., 4]`` = (fx, fy, cx, cy),
 in the normalised scene frame (see ``geometry.normalize_scene``).
@@ -28,6 +36,11 @@ from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
 from llrmpp_jax.splat import render_feature_copies, render_sh
+
+
+# Colour-mode depth divides by the accumulated alpha, clamped as gsplat's "ED" render mode
+# does; a pixel no Gaussian reaches gets depth 0.
+COLOR_DEPTH_MIN_ALPHA = 1e-10
 
 
 class RenderOutput(NamedTuple):
@@ -77,18 +90,20 @@ class LongLRMPP(nn.Module):
         cfg = self.cfg
         per_target = lambda f: jax.vmap(jax.vmap(f, (None, 0, 0)), (0, 0, 0))  # noqa: E731  over B, T
         if cfg.head.mode == "color":
-            if outputs != ("rgb",):
-                raise ValueError(f"colour mode renders only ('rgb',), asked for {outputs}")
+            if not outputs or set(outputs) - {"rgb", "depth"}:
+                raise ValueError(f"colour mode renders 'rgb' and/or 'depth', asked for {outputs}")
             bg = jnp.asarray(cfg.background, jnp.float32)
 
             def one(g, cam, k):
                 rgb, out = render_sh(g.means, g.quats, g.scales, g.opacities,
                                      g.features.reshape(g.features.shape[0], -1, 3),
                                      cam, k, height, width, cfg.splat, bg)
-                return rgb, out.stats.num_dropped
+                # Expected depth (gsplat "ED"): accumulated camera z over accumulated alpha.
+                depth = out.depth / jnp.maximum(1.0 - out.transmittance, COLOR_DEPTH_MIN_ALPHA)
+                return {"rgb": rgb, "depth": depth[..., None]}, out.stats.num_dropped
 
-            rgb, dropped = per_target(one)(gaussians, c2w, intrinsics)
-            return RenderOutput({"rgb": rgb}, jnp.sum(dropped, axis=1))
+            images, dropped = per_target(one)(gaussians, c2w, intrinsics)
+            return RenderOutput({o: images[o] for o in outputs}, jnp.sum(dropped, axis=1))
 
         r = cfg.decoder.canvas_ratio
         if height % cfg.decoder.token_stride or width % cfg.decoder.token_stride:

@@ -35,6 +35,7 @@ from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
+from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 
 def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
     if data.kind == "procedural":
@@ -126,12 +127,16 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
 
 
 def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossFn:
-    """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard."""
+    """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard.
+
+    ``key`` draws the random share of Long-LRM's Gaussian pruning (colour mode with
+    ``prune_ratio > 0``); ``gaussian_usage`` is logged before pruning."""
     cfg = exp.model
 
     def loss_fn(params, batch, key):
-        del key  # the model is deterministic; kept for the step's interface
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
+        usage = gaussian_usage(g.opacities)  # before pruning, as Long-LRM logs it
+        g = prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key)
         h, w = batch["target_images"].shape[2:4]
         out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, cfg.outputs)
         loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3),
@@ -145,6 +150,7 @@ def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossF
             loss = loss + d
             aux.update({f"depth_{k}": v for k, v in daux.items()})
         aux["splat_dropped"] = jnp.sum(out.dropped).astype(jnp.float32)
+        aux["gaussian_usage"] = jnp.mean(usage)
         return loss, aux
 
     return loss_fn

@@ -28,7 +28,11 @@ print(scale)
 # One config per row. Colour: Long-LRM's head (one Gaussian per pixel, SH degree 3) on the
 # same backbone, no decoder. Feature: the scale's base model with the row's decoder
 # blocks and width E (divided by `scale.width_divisor` in smoke mode; the `E here` column
-# shows the width actually used). The paper's PSNR is copied from the .tex.
+# shows the width actually used). `GGG` is the paper's "global attention with absolute
+# positional embeddings": its tokens get a fixed 2-D sin-cos embedding of their grid
+# coordinates (`absolute_positions`; defined at any canvas size). The rows with `L` blocks
+# need none: their relative-position bias carries the geometry. The paper's PSNR is copied
+# from the .tex.
 
 
 # %%
@@ -36,13 +40,15 @@ def colour(base: C.ModelConfig) -> C.ModelConfig:
     return C.replace(base, head=C.replace(base.head, mode="color"))
 
 
-def decoder(blocks: str, dim: int):
-    return lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks, dim=scale.width(dim)))
+def decoder(blocks: str, dim: int, absolute_positions: bool = False):
+    return lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks, dim=scale.width(dim),
+                                                          absolute_positions=absolute_positions))
 
 
 VARIANTS = [
     A.Variant({"splat": "Color", "blocks": "/", "dim": "/"}, colour, {"PSNR": "27.32"}),
-    A.Variant({"splat": "Feature", "blocks": "GGG", "dim": "256"}, decoder("GGG", 256), {"PSNR": "27.78"}),
+    A.Variant({"splat": "Feature", "blocks": "GGG", "dim": "256"}, decoder("GGG", 256, absolute_positions=True),
+              {"PSNR": "27.78"}),
     A.Variant({"splat": "Feature", "blocks": "LLL", "dim": "256"}, decoder("LLL", 256), {"PSNR": "28.23"}),
     A.Variant({"splat": "Feature", "blocks": "LLG", "dim": "256"}, decoder("LLG", 256), {"PSNR": "28.37"}),
     A.Variant({"splat": "Feature", "blocks": "LLGGG", "dim": "256"}, decoder("LLGGG", 256), {"PSNR": "28.74"},

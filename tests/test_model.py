@@ -2,6 +2,7 @@
 
 import os
 
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -150,3 +151,80 @@ def test_model_rejects_mismatched_cameras():
     images = jnp.zeros((1, 2, 32, 32, 3), jnp.float32) + 0.5
     with pytest.raises(ValueError, match=r"c2w must be \[B, V, 4, 4\]"):
         reconstruct(params, cfg, images, jnp.zeros((1, 3, 4, 4), jnp.float32), jnp.ones((1, 2, 4), jnp.float32))
+
+
+def test_absolute_positions_add_the_sincos_embedding(key):
+    """``absolute_positions``: the first block sees tokenizer output + the 2-D sin-cos table
+    (an independent formula in test_position_embedding), at two canvas sizes with one
+    parameter set; off, it sees the tokenizer output alone."""
+    from test_position_embedding import oracle
+
+    seen = []
+
+    def spy(next_fun, args, kwargs, context):
+        if context.module.name == "blocks_0" and context.method_name == "__call__":
+            seen.append(np.asarray(args[0], np.float64))
+        return next_fun(*args, **kwargs)
+
+    cfg = C.DecoderConfig(dim=32, blocks="GGG", partitions=1, transformer=C.TransformerConfig(head_dim=16))
+    with_pe = TargetDecoder(C.replace(cfg, absolute_positions=True))
+    params = with_pe.init(key, jnp.zeros((1, 1, 16, 24, 7), jnp.float32))["params"]
+    for hc, wc in ((16, 24), (28, 12)):  # token grids 4x6 and 7x3
+        x = jax.random.normal(jax.random.fold_in(key, hc), (1, 1, hc, wc, 7), jnp.float32)
+        seen.clear()
+        with nn.intercept_methods(spy):
+            out = with_pe.apply({"params": params}, x)["rgb"]
+            TargetDecoder(cfg).apply({"params": params}, x)
+        assert out.shape == (1, hc * 2, wc * 2, 3) and bool(jnp.all(jnp.isfinite(out)))
+        np.testing.assert_allclose(seen[0] - seen[1], oracle(hc // 4, wc // 4, 32)[None], atol=1e-6)
+    with pytest.raises(ValueError, match=r"absolute_positions needs dim % 4 == 0, got dim=30"):
+        C.DecoderConfig(dim=30, absolute_positions=True)
+
+
+def _golden_colour_scene():
+    """The golden Long-LRM Gaussians (float64) and their input cameras as render targets."""
+    from llrmpp_jax.gaussians import Gaussians
+
+    out = np.load(shared_path("golden", "long_lrm_tiny", "outputs.npz"))
+    g = Gaussians(jnp.asarray(out["xyz"]), jnp.asarray(out["render_quats"]), jnp.asarray(out["render_scales"]),
+                  jnp.asarray(out["render_opacities"]), jnp.asarray(out["feature"].reshape(2, 3072, 48)))
+    c2w = jnp.asarray(np.linalg.inv(out["render_viewmats"]))
+    ks = out["render_Ks"]
+    intr = jnp.asarray(np.stack([ks[..., 0, 0], ks[..., 1, 1], ks[..., 0, 2], ks[..., 1, 2]], -1))
+    return C.replace(golden_model_config(), outputs=("rgb", "depth")), g, c2w, intr
+
+
+def test_colour_mode_depth_equals_brute_force():
+    """Colour-mode depth = accumulated camera z / accumulated alpha of the brute-force
+    splatter (``splat/reference.py``), on the golden Long-LRM Gaussians seen from their input
+    cameras (float64)."""
+    from llrmpp_jax.splat.reference import render_features_reference
+
+    cfg, g, c2w, intr = _golden_colour_scene()
+    h, w = 32, 48
+    got = render({}, cfg, g, c2w, intr, h, w, ("depth",)).images
+    assert set(got) == {"depth"} and got["depth"].shape == (2, 2, h, w, 1)
+    reference = jax.jit(render_features_reference, static_argnums=(7, 8, 9))
+    for b, t in ((0, 0), (1, 1)):
+        _, trans, acc_z = reference(g.means[b], g.quats[b], g.scales[b], g.opacities[b],
+                                    g.features[b, :, :3], c2w[b, t], intr[b, t], h, w, cfg.splat)
+        alpha = 1.0 - np.asarray(trans)
+        assert alpha.min() > 0.01  # every pixel is reached, so the division is well conditioned
+        np.testing.assert_allclose(np.asarray(got["depth"][b, t, ..., 0]), np.asarray(acc_z) / alpha,
+                                   rtol=1e-9, atol=0)
+
+
+@pytest.mark.slow  # ~40 s idle: compiles the splatter's backward pass
+def test_colour_mode_depth_trains_with_the_depth_loss():
+    """The depth loss on colour-mode depth has finite, non-zero gradients w.r.t. the means."""
+    cfg, g, c2w, intr = _golden_colour_scene()
+    h, w = 32, 48
+    one = jax.tree.map(lambda a: a[:1], g)  # one scene, one target
+    target = render({}, cfg, one, c2w[:1, :1], intr[:1, :1], h, w, ("depth",)).images["depth"][..., 0] * 1.1
+
+    def loss(means):
+        d = render({}, cfg, one._replace(means=means), c2w[:1, :1], intr[:1, :1], h, w, ("depth",)).images["depth"]
+        return depth_loss(d[0, :, :, :, 0], target[0], intr[0, :1])[0]
+
+    grad = np.asarray(jax.grad(loss)(one.means))
+    assert np.isfinite(grad).all() and np.abs(grad).max() > 0

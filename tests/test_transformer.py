@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import shared_path
 from test_attention import attention_module_oracle, gelu, randomize, rel_err
+from test_local_attention import module_mask_bias
 
 from llrmpp_jax.config import TransformerConfig
 from llrmpp_jax.convert.table import Rule, convert_state_dict, linear
@@ -26,7 +27,7 @@ def block_oracle(p, x, cfg: TransformerConfig, grid=None, num_neighbours=None):
     x = f(x)
     x = x + attention_module_oracle(
         p["attn"], layer_norm(x, f(p["norm1"]["scale"]), cfg.norm_eps), cfg.head_dim, cfg.qk_norm,
-        grid=grid, num_neighbours=num_neighbours, eps=cfg.norm_eps,
+        None if grid is None else module_mask_bias(grid, num_neighbours), eps=cfg.norm_eps,
     )
     y = layer_norm(x, f(p["norm2"]["scale"]), cfg.norm_eps)
     return x + gelu(y @ f(p["mlp"]["fc1"]["kernel"])) @ f(p["mlp"]["fc2"]["kernel"])
