@@ -62,7 +62,7 @@ def view_size(scene: Scene, frame: int, size: tuple[int, int | None], multiple: 
     geom = ViewGeometry(resize_h=h, resize_w=w, multiple=multiple, square_crop=square_crop)
     hw = tuple(int(v) for v in scene.hw[frame])
     resized = resized_size(hw, geom)
-    return geom, resized, crop_box(resized, geom, None), output_size(hw, geom)
+    return geom, resized, crop_box(resized, geom), output_size(hw, geom)
 
 
 @dataclass(frozen=True)
@@ -166,8 +166,8 @@ def reconstruct_scene(
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     _, resized, box, out_hw = view_size(scene, int(inputs[0]), size, cfg.size_multiple, square_crop)
-    in_img, in_k, _ = load_views(scene, inputs, resized, box, out_hw, False)
-    tg_img = load_views(scene, targets, resized, box, out_hw, False)[0] if len(targets) else \
+    in_img, in_k, _ = load_views(scene, inputs, resized, box, None, False)
+    tg_img = load_views(scene, targets, resized, box, None, False)[0] if len(targets) else \
         np.zeros((0, *out_hw, 3), np.float32)
     if normalize:
         _, all_c2w, transform, _ = normalize_scene(scene.c2w[inputs], scene.c2w)

@@ -172,7 +172,7 @@ def frame_photos(saved: SavedScene, frames: np.ndarray, scene_path: str | None =
     if base(scene.frame_names) != base(saved.frame_names):
         raise ValueError(f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
                          f"({len(saved.frame_names)}); reconstruct again")
-    return load_views(scene, frames, saved.resized_hw, saved.crop_box, saved.image_hw, False)[0]
+    return load_views(scene, frames, saved.resized_hw, saved.crop_box, None, False)[0]
 
 
 def view_metrics(rgb: Float[np.ndarray, "T H W 3"], photos: Float[np.ndarray, "T H W 3"],
