@@ -7,7 +7,10 @@ Baselines, measured on the same targets (they show whether the model learned any
   shown as-is (no warping).
 
 Metrics are per target view, then averaged per scene, then over scenes (Long-LRM's order):
-PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG.
+PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG. Beside them,
+diagnostics of the model (so a blur shows in numbers): the PSNR of the input views
+re-rendered from the Gaussians, the mean predicted scale and opacity, and the fraction of
+Gaussians with opacity above 0.01.
 """
 
 from __future__ import annotations
@@ -20,19 +23,39 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
 from llrmpp_jax.model import reconstruct, render
 
 METHODS = ("model", "mean_colour", "nearest_view")
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def predict(params: dict, cfg: ModelConfig, sample: dict) -> dict[str, jax.Array]:
-    """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``."""
+@functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
+def predict(params: dict, cfg: ModelConfig, sample: dict, diagnose: bool = False) -> dict[str, jax.Array]:
+    """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``.
+
+    With ``diagnose`` also the input views re-rendered from the Gaussians (``"input_rgb"
+    [B, V, H, W, 3]``) and the scalars of :func:`gaussian_statistics`."""
     g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
     h, w = sample["target_images"].shape[2:4]
     out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
-    return dict(out.images, dropped=out.dropped)
+    result = dict(out.images, dropped=out.dropped)
+    if diagnose:
+        hi, wi = sample["input_images"].shape[2:4]
+        again = render(params, cfg, g, sample["input_c2w"], sample["input_intrinsics"], hi, wi, ("rgb",))
+        result.update(input_rgb=again.images["rgb"], **gaussian_statistics(g))
+    return result
+
+
+def gaussian_statistics(g: Gaussians) -> dict[str, jax.Array]:
+    """Scalars that show a blur in numbers: ``mean_scale`` (linear scale, scene units, mean
+    over Gaussians and their 3 axes), ``mean_opacity`` and ``opaque_fraction`` (share of
+    Gaussians with opacity > 0.01, the ones that can matter), over every scene of the batch."""
+    return {
+        "mean_scale": jnp.mean(g.scales),
+        "mean_opacity": jnp.mean(g.opacities),
+        "opaque_fraction": jnp.mean((g.opacities > 0.01).astype(g.opacities.dtype)),
+    }
 
 
 def baseline_predictions(sample: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -62,11 +85,14 @@ def evaluate(
     """Evaluate the model and the baselines on unbatched samples (batch layout without B).
 
     Returns ``(rows, summary, predictions)``: one row per scene and method with its
-    metrics, the mean over scenes per method, and the model's RGB per sample.
+    metrics, the mean over scenes per method, and the model's RGB per sample. The model's
+    rows also hold diagnostics: ``input_psnr`` (the input views re-rendered from the
+    Gaussians; a model that has learned its inputs reproduces them closely) and the
+    :func:`gaussian_statistics` of the scene.
     """
     rows, preds = [], []
     for i, s in enumerate(samples):
-        out = predict(params, cfg, {k: v[None] for k, v in s.items()})
+        out = predict(params, cfg, {k: v[None] for k, v in s.items()}, diagnose=True)
         rgb = np.asarray(out["rgb"][0])
         preds.append(rgb)
         name = names[i] if names is not None else f"scene_{i:03d}"
@@ -74,6 +100,10 @@ def evaluate(
         for method in METHODS:
             rows.append({"scene": name, "method": method,
                          **image_metrics(candidates[method], s["target_images"], lpips_params)})
+        rows[-len(METHODS)].update(
+            input_psnr=float(jnp.mean(psnr(jnp.clip(out["input_rgb"][0], 0.0, 1.0), jnp.asarray(s["input_images"])))),
+            **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")},
+        )
         if "depth" in out and "target_depth" in s:
             dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0]), jnp.asarray(s["target_depth"]))
             rows[-len(METHODS)].update({k: float(jnp.mean(v)) for k, v in dm.items()})
@@ -104,10 +134,11 @@ def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int
 
 
 def format_table(summary: dict[str, dict[str, float]]) -> str:
-    """A fixed-width table of the summary (methods as rows)."""
+    """A fixed-width table of the summary (methods as rows; ``nan`` where a method has no
+    such value, e.g. the baselines' diagnostics)."""
     keys = list(next(iter(summary.values())))
     head = f"{'method':<14}" + "".join(f"{k:>10}" for k in keys)
     lines = [head, "-" * len(head)]
     for method, vals in summary.items():
-        lines.append(f"{method:<14}" + "".join(f"{vals[k]:>10.4f}" for k in keys))
+        lines.append(f"{method:<14}" + "".join(f"{vals.get(k, float('nan')):>10.4f}" for k in keys))
     return "\n".join(lines)
