@@ -5,7 +5,8 @@ Run:  python experiments/bench_overfit.py --name feat_base --steps 1500
 
 One seeded scene of ``--frames`` frames; ``--inputs`` evenly spaced frames are the fixed
 inputs, the frames half-way between consecutive inputs are held out (never a target), and
-every other frame (inputs included) is a training target. The scene is ray-cast once and
+every other frame (inputs included) is a training target (``--random-inputs``: each step
+also draws its inputs from those frames; evaluation keeps the fixed inputs). The scene is ray-cast once and
 kept in memory, so a step costs only the model. Each step renders ``--targets`` training
 frames drawn at random; MSE only; AdamW with warmup + cosine (the trainer's optimizer).
 
@@ -105,6 +106,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scale-bias", type=float, default=-2.5, help="log-scale bias")
     p.add_argument("--scale-max", type=float, default=-1.2, help="log-scale clamp")
     p.add_argument("--opacity-bias", type=float, default=-2.0, help="opacity logit bias")
+    p.add_argument("--random-inputs", action="store_true",
+                   help="draw the inputs from the training frames each step (evaluation keeps the fixed ones)")
     p.add_argument("--minutes", type=float, default=8.0, help="wall-clock budget of the training loop")
     return p
 
@@ -149,7 +152,11 @@ def main() -> None:
     log, t_start, step = [], time.time(), 0
     while step < args.steps and (time.time() - t_start) / 60 < args.minutes:
         pick = rng.choice(train, args.targets, replace=False)
-        batch = dict(fixed, **{f"target_{k}": v[pick][None] for k, v in frames.items()})
+        if args.random_inputs:  # a fresh input subset: the decoder cannot memorise views
+            ins = np.sort(rng.choice(train, args.inputs, replace=False))
+            batch = {k: v[None] for k, v in make_sample(scene, ins, pick, geom).items()}
+        else:
+            batch = dict(fixed, **{f"target_{k}": v[pick][None] for k, v in frames.items()})
         state, metrics = run(state, T.shard_for_mesh(batch, mesh))
         step += 1
         if step == 1:

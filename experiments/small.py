@@ -11,12 +11,12 @@ cosine over 40k steps), held-out evaluation on 16 scenes every 2,000 steps, a ch
 Why these numbers (experiments/README.md, "Learning at small scale"): on one scene, at equal
 steps, neither a finer decoder (token stride 4), nor K=16 Gaussians per token, nor a finer
 backbone (patch 4), nor colour mode learned faster than the demo's model; every variant sits
-at 18-20 dB after 400 steps while the demo's model keeps rising with steps (27.9 dB on its
+at 17.8-20 dB on its inputs after 400 steps while the demo's model keeps rising with steps (27.9 dB on its
 inputs at 2,000). So the budget goes to steps: the demo's model and head (distance init 4
 of max 8 units, scale init exp(-2.5)), 8 inputs as the paper's first stage, 64x64.
 
 Cost on the shared 2-core box (load ~15; ``python experiments/bench_train.py --_case
-small:0 --steps 3``, results/learning/small_step.json): 0.73 s per step, 58 s compile, but
+small:0 --steps 3``, results/bench_train_small.json): 0.73 s per step, 58 s compile, but
 1.9 s to ray-cast one batch of fresh procedural scenes on one thread: data generation, not
 the model, bounds this run (~1 s per step with the 2 data workers) until scenes are cached.
 """
