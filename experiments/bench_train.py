@@ -141,12 +141,14 @@ def _max_rss_bytes() -> int:
 
 
 def case_experiment(name: str) -> ExperimentConfig:
-    """``"demo"`` or ``"mid_<size>"``."""
+    """``"demo"``, ``"small"`` (``experiments/small.py``) or ``"mid_<size>"``."""
     if name == "demo":
         return demo_experiment()
+    if name == "small":
+        return load_experiment(os.path.join(HERE, "small.py"))
     if name.startswith("mid_") and name[4:].isdigit():
         return mid_experiment(int(name[4:]))
-    raise ValueError(f"unknown case {name!r}, expected 'demo' or 'mid_<size>'")
+    raise ValueError(f"unknown case {name!r}, expected 'demo', 'small' or 'mid_<size>'")
 
 
 def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> dict:

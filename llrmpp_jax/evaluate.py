@@ -9,7 +9,10 @@ Baselines, measured on the same targets (they show whether the model learned any
 Metrics are per target view, then averaged per scene, then over scenes (Long-LRM's order):
 PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG; with a depth
 head, the depth metrics in metres (the sample's scene normalisation undone first). The
-model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``).
+model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``)
+and diagnostics (so a blur shows in numbers): the PSNR of the input views re-rendered from
+the Gaussians, the mean predicted scale and opacity, and the fraction of Gaussians with
+opacity above 0.01.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 
 from llrmpp_jax.array_typing import KeyArray
 from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
 from llrmpp_jax.model import reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
@@ -31,14 +35,17 @@ from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 METHODS = ("model", "mean_colour", "nearest_view")
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None = None) -> dict[str, jax.Array]:
+@functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
+def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None = None,
+            diagnose: bool = False) -> dict[str, jax.Array]:
     """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``,
     plus ``dropped`` and ``gaussian_usage`` ``[B]``.
 
     Colour-mode configs with ``head.prune_ratio > 0`` are pruned as in training
     (``pruning.py``); ``key`` draws the random share (default ``jax.random.key(0)``, so an
-    evaluation is repeatable).
+    evaluation is repeatable). With ``diagnose`` also the input views re-rendered from the
+    (pruned) Gaussians (``"input_rgb" [B, V, H, W, 3]``) and the scalars of
+    :func:`gaussian_statistics`.
     """
     g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
     usage = gaussian_usage(g.opacities)
@@ -46,7 +53,23 @@ def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None =
     g = prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key)
     h, w = sample["target_images"].shape[2:4]
     out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
-    return dict(out.images, dropped=out.dropped, gaussian_usage=usage)
+    result = dict(out.images, dropped=out.dropped, gaussian_usage=usage)
+    if diagnose:
+        hi, wi = sample["input_images"].shape[2:4]
+        again = render(params, cfg, g, sample["input_c2w"], sample["input_intrinsics"], hi, wi, ("rgb",))
+        result.update(input_rgb=again.images["rgb"], **gaussian_statistics(g))
+    return result
+
+
+def gaussian_statistics(g: Gaussians) -> dict[str, jax.Array]:
+    """Scalars that show a blur in numbers: ``mean_scale`` (linear scale, scene units, mean
+    over Gaussians and their 3 axes), ``mean_opacity`` and ``opaque_fraction`` (share of
+    Gaussians with opacity > 0.01, the ones that can matter), over every scene of the batch."""
+    return {
+        "mean_scale": jnp.mean(g.scales),
+        "mean_opacity": jnp.mean(g.opacities),
+        "opaque_fraction": jnp.mean((g.opacities > 0.01).astype(g.opacities.dtype)),
+    }
 
 
 def baseline_predictions(sample: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -76,11 +99,14 @@ def evaluate(
     """Evaluate the model and the baselines on unbatched samples (batch layout without B).
 
     Returns ``(rows, summary, predictions)``: one row per scene and method with its
-    metrics, the mean over scenes per method, and the model's RGB per sample.
+    metrics, the mean over scenes per method, and the model's RGB per sample. The model's
+    rows also hold diagnostics: ``input_psnr`` (the input views re-rendered from the
+    Gaussians; a model that has learned its inputs reproduces them closely) and the
+    :func:`gaussian_statistics` of the scene.
     """
     rows, preds = [], []
     for i, s in enumerate(samples):
-        out = predict(params, cfg, {k: v[None] for k, v in s.items()})
+        out = predict(params, cfg, {k: v[None] for k, v in s.items()}, diagnose=True)
         rgb = np.asarray(out["rgb"][0])
         preds.append(rgb)
         name = names[i] if names is not None else f"scene_{i:03d}"
@@ -88,7 +114,11 @@ def evaluate(
         for method in METHODS:
             rows.append({"scene": name, "method": method,
                          **image_metrics(candidates[method], s["target_images"], lpips_params)})
-        rows[-len(METHODS)]["gaussian_usage"] = float(out["gaussian_usage"][0])
+        rows[-len(METHODS)].update(
+            gaussian_usage=float(out["gaussian_usage"][0]),
+            input_psnr=float(jnp.mean(psnr(jnp.clip(out["input_rgb"][0], 0.0, 1.0), jnp.asarray(s["input_images"])))),
+            **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")},
+        )
         if "depth" in out and "target_depth" in s:
             metres = np.float32(1.0) / s["scene_scale"]
             dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(s["target_depth"] * metres))
@@ -120,11 +150,12 @@ def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int
 
 
 def format_table(summary: dict[str, dict[str, float]]) -> str:
-    """A fixed-width table of the summary (methods as rows)."""
+    """A fixed-width table of the summary (methods as rows; ``nan`` where a method has no
+    such value, e.g. the baselines' diagnostics)."""
     keys = list(next(iter(summary.values())))
     head = f"{'method':<14}" + "".join(f"{k:>10}" for k in keys)
     lines = [head, "-" * len(head)]
     for method, vals in summary.items():
-        # the baselines lack the model-only columns (gaussian_usage, depth metrics): nan
+        # the baselines lack the model-only columns (diagnostics, depth metrics): nan
         lines.append(f"{method:<14}" + "".join(f"{vals.get(k, math.nan):>10.4f}" for k in keys))
     return "\n".join(lines)

@@ -276,7 +276,8 @@ def train(
                             for k, v in vals.items():
                                 writer.add_scalar(f"eval/{method}/{k}", v, step)
                         writer.add_image("eval/grid", picture_grid(samples[0], preds[0]), step, dataformats="HWC")
-                    tqdm.write(f"[{stage.name} step {step}] held-out PSNR model {summary['model']['psnr']:.2f} dB")
+                    tqdm.write(f"[{stage.name} step {step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
+                               f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
                     result["eval"] = summary
                 if out_of_time:
                     tqdm.write(f"time budget of {budget} min reached at step {step}; checkpoint saved")

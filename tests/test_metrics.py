@@ -137,10 +137,12 @@ def test_eval_depth_metrics_are_in_metres(monkeypatch):
                     scene_scale=2.5)
     assert abs(float(s["scene_scale"]) - 1.0) > 0.5  # the normalisation really rescales
 
-    def fake_predict(params, cfg, batch):
+    def fake_predict(params, cfg, batch, diagnose=False):
         t = batch["target_images"]
+        stats = {k: np.float32(0.5) for k in ("mean_scale", "mean_opacity", "opaque_fraction")}
         return {"rgb": t, "depth": (batch["target_depth"] * np.float32(1.1))[..., None],
-                "dropped": np.zeros((), np.int32)}
+                "dropped": np.zeros((), np.int32), "gaussian_usage": np.ones((1,), np.float32),
+                "input_rgb": batch["input_images"], **stats}
 
     monkeypatch.setattr(E, "predict", fake_predict)
     rows, _, _ = E.evaluate(None, paper_scannet(), [s])

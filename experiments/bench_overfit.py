@@ -1,0 +1,204 @@
+"""Overfit one procedural scene: can a small model re-render its inputs and the views between them?
+
+Run:  python experiments/bench_overfit.py --name feat_base --steps 1500
+      python experiments/bench_overfit.py --name colour --mode color --steps 600
+
+One seeded scene of ``--frames`` frames; ``--inputs`` evenly spaced frames are the fixed
+inputs, the frames half-way between consecutive inputs are held out (never a target), and
+every other frame (inputs included) is a training target (``--random-inputs``: each step
+also draws its inputs from those frames; evaluation keeps the fixed inputs). The scene is ray-cast once and
+kept in memory, so a step costs only the model. Each step renders ``--targets`` training
+frames drawn at random; MSE only; AdamW with warmup + cosine (the trainer's optimizer).
+
+Writes ``experiments/results/learning/<name>.json`` (config, steps, wall time, PSNR on the
+input views and on the held-out views, Gaussian statistics) and ``<name>.png``: the first
+row the inputs, then per shown view: target, prediction, |error| x4, nearest input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from llrmpp_jax import config as C
+from llrmpp_jax import train as T
+from llrmpp_jax.data import ProceduralConfig
+from llrmpp_jax.data.image_io import write_image
+from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
+from llrmpp_jax.data.synthetic import procedural_scene
+from llrmpp_jax.evaluate import gaussian_statistics, picture_grid
+from llrmpp_jax.experiment import StageConfig
+from llrmpp_jax.losses import rgb_loss
+from llrmpp_jax.metrics import psnr
+from llrmpp_jax.model import init_params, reconstruct, render
+from llrmpp_jax.trainer import optimizer_config
+
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "learning")
+
+
+def model_config(args: argparse.Namespace) -> C.ModelConfig:
+    """The demo's tiny model with the command line's changes."""
+    base = C.tiny()
+    head = C.GaussianHeadConfig(
+        mode=args.mode, gaussians_per_token=args.k, feature_dim=args.f, sh_degree=0,
+        max_dist=args.max_dist, scale_bias=args.scale_bias, scale_max=args.scale_max,
+        opacity_bias=args.opacity_bias,
+    )
+    decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim)
+    backbone = C.replace(base.backbone, dims=(args.dim,))
+    return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch)
+
+
+def split_frames(num_frames: int, num_inputs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(inputs, held_out, train_targets)`` frame indices: inputs evenly spaced, held-out
+    frames half-way between consecutive inputs, training targets all the rest plus the inputs."""
+    gap = num_frames // num_inputs
+    inputs = np.arange(num_inputs) * gap + gap // 2
+    held = (inputs[:-1] + inputs[1:]) // 2
+    train = np.setdiff1d(np.arange(num_frames), held)
+    return inputs, held, train
+
+
+def table() -> str:
+    """Markdown table of every run in ``RESULTS``, in name order; ``change`` lists the
+    arguments that differ from the defaults."""
+    lines = ["| run | change | steps | wall (min) | s/step | input PSNR | held-out PSNR | mean scale | mean opacity |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    skip, defaults = {"name", "steps", "minutes", "table"}, vars(parser().parse_args([]))
+    for path in sorted(glob.glob(os.path.join(RESULTS, "*.json"))):
+        with open(path) as f:
+            r = json.load(f)
+        change = ", ".join(f"{k}={v}" for k, v in r["args"].items() if k not in skip and v != defaults.get(k))
+        g = r["gaussians"]
+        lines.append(f"| {r['name']} | {change or 'defaults'} | {r['steps']} | {r['wall_min']:.1f} | {r['step_s']:.2f} "
+                     f"| {r['input_psnr']:.2f} | {r['held_out_psnr']:.2f} | {g['mean_scale']:.3f} | {g['mean_opacity']:.2f} |")
+    return "\n".join(lines)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--name", help="run name: results/learning/<name>.json and .png")
+    p.add_argument("--table", action="store_true", help="print the Markdown table of every stored run and exit")
+    p.add_argument("--seed", type=int, default=3, help="procedural scene seed")
+    p.add_argument("--res", type=int, default=64, help="square image side (pixels)")
+    p.add_argument("--frames", type=int, default=16, help="frames of the scene's camera path")
+    p.add_argument("--inputs", type=int, default=4, help="fixed input views")
+    p.add_argument("--targets", type=int, default=2, help="training target views per step")
+    p.add_argument("--steps", type=int, default=1000, help="training steps")
+    p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate")
+    p.add_argument("--warmup", type=int, default=50, help="linear warmup steps")
+    p.add_argument("--mode", default="feature", choices=("feature", "color"), help="Gaussian head mode")
+    p.add_argument("--k", type=int, default=4, help="Gaussians per token (feature mode)")
+    p.add_argument("--f", type=int, default=16, help="feature dimension (feature mode)")
+    p.add_argument("--dim", type=int, default=64, help="backbone width")
+    p.add_argument("--patch", type=int, default=8, help="backbone patch size")
+    p.add_argument("--ratio", type=int, default=2, help="decoder canvas ratio r")
+    p.add_argument("--stride", type=int, default=8, help="decoder token stride q")
+    p.add_argument("--dec-dim", type=int, default=64, help="decoder width E")
+    p.add_argument("--max-dist", type=float, default=8.0, help="distance = sigmoid(raw) * max_dist")
+    p.add_argument("--scale-bias", type=float, default=-2.5, help="log-scale bias")
+    p.add_argument("--scale-max", type=float, default=-1.2, help="log-scale clamp")
+    p.add_argument("--opacity-bias", type=float, default=-2.0, help="opacity logit bias")
+    p.add_argument("--random-inputs", action="store_true",
+                   help="draw the inputs from the training frames each step (evaluation keeps the fixed ones)")
+    p.add_argument("--minutes", type=float, default=8.0, help="wall-clock budget of the training loop")
+    return p
+
+
+def main() -> None:
+    p = parser()
+    args = p.parse_args()
+    if args.table:
+        print(table())
+        return
+    if not args.name:
+        p.error("--name is required to train")
+
+    cfg = model_config(args)
+    scene = procedural_scene(args.seed, ProceduralConfig(height=args.res, width=args.res, num_frames=args.frames))
+    inputs, held, train = split_frames(args.frames, args.inputs)
+    geom = ViewGeometry(resize_h=args.res, multiple=cfg.size_multiple, square_crop=True)
+    t0 = time.time()
+    everything = make_sample(scene, inputs, np.arange(args.frames), geom)  # targets = every frame
+    data_s = time.time() - t0
+    frames = {k[len("target_"):]: v for k, v in everything.items() if k.startswith("target_")}
+    fixed = {k: v[None] for k, v in everything.items() if k.startswith("input_")}
+
+    stage = StageConfig(name="overfit", steps=args.steps, global_batch=1, num_inputs=args.inputs,
+                        num_targets=args.targets, resize_h=args.res, lr=args.lr, warmup_steps=args.warmup)
+    opt_cfg = optimizer_config(stage)
+    optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
+
+    def loss_fn(params, batch, key):
+        del key
+        g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
+        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], args.res, args.res)
+        return rgb_loss(out.images["rgb"].reshape(-1, args.res, args.res, 3),
+                        batch["target_images"].reshape(-1, args.res, args.res, 3), None, perceptual_weight=0.0)
+
+    mesh = T.make_data_mesh()
+    key = jax.random.key(0)
+    params = init_params(jax.random.fold_in(key, 1), cfg, args.inputs, args.res, args.res)
+    state = T.replicate_on_mesh(T.init_train_state(params, optimizer, key), mesh)
+    run = T.sharded_train_step(T.make_train_step(loss_fn, optimizer, schedule), mesh, donate=True)
+    rng = np.random.default_rng(args.seed)
+    log, t_start, step = [], time.time(), 0
+    while step < args.steps and (time.time() - t_start) / 60 < args.minutes:
+        pick = rng.choice(train, args.targets, replace=False)
+        if args.random_inputs:  # a fresh input subset: the decoder cannot memorise views
+            ins = np.sort(rng.choice(train, args.inputs, replace=False))
+            batch = {k: v[None] for k, v in make_sample(scene, ins, pick, geom).items()}
+        else:
+            batch = dict(fixed, **{f"target_{k}": v[pick][None] for k, v in frames.items()})
+        state, metrics = run(state, T.shard_for_mesh(batch, mesh))
+        step += 1
+        if step == 1:
+            t_first = time.time()  # compile time excluded from the step time
+        if step % 50 == 0 or step == 1:
+            log.append({"step": step, "psnr": float(metrics["psnr"]), "wall_s": time.time() - t_start})
+            print(f"step {step:5d}  train psnr {log[-1]['psnr']:.2f}  {log[-1]['wall_s']:.0f} s", flush=True)
+    wall = time.time() - t_start
+    step_s = (time.time() - t_first) / max(step - 1, 1)
+    params = jax.device_get(state.params)
+
+    @jax.jit
+    def view(params, c2w, intrinsics):
+        g = reconstruct(params, cfg, fixed["input_images"], fixed["input_c2w"], fixed["input_intrinsics"])
+        out = render(params, cfg, g, c2w[None], intrinsics[None], args.res, args.res)
+        return out.images["rgb"][0], g
+
+    def score(views: np.ndarray) -> tuple[np.ndarray, list[float]]:
+        rgb, _ = view(params, frames["c2w"][views], frames["intrinsics"][views])
+        return np.asarray(rgb), [float(x) for x in psnr(jnp.clip(rgb, 0, 1), jnp.asarray(frames["images"][views]))]
+
+    pred_in, psnr_in = score(inputs)
+    pred_held, psnr_held = score(held)
+    _, g = view(params, frames["c2w"][held], frames["intrinsics"][held])
+    result = {
+        "name": args.name, "args": vars(args), "steps": step, "wall_min": wall / 60, "scene_s": data_s,
+        "step_s": step_s, "input_psnr": float(np.mean(psnr_in)), "held_out_psnr": float(np.mean(psnr_held)),
+        "input_psnr_per_view": psnr_in, "held_out_psnr_per_view": psnr_held,
+        "gaussians": {k: float(v) for k, v in gaussian_statistics(g).items()},
+        "frames": {"inputs": inputs.tolist(), "held_out": held.tolist()}, "log": log,
+    }
+    os.makedirs(RESULTS, exist_ok=True)
+    with open(os.path.join(RESULTS, f"{args.name}.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    shown = {"input_images": fixed["input_images"][0], "input_c2w": fixed["input_c2w"][0],
+             "target_images": np.concatenate([frames["images"][held[:2]], frames["images"][inputs[:1]]]),
+             "target_c2w": np.concatenate([frames["c2w"][held[:2]], frames["c2w"][inputs[:1]]])}
+    grid = picture_grid(shown, np.concatenate([pred_held[:2], pred_in[:1]]))
+    write_image(os.path.join(RESULTS, f"{args.name}.png"), grid)
+    print(json.dumps({k: result[k] for k in ("name", "steps", "wall_min", "step_s", "input_psnr",
+                                             "held_out_psnr", "gaussians")}))
+
+
+if __name__ == "__main__":
+    main()

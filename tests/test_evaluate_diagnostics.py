@@ -1,0 +1,56 @@
+"""Evaluation diagnostics (input-view re-render PSNR, Gaussian statistics) against NumPy."""
+
+import jax
+import numpy as np
+
+from llrmpp_jax import config as C
+from llrmpp_jax.evaluate import evaluate, format_table
+from llrmpp_jax.model import init_params, reconstruct, render
+
+
+def _camera(x: float, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    m = np.eye(4, dtype=np.float32)
+    m[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    m[0, 3] = x
+    return m
+
+
+def test_model_row_diagnostics_match_numpy():
+    # Opacity bias -4.6 puts sigmoid(bias) at ~0.01, so with a perturbed head the
+    # opacities straddle the 0.01 threshold and the fraction is neither 0 nor 1.
+    cfg = C.replace(C.tiny(), head=C.replace(C.tiny().head, max_dist=4.0, scale_bias=-3.0, opacity_bias=-4.6))
+    v, h, w = 2, 16, 16
+    params = init_params(jax.random.key(0), cfg, v, h, w)
+    proj = params["head"]["proj"]["kernel"]
+    params["head"]["proj"]["kernel"] = proj + 0.3 * jax.random.normal(jax.random.key(1), proj.shape, proj.dtype)
+    rng = np.random.default_rng(0)
+    sample = {
+        "input_images": rng.uniform(0.05, 0.95, (v, h, w, 3)).astype(np.float32),
+        "input_c2w": np.stack([_camera(-0.3, 0.1), _camera(0.3, -0.1)]),
+        "input_intrinsics": np.array([[14.0, 15.0, 8.0, 8.0], [15.0, 14.0, 8.5, 7.5]], np.float32),
+        "target_images": rng.uniform(0.05, 0.95, (1, h, w, 3)).astype(np.float32),
+        "target_c2w": _camera(0.0, 0.3)[None],
+        "target_intrinsics": np.array([[14.5, 14.5, 8.0, 8.0]], np.float32),
+    }
+    rows, summary, _ = evaluate(params, cfg, [sample])
+    model = next(r for r in rows if r["method"] == "model")
+
+    @jax.jit
+    def rerender(params, b):
+        g = reconstruct(params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"])
+        return g, render(params, cfg, g, b["input_c2w"], b["input_intrinsics"], h, w).images["rgb"]
+
+    g, again = rerender(params, {k: x[None] for k, x in sample.items()})
+    err = (np.clip(np.asarray(again[0], np.float64), 0, 1) - sample["input_images"]) ** 2
+    want_psnr = np.mean(-10 * np.log10(err.mean(axis=(1, 2, 3))))
+    opac = np.asarray(g.opacities, np.float64)
+    np.testing.assert_allclose(model["input_psnr"], want_psnr, rtol=1e-4)
+    np.testing.assert_allclose(model["mean_scale"], np.mean(np.asarray(g.scales, np.float64)), rtol=1e-5)
+    np.testing.assert_allclose(model["mean_opacity"], opac.mean(), rtol=1e-5)
+    np.testing.assert_allclose(model["opaque_fraction"], np.mean(opac > 0.01), atol=1e-6)
+    assert 0.05 < model["opaque_fraction"] < 0.95
+    assert summary["model"]["input_psnr"] == model["input_psnr"]
+    # The baselines have no diagnostics: the table shows nan there instead of failing.
+    assert "input_psnr" not in summary["nearest_view"]
+    assert "nan" in format_table(summary).splitlines()[-1]
