@@ -31,6 +31,10 @@ from llrmpp_jax.config import GaussianHeadConfig
 from llrmpp_jax.geometry import rays_through_pixels
 from llrmpp_jax.nn.norms import LayerNorm
 
+# Opacities are clipped to [eps, 1 - eps] before a logit (export, refinement): float32's
+# sigmoid saturates to exactly 0 or 1, and 1 - 2^-24 is the largest float32 below 1.
+OPACITY_LOGIT_EPS = 2.0**-24
+
 
 class Gaussians(NamedTuple):
     """A batch of render-ready Gaussians (scene units, OpenCV world frame).

@@ -7,6 +7,7 @@ The pure API (``cfg`` is a static :class:`~llrmpp_jax.config.ModelConfig`):
 * :func:`render` -- ``(params, gaussians, target cameras) -> RenderOutput`` (§3.2-3.3):
   feature mode splats the S partition copies to ``(H/r, W/r)`` canvases and decodes them;
   colour mode (Long-LRM) splats SH colours directly over ``cfg.background``.
+* :func:`partition_logits` -- feature mode: the S partition logits of each Gaussian.
 
 Cameras are OpenCV c2w ``[..., 4, 4]`` and pixel intrinsics ``[..., 4]`` = (fx, fy, cx, cy),
 in the normalised scene frame (see ``geometry.normalize_scene``).
@@ -152,3 +153,10 @@ def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Arra
         raise ValueError(f"target intrinsics must be {(*c2w.shape[:2], 4)}, got {intrinsics.shape}")
     return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
                                 tuple(outputs), method="render")
+
+
+def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Float[Array, "B N S"]:
+    """Feature mode: each Gaussian's S partition logits (``render`` splits its opacity by their softmax)."""
+    if cfg.head.mode != "feature":
+        raise ValueError(f"partition logits exist only in feature mode, the model is in {cfg.head.mode!r} mode")
+    return LongLRMPP(cfg).apply({"params": params}, gaussians.features, method=lambda m, f: m.partition(f))

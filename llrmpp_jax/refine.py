@@ -1,0 +1,236 @@
+"""Post-prediction optimisation of predicted Gaussians (paper Table 1: "Long-LRM_10").
+
+Starting from ``model.reconstruct``'s Gaussians, a few Adam steps fit them to the *input*
+views with the training's RGB loss (``losses.rgb_loss``: MSE + ``perceptual_weight`` x
+perceptual; no depth term, as there are no depth targets at test time). Optimised, per
+Gaussian, in unconstrained form:
+
+* ``means`` (scene units), ``log_scales``, ``quats`` (raw, normalised when rendering),
+  ``opacity_logits``;
+* colour mode: the SH coefficients, as ``sh_dc`` (coefficient 0) and ``sh_rest`` (the
+  others, with 3DGS's 20x smaller learning rate so view-dependent colour does not overfit
+  the inputs); feature mode: ``features``, with the decoder (and the partition linear)
+  frozen, rendered through the model's own ``model.render``.
+
+The log-scale is not clamped at ``cfg.head.scale_max`` (a hard clamp has zero gradient
+above it); opacities are clipped to ``[2^-24, 1 - 2^-24]`` before the logit, as in
+``export_ply``.
+
+Solver. ``optimistix.OptaxMinimiser`` around ``optax.multi_transform`` of one Adam per
+field (learning rates in :class:`RefineConfig`), driven through optimistix's iterative
+API (``solver.init`` once, a jitted ``solver.step`` per iteration, ``solver.terminate``
+checked after each) rather than ``optimistix.minimise``: the same solver and stopping
+rule as ``minimise(..., max_steps=steps)``, but the Python loop can drive a progress bar
+and record the loss of every step. ``rtol = atol = 0`` (the default) never stops early,
+so exactly ``steps`` updates are taken, as in Long-LRM's fixed-step optimisation.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+from tqdm.auto import tqdm
+
+from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
+from llrmpp_jax.losses import rgb_loss
+from llrmpp_jax.metrics import psnr
+from llrmpp_jax.model import render
+from llrmpp_jax.perceptual import VGGParams
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Adam learning rates per field (normalised scene frame: input cameras in
+    ``[-1, 1]^3``), loss weights and optimistix's stopping tolerances. Hashable: a static
+    argument of the jitted step.
+
+    Defaults (our choice for ~10-50 steps): 3DGS's rates for log-scales (5e-3) and
+    quaternions (1e-3) and its SH rest/DC ratio (1/20); means, opacity and features move
+    faster than 3DGS's 30k-step schedule would (its means start at 1.6e-4 x extent).
+    """
+
+    lr_means: float = 1e-3
+    lr_log_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity_logits: float = 5e-2
+    lr_features: float = 5e-3  # feature mode: features; colour mode: SH coefficient 0
+    sh_rest_lr_factor: float = 1.0 / 20.0  # colour mode: SH coefficients 1.. (3DGS's ratio)
+    perceptual_weight: float = 0.0  # the paper trains with 0.5 (needs VGG params)
+    rtol: float = 0.0
+    atol: float = 0.0
+
+
+class RefineInfo(NamedTuple):
+    """``losses[i]`` is the input-view loss before update i; ``losses[-1]`` after the last."""
+
+    losses: Float[np.ndarray, "steps+1"]
+    steps: int  # updates taken (fewer than asked only if the solver's tolerances were met)
+    dropped: int  # most splat intersections dropped by any step's render (0 = exact)
+
+
+def to_unconstrained(gaussians: Gaussians, cfg: ModelConfig) -> dict[str, Array]:
+    """The optimised pytree (module docstring) of render-ready Gaussians."""
+    o = jnp.clip(gaussians.opacities, OPACITY_LOGIT_EPS, 1.0 - OPACITY_LOGIT_EPS)
+    y = {"means": gaussians.means, "log_scales": jnp.log(gaussians.scales), "quats": gaussians.quats,
+         "opacity_logits": jnp.log(o) - jnp.log1p(-o)}
+    if cfg.head.mode == "color":
+        y["sh_dc"], y["sh_rest"] = gaussians.features[..., :3], gaussians.features[..., 3:]
+    else:
+        y["features"] = gaussians.features
+    return y
+
+
+def from_unconstrained(y: dict[str, Array]) -> Gaussians:
+    """Inverse of :func:`to_unconstrained` (quaternions normalised)."""
+    q = y["quats"]
+    q = q * jax.lax.rsqrt(jnp.maximum(jnp.sum(jnp.square(q), axis=-1, keepdims=True), 1e-24))
+    features = jnp.concatenate([y["sh_dc"], y["sh_rest"]], axis=-1) if "sh_dc" in y else y["features"]
+    return Gaussians(means=y["means"], quats=q, scales=jnp.exp(y["log_scales"]),
+                     opacities=jax.nn.sigmoid(y["opacity_logits"]), features=features)
+
+
+def _optimizer(rc: RefineConfig) -> optax.GradientTransformation:
+    lrs = {"means": rc.lr_means, "log_scales": rc.lr_log_scales, "quats": rc.lr_quats,
+           "opacity_logits": rc.lr_opacity_logits, "features": rc.lr_features, "sh_dc": rc.lr_features,
+           "sh_rest": rc.lr_features * rc.sh_rest_lr_factor}
+    tx = optax.multi_transform({k: optax.adam(v) for k, v in lrs.items()}, lambda y: {k: k for k in y})
+
+    def update(updates, state, params=None, **extra):
+        # optax mixes Python floats with its int32 count (``b1 ** count``), which strict
+        # promotion rejects; its outputs keep the parameters' float32 (as train/step.py).
+        with jax.numpy_dtype_promotion("standard"):
+            return tx.update(updates, state, params, **extra)
+
+    return optax.GradientTransformationExtraArgs(tx.init, update)
+
+
+def _solver(rc: RefineConfig) -> optx.OptaxMinimiser:
+    return optx.OptaxMinimiser(_optimizer(rc), rtol=rc.rtol, atol=rc.atol)
+
+
+def _objective(cfg: ModelConfig, rc: RefineConfig):
+    """``fn(y, args) -> (loss, aux)`` with ``args = (params, images, c2w, intrinsics, vgg)``."""
+
+    def fn(y, args):
+        params, images, c2w, intrinsics, vgg = args
+        h, w = images.shape[2:4]
+        out = render(params, cfg, from_unconstrained(y), c2w, intrinsics, h, w, ("rgb",))
+        loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3), images.reshape(-1, h, w, 3), vgg,
+                             perceptual_weight=rc.perceptual_weight)
+        return loss, {"psnr": aux["psnr"], "dropped": jnp.max(out.dropped)}
+
+    return fn
+
+
+_TAGS = frozenset()
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rc"))
+def _init(y, args, cfg: ModelConfig, rc: RefineConfig):
+    fn = _objective(cfg, rc)
+    f_struct, aux_struct = jax.eval_shape(fn, y, args)
+    return _solver(rc).init(fn, y, args, {}, f_struct, aux_struct, _TAGS)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rc"), donate_argnames=("y", "state"))
+def _step(y, state, args, cfg: ModelConfig, rc: RefineConfig):
+    fn, solver = _objective(cfg, rc), _solver(rc)
+    y, state, aux = solver.step(fn, y, args, {}, state, _TAGS)
+    done, _ = solver.terminate(fn, y, args, {}, state, _TAGS)
+    return y, state, aux, done
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "rc"))
+def _loss(y, args, cfg: ModelConfig, rc: RefineConfig):
+    return _objective(cfg, rc)(y, args)
+
+
+def refine(
+    params: dict,
+    cfg: ModelConfig,
+    gaussians: Gaussians,
+    images: Float[Array, "B V H W 3"],
+    c2w: Float[Array, "B V 4 4"],
+    intrinsics: Float[Array, "B V 4"],
+    steps: int = 10,
+    rc: RefineConfig = RefineConfig(),
+    vgg_params: VGGParams | None = None,
+    progress: bool = False,
+) -> tuple[Gaussians, RefineInfo]:
+    """Optimise ``gaussians`` (``[B, N, ...]``, scene frame) against the input views.
+
+    Args:
+      params: the model's parameters; only feature mode reads them (the frozen decoder
+        and partition linear), colour mode may pass ``{}``.
+      cfg: the model's config (static).
+      gaussians: ``model.reconstruct``'s output for these inputs.
+      images, c2w, intrinsics: the input views in [0, 1] and their cameras (the loss targets).
+      steps: the most updates to take (optimistix's ``max_steps``).
+      rc: learning rates, loss weights and tolerances.
+      vgg_params: needed only when ``rc.perceptual_weight > 0``.
+      progress: show a tqdm bar with the loss.
+
+    Returns:
+      ``(refined Gaussians, RefineInfo)``; one jitted step per update (compiled once per
+      config and shape).
+    """
+    if steps < 0:
+        raise ValueError(f"refine: steps must be >= 0, got {steps}")
+    if rc.perceptual_weight and vgg_params is None:
+        raise ValueError(f"refine: perceptual_weight={rc.perceptual_weight} needs vgg_params")
+    args = (params, jnp.asarray(images), jnp.asarray(c2w), jnp.asarray(intrinsics), vgg_params)
+    # Fresh buffers: the step donates y, which must not alias the caller's arrays.
+    y = jax.tree.map(jnp.array, to_unconstrained(jax.tree.map(jnp.asarray, gaussians), cfg))
+    state = _init(y, args, cfg, rc)
+    losses, dropped, taken = [], 0, 0
+    with tqdm(total=steps, desc="refine", disable=not progress, dynamic_ncols=True) as bar:
+        for _ in range(steps):
+            y, state, aux, done = _step(y, state, args, cfg, rc)
+            taken += 1
+            losses.append(float(state.f))  # the loss at the iterate this step started from
+            dropped = max(dropped, int(aux["dropped"]))
+            bar.update(1)
+            bar.set_postfix(loss=f"{losses[-1]:.5f}", psnr=f"{float(aux['psnr']):.2f}")
+            if bool(done):
+                break
+    final, aux = _loss(y, args, cfg, rc)
+    losses.append(float(final))
+    dropped = max(dropped, int(aux["dropped"]))
+    return from_unconstrained(y), RefineInfo(np.asarray(losses, np.float32), taken, dropped)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "height", "width"))
+def _render_rgb(params, cfg, gaussians, c2w, intrinsics, height, width):
+    return render(params, cfg, gaussians, c2w, intrinsics, height, width, ("rgb",)).images["rgb"]
+
+
+def heldout_psnr(
+    params: dict,
+    cfg: ModelConfig,
+    gaussians: Gaussians,
+    target_images: Float[Array, "B T H W 3"],
+    target_c2w: Float[Array, "B T 4 4"],
+    target_intrinsics: Float[Array, "B T 4"],
+) -> float:
+    """Mean PSNR (dB, ``metrics.psnr`` of clamped renders) over the T target views and B scenes.
+
+    Renders one target at a time (one compiled shape, memory of one view), as ``evaluate``
+    scores: per view, then the mean.
+    """
+    target_images = jnp.asarray(target_images)
+    h, w = target_images.shape[2:4]
+    values = []
+    for t in range(target_images.shape[1]):
+        rgb = _render_rgb(params, cfg, gaussians, jnp.asarray(target_c2w)[:, t:t + 1],
+                          jnp.asarray(target_intrinsics)[:, t:t + 1], h, w)
+        values.append(psnr(rgb, target_images[:, t:t + 1]))
+    return float(jnp.mean(jnp.concatenate(values, axis=1)))
