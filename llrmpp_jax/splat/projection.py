@@ -110,6 +110,17 @@ def _world_to_camera(c2w: Float[Array, "4 4"]) -> tuple[Float[Array, "3 3"], Flo
     return rot_w, trans_w
 
 
+def _rotate(rot: Float[Array, "3 3"], vecs: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    """``vecs @ rot.T`` as explicit multiply-adds: exact float32 on every backend (no TF32
+    matmul), and no ``reduce`` of a broadcast product, which jaxlib 0.10.2's CPU compiler
+    miscompiles once fused with a consumer (rows past ~2/3 of N >= 16384 read the wrong
+    Gaussian; jax-ml/jax#39103)."""
+    return jnp.stack(
+        [vecs[:, 0] * rot[i, 0] + vecs[:, 1] * rot[i, 1] + vecs[:, 2] * rot[i, 2] for i in range(3)],
+        axis=-1,
+    )
+
+
 def project_gaussians(
     means: Float[Array, "N 3"],
     quats: Float[Array, "N 4"],
@@ -143,8 +154,7 @@ def project_gaussians(
     intrinsics = jnp.where(cam_ok, intrinsics, jnp.asarray([1.0, 1.0, 0.0, 0.0], dtype))
 
     rot_w, trans_w = _world_to_camera(c2w)
-    # Elementwise products instead of matmuls: exact float32 on every backend (no TF32).
-    p = jnp.sum(rot_w[None, :, :] * means[:, None, :], axis=-1) + trans_w[None, :]
+    p = _rotate(rot_w, means) + trans_w[None, :]
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
 
@@ -156,7 +166,7 @@ def project_gaussians(
     v = jnp.clip(y / zs, -(cy / fy + _FOV_MARGIN * tan_fovy), (height - cy) / fy + _FOV_MARGIN * tan_fovy)
 
     rs = quat_to_rotmat(quats) * scales[:, None, :]  # R diag(s), [N, 3, 3]
-    wrs = jnp.sum(rot_w[None, :, :, None] * rs[:, None, :, :], axis=2)  # W R diag(s)
+    wrs = jnp.stack([_rotate(rot_w, rs[:, :, k]) for k in range(3)], axis=-1)  # W R diag(s)
     m0 = (fx / zs)[:, None] * wrs[:, 0, :] - (fx * u / zs)[:, None] * wrs[:, 2, :]
     m1 = (fy / zs)[:, None] * wrs[:, 1, :] - (fy * v / zs)[:, None] * wrs[:, 2, :]
 
