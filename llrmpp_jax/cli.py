@@ -364,9 +364,12 @@ def cmd_view(args) -> int:
     settings = ViewerSettings(height=args.height, moving_height=args.moving_height)
     viewer = Viewer(ViewRenderer(params, cfg, scene.gaussians), scene, host=args.host, port=args.port,
                     settings=settings)
-    print(f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "
-          f"http://localhost:{viewer.port} (Ctrl-C to stop)", flush=True)
-    viewer.serve_forever()
+    try:  # a Ctrl-C at any point from here on still stops the server's threads
+        print(f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "
+              f"http://localhost:{viewer.port} (Ctrl-C to stop)", flush=True)
+        viewer.serve_forever()
+    finally:
+        viewer.stop()
     return 0
 
 

@@ -167,6 +167,7 @@ class Viewer:
         self._frame_count = 0
         self._frame_cond = threading.Condition()
         self._workers: dict[int, RenderWorker] = {}
+        self._stopped = False
         self.server = viser.ViserServer(host=host, port=port, label="llrmpp view", verbose=False)
         if port and self.server.get_port() != port:  # taken between our check and viser's bind
             self.server.stop()
@@ -335,6 +336,10 @@ class Viewer:
             self.stop()
 
     def stop(self) -> None:
+        """Stop the server and the render workers (idempotent)."""
+        if self._stopped:
+            return
+        self._stopped = True
         self.server.stop()
         for worker in list(self._workers.values()):
             worker.close(wait=True)
