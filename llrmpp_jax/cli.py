@@ -186,7 +186,8 @@ def cmd_render(args) -> int:
         write_image(os.path.join(args.out, f"{name}.png"), views.rgb[i])
         if args.depth:
             write_depth(os.path.join(args.out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
-    print(f"wrote {len(names)} {args.path} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
+    kind = args.path[:-1] if args.path in ("targets", "inputs") else args.path  # "9 target views"
+    print(f"wrote {len(names)} {kind} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
     if photos is not None:
         per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, photos, load_lpips_params()))]
         mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}

@@ -144,13 +144,17 @@ def render_views(
 
 def write_video(path: str, frames: Float[np.ndarray, "N H W 3"], fps: float) -> None:
     """H.264 MP4 (yuv420p) of ``frames`` in [0, 1] through imageio-ffmpeg."""
+    import warnings
+
     import imageio_ffmpeg
 
     n, h, w, _ = frames.shape
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     writer = imageio_ffmpeg.write_frames(path, (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
                                          macro_block_size=2, quality=8)
-    writer.send(None)
+    with warnings.catch_warnings():  # the ffmpeg child exec()s at once: JAX's threads are not touched
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        writer.send(None)  # starts the ffmpeg process
     for f in frames:
         writer.send(np.ascontiguousarray(np.rint(np.clip(f, 0, 1) * 255).astype(np.uint8)))
     writer.close()
