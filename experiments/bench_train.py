@@ -16,13 +16,16 @@ stage-4 step, written as JSON.
    At 256x256 the backbone's two global-attention blocks see L = 8,194 tokens. The XLA
    attention path materialised ``[4, L, L]`` float32 logits (1.07 GB each, dozens of them
    live in the backward): XLA's peak was ~17.2 GiB with or without remat (rows
-   ``*_xla_attention``). With the blockwise kernel (now the default) the peak is 12.1 GiB
-   (12.2 with remat) and linear in the token count (3.0 GiB at 128x128): no longer
-   attention-bound, and still above the 12 GiB run limit on this shared box. A case whose XLA peak exceeds ``--max-step-gb``
-   (default 12) is compiled and analysed but its steps are not run (``steps_run`` says
-   why); 192x192 (L = 4,610) is the largest default size that runs here. Remat does not
-   lower XLA's peak in these cases: the peak is inside one global-attention block's
-   backward, which remat recomputes but cannot shrink; the block inputs it saves are small.
+   ``*_xla_attention``). With the blockwise kernel (now the default) the peak was 12.1 GiB
+   (12.2 with remat), no longer attention-bound: XLA's buffer live ranges showed the
+   Mamba2 blocks' ``[chunks, heads, Q, Q]`` intra-chunk scores (now computed a chunk group
+   at a time and recomputed in the backward, ``nn/ssd.py``) and, with remat, the
+   recomputed activations of *all* six Mamba2 blocks alive at once during the decoder's
+   backward: XLA:CPU's default concurrency-optimised scheduler runs the recomputations
+   early. This script therefore compiles with the memory-minimising scheduler
+   (``CPU_MEMORY_SCHEDULER``); ``mid_256_remat`` then needs 4.6 GiB and runs. A case whose
+   XLA peak exceeds ``--max-step-gb`` (default 12) is compiled and analysed but its steps
+   are not run (``steps_run`` says why).
 
    Every case runs with and without remat (``jax.checkpoint`` of every backbone and decoder
    block). The step is the project's own: ``trainer.make_loss_fn`` ->
@@ -126,6 +129,14 @@ def make_step(exp: ExperimentConfig, stage: StageConfig,
     step = T.make_train_step(make_loss_fn(exp, vgg_params), optimizer, T.make_schedule(opt_cfg),
                              compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
     return step, optimizer
+
+
+# XLA:CPU's default concurrency-optimised scheduler runs every remat'd block's recomputation
+# early in the backward pass (XLA:CPU drops jax.checkpoint's optimisation barriers before
+# scheduling), so all blocks' recomputed activations are alive at once and remat saves
+# nothing (mid_256 with remat: 9.3 GB temp; 4.8 GB with the memory-minimising scheduler).
+# Set for this process and the measured cases (children inherit it); other backends ignore it.
+CPU_MEMORY_SCHEDULER = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
 
 def _memory(compiled) -> dict[str, int]:
@@ -366,6 +377,8 @@ def _watch(cmd: list[str], timeout: float, max_rss: float) -> tuple[dict | None,
 
 
 def main() -> None:
+    if CPU_MEMORY_SCHEDULER not in os.environ.get("XLA_FLAGS", ""):  # before the backend starts
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_MEMORY_SCHEDULER}".strip()
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_train.json"))
     ap.add_argument("--quick", action="store_true", help="demo config only")

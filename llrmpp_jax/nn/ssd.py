@@ -9,7 +9,10 @@ All three compute, per head ``h`` (of ``nh``) and per batch element, with
 * :func:`ssd_scan` -- the chunked SSD algorithm (Mamba-2 paper, ``ssd_minimal.py``):
   intra-chunk outputs, per-chunk states, an inter-chunk recurrence over chunk states
   (``lax.associative_scan`` by default, or ``lax.scan``) and state-to-output. Every
-  chunk computation is an einsum (batched matmul). O(L * Q) work for chunk size Q.
+  chunk computation is an einsum (batched matmul). O(L * Q) work for chunk size Q. The
+  ``[Q, Q]`` intra-chunk score blocks are computed a bounded group of chunks at a time and
+  recomputed in the backward (:func:`_map_chunk_groups`), so the memory the scan keeps or
+  holds at once is O(L * (nh * P + n)) plus one group's blocks, not O(L * nh * Q).
 * :func:`ssd_dense` -- the same chunks, but the inter-chunk step is the dense
   O(chunks^2) einsum of ``ssd_minimal_discrete``; a second oracle for the scan.
 * :func:`ssd_sequential` -- the recurrence above as a ``lax.scan`` over time; the test
@@ -136,6 +139,55 @@ def _inter_chunk_states(
     return jnp.concatenate([jnp.zeros_like(s_out[:, :1]), s_out[:, :-1]], axis=1)
 
 
+# Score entries ([b, chunks, nh, Q, Q], float32: 4 bytes each) per step of the intra-chunk
+# loop: 16 MiB, so the loop's live [Q, Q] blocks are a few times that whatever L is, and
+# each step is still a batched matmul of >= one chunk of every head.
+_GROUP_SCORES = 1 << 22
+
+
+def _intra_chunk(
+    Cc: Float[Array, "b c Q g n"],
+    Bc: Float[Array, "b c Q g n"],
+    hi: Float[Array, "b c g hg Q"],
+    lo: Float[Array, "b c g hg Q"],
+    xdt_bt: Float[Array, "b c g hg Q P"],
+    *,
+    cd: jnp.dtype,
+    acc: jnp.dtype,
+) -> Float[Array, "b c Q g hg P"]:
+    """Diagonal blocks: ``y_l = sum_{s<=l} (C_l . B_s) decay(s->l) dt_s x_s`` within each chunk.
+
+    ``decay(s->l) = exp(cs_l - cs_s)`` from the chunk's running sum of ``dt * A`` carried
+    as an unevaluated pair ``hi + lo`` (compensated), so the difference keeps full
+    precision even where cs reaches -1e4; the scores are then one fused elementwise pass
+    over the ``[hg, Q, Q]`` blocks (a masked cumsum over them costs several passes, see
+    :func:`segment_sum`). ``xdt_bt`` is ``dt * x`` in the matmul dtype ``cd``.
+    """
+    Q = hi.shape[-1]
+    seg = (hi[..., :, None] - hi[..., None, :]) + (lo[..., :, None] - lo[..., None, :])
+    causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, 1, 1, Q, Q)  # s <= l
+    CB = jnp.einsum("bclgn,bcsgn->bcgls", Cc, Bc, preferred_element_type=acc)
+    # min(seg, 0): seg > 0 only above the diagonal, where exp could overflow (and poison the
+    # backward of the where with inf * 0).
+    decay = jnp.exp(jnp.minimum(seg, jnp.zeros((), acc)))
+    scores = jnp.where(causal, CB[:, :, :, None] * decay, jnp.zeros((), acc)).astype(cd)
+    return jnp.einsum("bcghls,bcghsp->bclghp", scores, xdt_bt, preferred_element_type=acc)
+
+
+def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
+    """``fn(*args)`` for arrays chunked along axis 1, computed ``groups`` chunk groups at a
+    time (``lax.map``) under ``jax.checkpoint``: the backward recomputes one group's
+    ``[Q, Q]`` blocks at a time instead of storing them all, so the memory this costs is
+    one group's, not O(L * Q) (the remat costs one more forward of ``fn``)."""
+
+    def split(t: Array) -> Array:
+        return jnp.moveaxis(t.reshape(t.shape[0], groups, t.shape[1] // groups, *t.shape[2:]), 1, 0)
+
+    out = jax.lax.map(jax.checkpoint(lambda a: fn(*a)), tuple(split(t) for t in args))
+    out = jnp.moveaxis(out, 0, 1)
+    return out.reshape(out.shape[0], -1, *out.shape[3:])
+
+
 def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     _check_inputs(x, dt, A, B, C, D)
     if not isinstance(chunk_size, int) or chunk_size < 1:
@@ -145,8 +197,12 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     hg = nh // g  # heads per group; head h reads group h // hg (mamba_ssm's repeat order)
     acc, cd = _acc_dtype(x.dtype), x.dtype
     Q = chunk_size
-    nc = -(-L // Q)
     b = math.prod(batch)
+    # Chunks are processed in `groups` equal groups of at most _GROUP_SCORES score entries
+    # ([b, chunks, nh, Q, Q]); L is padded to a whole number of groups (< groups extra chunks).
+    needed = -(-L // Q)
+    groups = -(-needed // max(1, _GROUP_SCORES // (b * nh * Q * Q)))
+    nc = -(-needed // groups) * groups
 
     # Zero padding at the end is causal-safe: dt = 0 means no input and decay exp(0) = 1.
     def chunks(t: Array, tail: tuple[int, ...]) -> Array:
@@ -161,23 +217,12 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     dA = dtc * A.reshape(g, hg).astype(acc)[None, None, None]  # [b, c, Q, g, hg], <= 0
     xdt = xc.astype(acc) * dtc[..., None]  # [b, c, Q, g, hg, P]
 
-    # 1. Intra-chunk (diagonal blocks): y_l = sum_{s<=l} (C_l . B_s) decay(s->l) dt_s x_s.
-    #    decay(s->l) = exp(cs_l - cs_s) from the chunk's running sum cs, carried as an
-    #    unevaluated pair hi + lo (compensated), so the difference keeps full precision even
-    #    where cs reaches -1e4; the scores are then one fused elementwise pass over the
-    #    [hg, Q, Q] blocks (a masked cumsum over them costs several passes, see segment_sum).
+    # 1. Intra-chunk (diagonal blocks), in groups of chunks (see _intra_chunk).
     hi, lo = _compensated_cumsum(jnp.moveaxis(dA, 2, -1))  # [b, c, g, hg, Q]
-    seg = (hi[..., :, None] - hi[..., None, :]) + (lo[..., :, None] - lo[..., None, :])
-    causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, 1, 1, Q, Q)  # s <= l
-    CB = jnp.einsum("bclgn,bcsgn->bcgls", Cc, Bc, preferred_element_type=acc)
-    # min(seg, 0): seg > 0 only above the diagonal, where exp could overflow (and poison the
-    # backward of the where with inf * 0).
-    decay = jnp.exp(jnp.minimum(seg, jnp.zeros((), acc)))
-    scores = jnp.where(causal, CB[:, :, :, None] * decay, jnp.zeros((), acc)).astype(cd)
     # x moved to [b, c, g, hg, s, P] first: with the batch axes leading on both operands
     # XLA:CPU emits one batched matmul instead of a strided loop (5-10x faster at paper sizes).
     xdt_bt = jnp.moveaxis(xdt.astype(cd), 2, 4)
-    y = jnp.einsum("bcghls,bcghsp->bclghp", scores, xdt_bt, preferred_element_type=acc)
+    y = _map_chunk_groups(lambda *a: _intra_chunk(*a, cd=cd, acc=acc), groups, Cc, Bc, hi, lo, xdt_bt)
 
     # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T. The exponent
     #    sum_{k>l} dA_k is a reverse exclusive cumsum (no cancellation).
