@@ -361,7 +361,9 @@ def test_cli_serves_the_page(tmp_path):
 
     proc = subprocess.Popen([sys.executable, "-m", "llrmpp_jax.cli", "view", "--procedural", "1", "--random-init",
                              "--host", "127.0.0.1", "--port", "0", "--height", "64", "--moving-height", "32"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            # xdist workers ignore SIGINT and a child inherits that: restore Ctrl-C
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         line = ""
         while not line.startswith("llrmpp view:"):  # after viser's own banner
