@@ -153,9 +153,10 @@ def format_table(summary: dict[str, dict[str, float]]) -> str:
     """A fixed-width table of the summary (methods as rows; ``nan`` where a method has no
     such value, e.g. the baselines' diagnostics)."""
     keys = list(next(iter(summary.values())))
-    head = f"{'method':<14}" + "".join(f"{k:>10}" for k in keys)
+    widths = [max(10, len(k) + 2) for k in keys]  # long names (opaque_fraction) keep a gap
+    head = f"{'method':<14}" + "".join(f"{k:>{w}}" for k, w in zip(keys, widths))
     lines = [head, "-" * len(head)]
     for method, vals in summary.items():
         # the baselines lack the model-only columns (diagnostics, depth metrics): nan
-        lines.append(f"{method:<14}" + "".join(f"{vals.get(k, math.nan):>10.4f}" for k in keys))
+        lines.append(f"{method:<14}" + "".join(f"{vals.get(k, math.nan):>{w}.4f}" for k, w in zip(keys, widths)))
     return "\n".join(lines)
