@@ -21,25 +21,20 @@ small:0 --steps 3``, results/bench_train_small.json): 0.73 s per step, 58 s comp
 the model, bounds this run (~1 s per step with the 2 data workers) until scenes are cached.
 """
 
-from llrmpp_jax import config as C
-from llrmpp_jax.data import ProceduralConfig
-from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+import os
+
+from llrmpp_jax.experiment import load_experiment, replace
 
 
-def get_config() -> ExperimentConfig:
-    model = C.replace(
-        C.tiny(),
-        head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=8.0, scale_bias=-2.5),
+def get_config():
+    """The demo's experiment (same model and head), with 8 inputs and a 40k-step budget."""
+    demo = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "demo.py"))
+    stage = replace(
+        demo.stages[0], name="small", steps=40_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
     )
-    stage = StageConfig(
-        name="small", steps=40_000, global_batch=2, num_inputs=8, num_targets=2, resize_h=64,
-        square_crop=True, lr=2e-3, warmup_steps=200, min_span=12, max_span=20,
+    data = replace(
+        demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
     )
-    data = DataConfig(
-        procedural=ProceduralConfig(height=64, width=64, num_frames=24),
-        num_eval_scenes=16, eval_span=16,
-    )
-    return ExperimentConfig(
-        name="small", model=model, stages=(stage,), data=data, perceptual_weight=0.0,
-        log_every=20, eval_every=2000, checkpoint_every=500, keep_checkpoints=2,
+    return replace(
+        demo, name="small", stages=(stage,), data=data, log_every=20, eval_every=2000, max_minutes=None,
     )
