@@ -200,3 +200,30 @@ def test_for_accelerators_picks_the_kernel_per_backend(backend, impl):
     assert m.backbone.transformer.attention_impl == impl and m.decoder.transformer.attention_impl == impl
     assert m.backbone.remat and m.decoder.remat
     assert C.tiny().backbone.transformer.attention_impl == "blockwise"  # the default everywhere
+
+
+def test_blockwise_inside_shard_map_equals_plain(rng):
+    """Under ``shard_map`` over the batch axis (the trainer's data parallelism) the loop
+    carries must carry the inputs' device variance; output and gradients vs plain <= 1e-5,
+    with a parameter-like (replicated) bias."""
+    from jax.sharding import NamedSharding, PartitionSpec as P
+
+    mesh = jax.make_mesh((2,), ("batch",))
+    args, _ = random_inputs(rng, 2, 45, 45, with_bias=True)
+    cot = jnp.asarray(rng.normal(size=(2, 45, NH, HD)).astype(np.float32))
+
+    def grads(attend):
+        def per_device(a, c):
+            out, g = attention_vjp(attend, a, c)
+            return out, [jax.lax.psum(x, "batch") for x in g[3:]]  # replicated params' grads
+
+        specs = ([P("batch")] * 3 + [P()] * 3, P("batch"))
+        fn = jax.shard_map(per_device, mesh=mesh, in_specs=specs, out_specs=(P("batch"), [P()] * 3))
+        put = lambda x, s: jax.device_put(x, NamedSharding(mesh, s))  # noqa: E731
+        return jax.jit(fn)([put(a, s) for a, s in zip(args, specs[0])], put(cot, P("batch")))
+
+    want, want_g = grads(lambda q, k, v, b: jax.nn.dot_product_attention(q, k, v, bias=b, implementation="xla"))
+    got, got_g = grads(lambda q, k, v, b: blockwise_attention(q, k, v, bias=b, block_q=16, block_k=8))
+    assert err(got, want) <= 1e-5
+    for g, w in zip(got_g, want_g):
+        assert err(g, w) <= 1e-5

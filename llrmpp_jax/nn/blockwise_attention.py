@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from llrmpp_jax.array_typing import Array, Bool, Float
+from llrmpp_jax.nn.variance import common_variance, full_like_varying
 
 
 def _acc_dtype(dtype) -> jnp.dtype:
@@ -107,9 +108,9 @@ def _forward(q, k, v, bias, mask, bq, bk, lk):
             return (m_new, l, o), None
 
         init = (
-            jnp.full((b, nh, bq), -jnp.inf, acc),
-            jnp.zeros((b, nh, bq), acc),
-            jnp.zeros((b, bq, nh, hd), acc),
+            full_like_varying(q_i, (b, nh, bq), -jnp.inf, acc),
+            full_like_varying(q_i, (b, nh, bq), 0.0, acc),
+            full_like_varying(q_i, (b, bq, nh, hd), 0.0, acc),
         )
         (m, l, o), _ = lax.scan(k_block, init, (kb, vb, jnp.arange(kb.shape[0])))
         o = o / l.transpose(0, 2, 1)[..., None]
@@ -162,15 +163,15 @@ def _backward(q, k, v, bias, mask, o, stats, do, bq, bk, lk):
                 dbias = lax.dynamic_update_slice(dbias, lax.dynamic_slice(dbias, start, db.shape) + db, start)
             return (dk_j, dv_j, dq, dbias), None
 
-        zeros = jnp.zeros(k_j.shape, acc)
+        zeros = full_like_varying(do, k_j.shape, 0.0, acc)
         (dk_j, dv_j, dq, dbias), _ = lax.scan(
             q_block, (zeros, zeros, dq, dbias), (qb, dob, stats, delta_b, jnp.arange(nq))
         )
         return (dq, dbias), (dk_j, dv_j)
 
-    dbias0 = None if bias is None else jnp.zeros(bias.shape, acc)
+    dbias0 = None if bias is None else full_like_varying(do, bias.shape, 0.0, acc)
     (dq, dbias), (dkb, dvb) = lax.scan(
-        k_block, (jnp.zeros(q.shape, acc), dbias0), (kb, vb, jnp.arange(kb.shape[0]))
+        k_block, (full_like_varying(do, q.shape, 0.0, acc), dbias0), (kb, vb, jnp.arange(kb.shape[0]))
     )
     dk, dv = _from_blocks(dkb), _from_blocks(dvb)
     if dbias is not None:
@@ -240,4 +241,5 @@ def blockwise_attention(
     kp, vp = _pad_to(k, 1, bk), _pad_to(v, 1, bk)
     biasp = None if bias is None else _pad_to(_pad_to(bias, 2, bq), 3, bk)
     maskp = None if mask is None else _pad_to(_pad_to(mask, 2, bq), 3, bk)
+    qp, kp, vp, biasp = common_variance(qp, kp, vp, biasp)
     return _attention(qp, kp, vp, biasp, maskp, bq, bk, lk)[:, :lq]

@@ -30,6 +30,7 @@ import numpy as np
 from jax import lax
 
 from llrmpp_jax.array_typing import Array, Float, Int
+from llrmpp_jax.nn.variance import common_variance, full_like_varying
 from llrmpp_jax.nn.attention import DENSE_INIT, _check_width, _num_heads, _out_proj, _qkv_heads
 
 
@@ -127,7 +128,7 @@ def _forward(q, k, v, index, bias):
         idx, wj = xs
         return out + wj[..., None] * jnp.take(v, idx, axis=1, mode="clip").astype(acc), None
 
-    out, _ = lax.scan(mix, jnp.zeros(v.shape, acc), (index.T, weights))
+    out, _ = lax.scan(mix, full_like_varying(weights, v.shape, 0.0, acc), (index.T, weights))
     return out.astype(v.dtype), weights
 
 
@@ -155,7 +156,7 @@ def _knn_attention_bwd(res, g):
         dwj = jnp.einsum("blhd,blhd->blh", g, vj, preferred_element_type=acc)
         return dv.at[:, idx].add(wj[..., None] * g), dwj
 
-    dv, dw = lax.scan(dv_step, jnp.zeros(v.shape, acc), (index.T, weights))
+    dv, dw = lax.scan(dv_step, full_like_varying(g, v.shape, 0.0, acc), (index.T, weights))
     ds = weights * (dw - jnp.sum(weights * dw, axis=0, keepdims=True))  # softmax backward, [kn, B, L, nh]
     qa = q.astype(acc)
 
@@ -165,7 +166,7 @@ def _knn_attention_bwd(res, g):
         kj = jnp.take(k, idx, axis=1, mode="clip").astype(acc)
         return (dq + gj[..., None] * kj, dk.at[:, idx].add(gj[..., None] * qa)), None
 
-    zeros = jnp.zeros(q.shape, acc)
+    zeros = full_like_varying(ds, q.shape, 0.0, acc)
     (dq, dk), _ = lax.scan(dqk_step, (zeros, zeros), (index.T, ds * scale))
     dbias = jnp.swapaxes(jnp.sum(ds, axis=1), 0, 1)
     return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), None, dbias.astype(bias.dtype)
@@ -215,7 +216,8 @@ def local_attention(
         )
     batch = q.shape[:-3]
     flat = lambda a: a.reshape(-1, length, nh, hd)  # noqa: E731
-    out = _knn_attention(flat(q), flat(k), flat(v), index, bias)
+    q, k, v, bias = common_variance(flat(q), flat(k), flat(v), bias)
+    out = _knn_attention(q, k, v, index, bias)
     return out.reshape(*batch, length, nh, hd)
 
 

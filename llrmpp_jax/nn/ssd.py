@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.nn.variance import full_like_varying
 
 InterChunk = Literal["associative", "sequential", "dense"]
 
@@ -93,7 +94,7 @@ def _compensated_cumsum(a: Float[Array, "... T"]) -> tuple[Float[Array, "... T"]
         lo = lo + ((hi - (s - bp)) + (a_t - bp))  # TwoSum: exact error of hi + a_t
         return (s, lo), (s, lo)
 
-    zeros = jnp.zeros(a.shape[:-1], a.dtype)
+    zeros = jnp.zeros_like(a[..., 0])  # keeps a's device variance (nn/variance.py)
     _, (hi, lo) = jax.lax.scan(step, (zeros, zeros), jnp.moveaxis(a, -1, 0))
     return jnp.moveaxis(hi, 0, -1), jnp.moveaxis(lo, 0, -1)
 
@@ -326,7 +327,7 @@ def ssd_sequential(
         state = decay * state + inject
         return state, jnp.einsum("bghpn,bgn->bghp", state, C_t)
 
-    _, ys = jax.lax.scan(step, jnp.zeros((b, g, hg, P, n), acc), (xs, dts, Bs, Cs))
+    _, ys = jax.lax.scan(step, full_like_varying(xs, (b, g, hg, P, n), 0.0, acc), (xs, dts, Bs, Cs))
     y = jnp.moveaxis(ys, 0, 1)  # [b, L, g, hg, P]
     if D is not None:
         y = y + D.reshape(g, hg).astype(acc)[None, None, :, :, None] * jnp.moveaxis(xs, 0, 1)
