@@ -35,6 +35,7 @@ from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.evaluate import gaussian_statistics, picture_grid
 from llrmpp_jax.experiment import StageConfig
+from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.metrics import psnr
 from llrmpp_jax.model import init_params, reconstruct, render
@@ -108,6 +109,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--opacity-bias", type=float, default=-2.0, help="opacity logit bias")
     p.add_argument("--random-inputs", action="store_true",
                    help="draw the inputs from the training frames each step (evaluation keeps the fixed ones)")
+    p.add_argument("--depth-weight", type=float, default=0.0,
+                   help="weight of a depth loss on the Gaussians' own splatted depth (expected z at "
+                        "canvas resolution) against the procedural ground truth; 0: none")
     p.add_argument("--minutes", type=float, default=8.0, help="wall-clock budget of the training loop")
     return p
 
@@ -126,7 +130,7 @@ def main() -> None:
     inputs, held, train = split_frames(args.frames, args.inputs)
     geom = ViewGeometry(resize_h=args.res, multiple=cfg.size_multiple, square_crop=True)
     t0 = time.time()
-    everything = make_sample(scene, inputs, np.arange(args.frames), geom)  # targets = every frame
+    everything = make_sample(scene, inputs, np.arange(args.frames), geom, with_depth=True)  # targets = every frame
     data_s = time.time() - t0
     frames = {k[len("target_"):]: v for k, v in everything.items() if k.startswith("target_")}
     fixed = {k: v[None] for k, v in everything.items() if k.startswith("input_")}
@@ -140,8 +144,14 @@ def main() -> None:
         del key
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
         out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], args.res, args.res)
-        return rgb_loss(out.images["rgb"].reshape(-1, args.res, args.res, 3),
-                        batch["target_images"].reshape(-1, args.res, args.res, 3), None, perceptual_weight=0.0)
+        loss, metrics = rgb_loss(out.images["rgb"].reshape(-1, args.res, args.res, 3),
+                                 batch["target_images"].reshape(-1, args.res, args.res, 3), None,
+                                 perceptual_weight=0.0)
+        if args.depth_weight:
+            d_loss, _ = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"],
+                                            batch["target_depth"], cfg)
+            loss = loss + args.depth_weight * d_loss
+        return loss, metrics
 
     mesh = T.make_data_mesh()
     key = jax.random.key(0)
@@ -154,9 +164,11 @@ def main() -> None:
         pick = rng.choice(train, args.targets, replace=False)
         if args.random_inputs:  # a fresh input subset: the decoder cannot memorise views
             ins = np.sort(rng.choice(train, args.inputs, replace=False))
-            batch = {k: v[None] for k, v in make_sample(scene, ins, pick, geom).items()}
+            batch = {k: v[None] for k, v in make_sample(scene, ins, pick, geom, with_depth=True).items()}
+            batch.pop("scene_scale")
         else:
             batch = dict(fixed, **{f"target_{k}": v[pick][None] for k, v in frames.items()})
+        batch.pop("scene_scale", None)
         state, metrics = run(state, T.shard_for_mesh(batch, mesh))
         step += 1
         if step == 1:

@@ -111,6 +111,10 @@ class ExperimentConfig:
     vgg19_path: str | None = None
     depth_grad_weight: float = 0.1
     depth_normal_weight: float = 0.1
+    # Depth loss on the Gaussians' own splatted depth (gaussian_depth.py; needs ground-truth
+    # depth, e.g. procedural scenes): places them on surfaces before the decoder can paint
+    # around them. 0 (off) in the paper configs; the paper has no such term.
+    gaussian_depth_weight: float = 0.0
     bf16: bool = False
     skip_grad_norm_above: float | None = None  # Long-LRM: skip updates above 5 x clip 10 = 50
     log_every: int = 10

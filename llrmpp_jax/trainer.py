@@ -33,6 +33,7 @@ from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.selection import checked_inputs, eval_views, every_nth, training_views
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
@@ -63,13 +64,18 @@ def view_geometry(stage: StageConfig, multiple: int, train: bool = True) -> View
                         square_crop=stage.square_crop, zoom_min=stage.zoom_min if train else 1.0)
 
 
+def needs_depth(exp: ExperimentConfig) -> bool:
+    """Whether batches carry ground-truth target depth (a depth output or the Gaussian depth term)."""
+    return "depth" in exp.model.outputs or exp.gaussian_depth_weight > 0
+
+
 def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
     return BatchConfig(
         global_batch=stage.global_batch, num_inputs=stage.num_inputs, num_targets=stage.num_targets,
         geometry=view_geometry(stage, exp.model.size_multiple), min_span=stage.min_span,
         max_span=stage.max_span, input_weight=stage.input_weight,
         reverse_prob=stage.reverse_prob, shuffle_prob=stage.shuffle_prob,
-        with_depth="depth" in exp.model.outputs,
+        with_depth=needs_depth(exp),
     )
 
 
@@ -109,7 +115,7 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
     sparse)."""
     source = scene_source(exp.data, held_out=True)
     geom = view_geometry(stage, exp.model.size_multiple, train=False)
-    with_depth = "depth" in exp.model.outputs
+    with_depth = needs_depth(exp)
     index = formats.read_kmeans_index(exp.data.eval_index) if exp.data.eval_index else None
     samples, names = [], []
     for i in range(min(exp.data.num_eval_scenes, len(source))):
@@ -149,6 +155,11 @@ def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossF
                                  grad_weight=exp.depth_grad_weight, normal_weight=exp.depth_normal_weight)
             loss = loss + d
             aux.update({f"depth_{k}": v for k, v in daux.items()})
+        if exp.gaussian_depth_weight:
+            d, daux = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"],
+                                          batch["target_depth"], cfg)
+            loss = loss + exp.gaussian_depth_weight * d
+            aux.update({f"gaussian_depth_{k}": v for k, v in daux.items()})
         aux["splat_dropped"] = jnp.sum(out.dropped).astype(jnp.float32)
         aux["gaussian_usage"] = jnp.mean(usage)
         return loss, aux
