@@ -29,11 +29,13 @@ def _experiment(path: str):
 
 
 def _load_params(checkpoint: str, config: str | None):
-    """``(params, model config)`` from a training workdir or a params folder (detected);
-    ``config`` (an experiment file) is needed only for a bare params folder."""
+    """``(params, model config)`` from a training workdir, a params folder (detected) or a
+    shipped ``pretrained:NAME``; ``config`` (an experiment file) is needed only for a bare
+    params folder."""
     from llrmpp_jax.params_io import load_params
+    from llrmpp_jax.pretrained import PREFIX
 
-    if not os.path.isdir(checkpoint):
+    if not checkpoint.startswith(PREFIX) and not os.path.isdir(checkpoint):
         raise UserError(f"checkpoint folder not found: {checkpoint}")
     return load_params(checkpoint, _experiment(config).model if config else None)
 
@@ -399,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("eval", help="metrics table over held-out scenes, per-scene CSV")
     e.add_argument("--config", required=True, help="experiment file (its data, stages and model)")
-    e.add_argument("--checkpoint", required=True, help="a training workdir or a params folder (detected)")
+    e.add_argument("--checkpoint", required=True, help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
     e.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
     e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
     e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
@@ -409,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def capture_args(q, required: bool) -> None:
         q.add_argument("--checkpoint", required=required, default=None,
-                       help="a training workdir or a params folder (detected)")
+                       help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
         q.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
         q.add_argument("--format", default="auto", choices=FORMATS, help="format of --scene (default: detected)")
         q.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
@@ -450,7 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(fn=cmd_export)
 
     f = sub.add_parser("refine", help="optimise a .gs file's Gaussians against its input views (optimistix)")
-    f.add_argument("--checkpoint", required=True, help="the model (a training workdir or a params folder)")
+    f.add_argument("--checkpoint", required=True, help="the model (a training workdir, a params folder or pretrained:small)")
     f.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
     f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
     f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")

@@ -24,7 +24,8 @@ PARAMS_META = "llrmpp_params.json"
 _FORMAT = 1
 
 
-def _flat(tree) -> dict[str, object]:
+def flatten_params(tree) -> dict[str, object]:
+    """``{'a/b/c': leaf}``: parameter paths joined by ``/``."""
     return {"/".join(str(getattr(k, "key", k)) for k in path): leaf
             for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
@@ -41,7 +42,7 @@ def expected_shapes(cfg: ModelConfig) -> dict:
 def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
     """``ValueError`` naming the first parameter path whose presence or shape differs
     between ``params`` (arrays or shape structs) and the model of ``cfg``, with both shapes."""
-    want, got = _flat(expected_shapes(cfg)), _flat(params)
+    want, got = flatten_params(expected_shapes(cfg)), flatten_params(params)
     for path in sorted(set(want) | set(got)):
         w = tuple(want[path].shape) if path in want else None
         g = tuple(got[path].shape) if path in got else None
@@ -66,7 +67,7 @@ def save_params(path: str, params, cfg: ModelConfig) -> int:
     with open(os.path.join(path, PARAMS_META), "w") as f:
         json.dump({"format": _FORMAT, "num_params": count, "model": dataclasses.asdict(cfg)}, f, indent=1)
     back, _ = load_params(path)
-    mine, theirs = _flat(host), _flat(back)
+    mine, theirs = flatten_params(host), flatten_params(back)
     bad = [k for k in mine if k not in theirs or not np.array_equal(mine[k], np.asarray(theirs[k]))]
     if bad or set(theirs) != set(mine):
         raise ValueError(f"{path}: params read back differ from those written (first: {(bad or ['tree'])[0]})")
@@ -124,12 +125,17 @@ def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig
 
 
 def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelConfig]:
-    """``(params, model config)`` from a params folder or a training workdir (detected).
+    """``(params, model config)`` from a params folder, a training workdir (detected) or a
+    shipped model ``pretrained:NAME`` (:mod:`llrmpp_jax.pretrained`, checksum-checked).
 
     ``cfg`` None: the config recorded in the folder (``llrmpp_params.json``) or with the
     workdir's checkpoint. Given: it must fit the saved shapes (``ValueError`` naming the
     first mismatching parameter path and both shapes), else its own config is used as is.
     """
+    from llrmpp_jax.pretrained import PREFIX, load_pretrained
+
+    if path.startswith(PREFIX):
+        return load_pretrained(path[len(PREFIX):], cfg)
     if not os.path.isdir(path):
         raise FileNotFoundError(f"checkpoint folder not found: {path}")
     if is_params_folder(path):

@@ -51,6 +51,8 @@ def _run_cli(*args) -> subprocess.CompletedProcess:
         (["train", "--config", "no/such/file.py", "--workdir", "/tmp/x"], "config file not found"),
         (["eval", "--config", "experiments/demo.py", "--checkpoint", "/no/such/dir", "--out", "/tmp/x"],
          "checkpoint folder not found"),
+        (["eval", "--config", "experiments/demo.py", "--checkpoint", "pretrained:nope", "--out", "/tmp/x"],
+         "no shipped model 'nope'"),
         (["render", "--config", "experiments/demo.py", "--checkpoint", "/tmp", "--scene", "/no/scene",
           "--out", "/tmp/x"], "scene not found"),
         (["convert", "--checkpoint", "/no/such.pt", "--out", "/tmp/x"], "checkpoint file not found"),

@@ -1,0 +1,87 @@
+"""Ship a trained model inside the package: evaluate it, write its pictures, pack its weights.
+
+Run:  python experiments/ship_weights.py --workdir ~/runs/small --config experiments/small.py --name small
+
+Evaluates the newest checkpoint of ``--workdir`` on the experiment's held-out procedural
+scenes (the model beside both baselines, with the diagnostics), writes the picture grids and
+``metrics.json`` to ``experiments/results/<name>/`` together with the run's training log
+(``train_log.json`` and the evaluation lines of ``train.log``), and packs the parameters as
+``llrmpp_jax/weights/<name>.{npz,json,reference.npz}`` (:func:`llrmpp_jax.pretrained.export_pretrained`):
+float16, SHA-256, model config, experiment file, source commit (``COMMIT`` in the workdir,
+written when the run was started), step count and the held-out metrics.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+
+import numpy as np
+
+from llrmpp_jax.data.image_io import write_image
+from llrmpp_jax.evaluate import evaluate, format_table, picture_grid
+from llrmpp_jax.experiment import load_experiment
+from llrmpp_jax.metrics import load_lpips_params
+from llrmpp_jax.params_io import load_params
+from llrmpp_jax.pretrained import WEIGHTS_DIR, export_pretrained
+from llrmpp_jax.trainer import eval_samples
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--workdir", required=True, help="the training workdir (its newest checkpoint is shipped)")
+    p.add_argument("--config", required=True, help="the experiment file it was trained with")
+    p.add_argument("--name", required=True, help="shipped name: llrmpp_jax/weights/<name>.*, --checkpoint pretrained:<name>")
+    p.add_argument("--pictures", type=int, default=6, help="picture grids to write (first held-out scenes)")
+    args = p.parse_args()
+
+    exp = load_experiment(args.config)
+    params, cfg = load_params(args.workdir, exp.model)
+    stage = exp.stages[-1]
+    samples, names = eval_samples(exp, stage)
+    rows, summary, preds = evaluate(params, cfg, samples, load_lpips_params(), names)
+    out = os.path.join(ROOT, "experiments", "results", args.name)
+    os.makedirs(out, exist_ok=True)
+    for i in range(min(args.pictures, len(samples))):
+        write_image(os.path.join(out, f"grid_{i}.png"), picture_grid(samples[i], preds[i]))
+
+    log_path = os.path.join(args.workdir, "train_log.json")
+    steps = None
+    if os.path.isfile(log_path):
+        shutil.copy(log_path, os.path.join(out, "train_log.json"))
+        with open(log_path) as f:
+            steps = max((s["steps"] for s in json.load(f)["stages"]), default=None)
+    if os.path.isfile(os.path.join(args.workdir, "train.log")):
+        with open(os.path.join(args.workdir, "train.log"), errors="replace") as f:
+            lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if "held-out PSNR" in ln]
+        with open(os.path.join(out, "eval_log.txt"), "w") as f:
+            f.write("\n".join(lines) + "\n")
+    commit_file = os.path.join(args.workdir, "COMMIT")
+    commit = open(commit_file).read().strip() if os.path.isfile(commit_file) else "unknown"
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+
+    first = samples[0]
+    num_frames = exp.data.procedural.num_frames
+    reference = {"seed": int(exp.data.eval_seed_offset), "height": int(first["target_images"].shape[1]),
+                 "width": int(first["target_images"].shape[2]), "num_frames": num_frames,
+                 "inputs": [int(i) for i in np.linspace(0, num_frames - 2, stage.num_inputs).round()],
+                 "target": num_frames - 1}
+    record = {"experiment": os.path.relpath(os.path.abspath(args.config), ROOT), "trained_at_commit": commit,
+              "shipped_at_commit": head, "steps": steps, "held_out": summary,
+              "held_out_scenes": len(samples), "results": os.path.relpath(out, ROOT)}
+    meta = export_pretrained(params, cfg, args.name, record, reference)
+    with open(os.path.join(out, "metrics.json"), "w") as f:
+        json.dump({"summary": summary, "per_scene": rows, "steps": steps, "commit": commit}, f, indent=1)
+    print(format_table(summary))
+    size = os.path.getsize(os.path.join(WEIGHTS_DIR, f"{args.name}.npz"))
+    print(f"shipped {args.name}: {meta['num_params']:,} params, {size / 1e6:.2f} MB, sha256 {meta['sha256'][:16]}...; "
+          f"pictures and metrics in {os.path.relpath(out, ROOT)}")
+
+
+if __name__ == "__main__":
+    main()
