@@ -4,7 +4,7 @@ Run:  llrmpp train --config experiments/small.py --workdir runs/small     (resum
 Eval: llrmpp eval --config experiments/small.py --checkpoint runs/small --out runs/small/eval
 
 64x64 procedural scenes, 8 input views -> 2 targets, batch 2, MSE only, lr 2e-3 (warmup 200,
-cosine over 12k steps), held-out evaluation on 16 scenes every 2,000 steps, a checkpoint every
+cosine over 9k steps), held-out evaluation on 16 scenes every 2,000 steps, a checkpoint every
 500 steps (a killed run resumes exactly). ``max_minutes`` is unset: stop it with Ctrl-C or
 ``timeout``; the next run continues from the newest checkpoint.
 
@@ -27,10 +27,10 @@ from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """The demo's experiment (same model and head), with 8 inputs and a 12k-step budget."""
+    """The demo's experiment (same model and head), with 8 inputs and a 9k-step budget."""
     demo = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "demo.py"))
     stage = replace(
-        demo.stages[0], name="small", steps=12_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
+        demo.stages[0], name="small", steps=9_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
     )
     data = replace(
         demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
