@@ -9,6 +9,8 @@ per-frame time (device-synced, median and min of ``--repeats`` renders at camera
 the inputs), plus the frame's conversion to display pixels. Writes JSON.
 
 Run:  python experiments/bench_viewer.py            (-> experiments/results/bench_viewer.json)
+      python experiments/bench_viewer.py --checkpoint pretrained:small --inputs 8 \
+          --out experiments/results/bench_viewer_small.json      (the shipped small model)
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import numpy as np
 
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.model import init_params
+from llrmpp_jax.params_io import load_params
 from llrmpp_jax.viewer.render import ViewKey, ViewRenderer, display_image, viewport_camera
 from llrmpp_jax.viewer.scene import procedural_view_scene
 
@@ -35,13 +38,19 @@ def main() -> None:
     ap.add_argument("--sizes", default="128,256", help="square render sizes (px)")
     ap.add_argument("--inputs", type=int, default=4, help="input views of the procedural scene")
     ap.add_argument("--input-size", type=int, default=64, help="input view size (px)")
-    ap.add_argument("--repeats", type=int, default=10)
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_viewer.json"))
+    ap.add_argument("--repeats", type=int, default=10, help="timed renders per (size, output, S)")
+    ap.add_argument("--checkpoint", default=None,
+                    help="a trained model (workdir, params folder or pretrained:NAME); default: the demo's "
+                         "tiny model at random init (timing does not depend on the weights)")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_viewer.json"), help="JSON report path")
     args = ap.parse_args()
 
-    cfg = load_experiment(os.path.join(HERE, "demo.py")).model
+    if args.checkpoint:
+        params, cfg = load_params(args.checkpoint)
+    else:
+        cfg = load_experiment(os.path.join(HERE, "demo.py")).model
+        params = init_params(jax.random.key(0), cfg, 1, cfg.size_multiple, cfg.size_multiple)
     m = cfg.size_multiple
-    params = init_params(jax.random.key(0), cfg, 1, m, m)
     scene = procedural_view_scene(params, cfg, seed=0, num_inputs=args.inputs, size=args.input_size)
     renderer = ViewRenderer(params, cfg, scene.gaussians)
     fov = float(2.0 * np.arctan(scene.input_hw[0] / (2.0 * scene.input_intrinsics[0, 1])))
@@ -66,7 +75,7 @@ def main() -> None:
             print(json.dumps(row), flush=True)
     report = {
         "what": "per-frame render latency of the viewer (ViewRenderer.render, device-synced)",
-        "model": "experiments/demo.py model (config.tiny with the demo head), random init",
+        "model": args.checkpoint or "experiments/demo.py model (config.tiny with the demo head), random init",
         "scene": f"procedural seed 0, {args.inputs} inputs at {args.input_size}x{args.input_size}",
         "num_gaussians": int(scene.gaussians.means.shape[1]),
         "repeats": args.repeats,

@@ -36,5 +36,5 @@ def get_config():
         demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
     )
     return replace(
-        demo, name="small", stages=(stage,), data=data, log_every=20, eval_every=2000, max_minutes=None,
+        demo, name="small", stages=(stage,), data=data, log_every=20, eval_every=2000, checkpoint_every=500, max_minutes=None,
     )

@@ -25,7 +25,8 @@ import subprocess
 import sys
 import time
 
-EXPERIMENTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
+from llrmpp_jax.experiment import EXPERIMENTS_DIR as EXPERIMENTS
+
 BENCHMARKS = ("attention", "scan", "splat", "model")
 
 # scale -> benchmark -> command-line arguments of experiments/bench_<benchmark>.py.

@@ -13,9 +13,8 @@ import csv
 import json
 import os
 import sys
-import time
 
-EXPERIMENTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
+from llrmpp_jax.experiment import EXPERIMENTS_DIR as EXPERIMENTS
 
 
 class UserError(Exception):
@@ -271,36 +270,9 @@ def cmd_convert(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    import numpy as np
+    from llrmpp_jax.demo import run_demo
 
-    from llrmpp_jax.data.image_io import write_image
-    from llrmpp_jax.evaluate import evaluate, format_table, picture_grid
-    from llrmpp_jax.experiment import replace
-    from llrmpp_jax.metrics import load_lpips_params
-    from llrmpp_jax.trainer import eval_samples, train
-
-    exp = _experiment(os.path.join(EXPERIMENTS, "demo.py"))
-    if args.steps:
-        exp = replace(exp, stages=tuple(replace(s, steps=args.steps) for s in exp.stages))
-    t0 = time.time()
-    result = train(exp, args.out, max_minutes=args.minutes)
-    t_train = time.time() - t0
-    samples, names = eval_samples(exp, exp.stages[-1])
-    rows, summary, preds = evaluate(result["params"], exp.model, samples, load_lpips_params(), names)
-    for i in range(min(4, len(samples))):
-        write_image(os.path.join(args.out, f"grid_{i}.png"), picture_grid(samples[i], preds[i]))
-    hist = result["history"]
-    curve = [(h["step"], h["loss"]) for h in hist]
-    report = {"summary": summary, "per_scene": rows, "train_seconds": t_train,
-              "total_seconds": time.time() - t0, "loss_curve": curve}
-    with open(os.path.join(args.out, "metrics.json"), "w") as f:
-        json.dump(report, f, indent=1)
-    print(f"\nHeld-out procedural scenes ({len(samples)}), {exp.stages[-1].num_inputs} inputs -> "
-          f"{exp.stages[-1].num_targets} targets:")
-    print(format_table(summary))
-    first, last = np.mean([c[1] for c in curve[:3]]), np.mean([c[1] for c in curve[-3:]])
-    print(f"loss {first:.4f} -> {last:.4f}; trained {t_train / 60:.1f} min, total {report['total_seconds'] / 60:.1f} min")
-    print(f"pictures: {args.out}/grid_*.png   metrics: {args.out}/metrics.json   tensorboard: {args.out}/tb")
+    run_demo(args.out, steps=args.steps, minutes=args.minutes)
     return 0
 
 
@@ -470,7 +442,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="params folder to write")
     c.set_defaults(fn=cmd_convert)
 
-    d = sub.add_parser("demo", help="train the demo on procedural scenes, evaluate, write pictures")
+    d = sub.add_parser("demo", help="reconstruct held-out procedural scenes with the shipped model, "
+                                    "then train the tiny model from scratch; tables and pictures")
     d.add_argument("--out", default="runs/demo", help="workdir for the demo's checkpoints, pictures and metrics")
     d.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
     d.add_argument("--steps", type=int, default=None, help="override the number of training steps")

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import KeyArray
+from llrmpp_jax.array_typing import Float, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
@@ -131,22 +131,58 @@ def evaluate(
     return rows, summary, preds
 
 
-def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int = 2) -> np.ndarray:
-    """``[rows*H, cols*W, 3]`` picture: first row the inputs; then one row per target:
-    target, prediction, |error| (x4, clipped), nearest input view (the baseline)."""
+def disparity_picture(depth: Float[np.ndarray, "T H W"]) -> Float[np.ndarray, "T H W 3"]:
+    """Depth maps as grey pictures of inverse depth, near = bright, each normalised to its own
+    2nd-98th percentile (a pixel with depth <= 0 is black)."""
+    valid = depth > 0
+    disp = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0)
+    out = np.zeros(depth.shape, np.float32)
+    for t in range(depth.shape[0]):
+        if valid[t].any():
+            lo, hi = np.percentile(disp[t][valid[t]], [2, 98])
+            out[t] = np.where(valid[t], np.clip((disp[t] - lo) / max(hi - lo, 1e-12), 0, 1), 0)
+    return np.repeat(out[..., None], 3, axis=-1)
+
+
+def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int = 2,
+                 input_renders: np.ndarray | None = None, depth: np.ndarray | None = None) -> np.ndarray:
+    """``[rows*H, cols*W, 3]`` picture: first row the inputs (then, given ``input_renders``
+    ``[V, H, W, 3]``, the inputs re-rendered from the Gaussians); then one row per target:
+    target, prediction, |error| (x4, clipped), nearest input view (the baseline) and, given
+    ``depth`` ``[T, H, W]``, the Gaussians' depth (:func:`disparity_picture`)."""
     inputs, targets = sample["input_images"], sample["target_images"]
     nearest = baseline_predictions(sample)["nearest_view"]
     h, w = targets.shape[1:3]
     rows = [list(inputs)]
+    if input_renders is not None:
+        rows.append([np.clip(r, 0, 1) for r in input_renders])
+    shaded = None if depth is None else disparity_picture(np.asarray(depth))
     for t in range(targets.shape[0]):
         err = np.clip(np.abs(prediction[t] - targets[t]) * 4.0, 0.0, 1.0)
-        rows.append([targets[t], np.clip(prediction[t], 0, 1), err, nearest[t]])
+        rows.append([targets[t], np.clip(prediction[t], 0, 1), err, nearest[t]]
+                    + ([] if shaded is None else [shaded[t]]))
     cols = max(len(r) for r in rows)
     grid = np.ones((len(rows) * (h + gap) - gap, cols * (w + gap) - gap, 3), np.float32)
     for i, r in enumerate(rows):
         for j, img in enumerate(r):
             grid[i * (h + gap):i * (h + gap) + h, j * (w + gap):j * (w + gap) + w] = img
     return grid
+
+
+def scene_picture(params: dict, cfg: ModelConfig, sample: dict[str, np.ndarray]) -> np.ndarray:
+    """:func:`picture_grid` of one unbatched sample with every row and column: the inputs,
+    the inputs re-rendered from the Gaussians, and per target the prediction, error, nearest
+    view and the Gaussians' own depth (``gaussian_depth.splatted_depth``, no decoder)."""
+    from llrmpp_jax.gaussian_depth import splatted_depth
+
+    out = predict(params, cfg, {k: v[None] for k, v in sample.items()}, diagnose=True)
+    g = reconstruct(params, cfg, sample["input_images"][None], sample["input_c2w"][None],
+                    sample["input_intrinsics"][None])
+    h, w = sample["target_images"].shape[1:3]
+    depth, _ = splatted_depth(g, jnp.asarray(sample["target_c2w"][None]),
+                              jnp.asarray(sample["target_intrinsics"][None]), h, w, cfg)
+    return picture_grid(sample, np.asarray(out["rgb"][0]), input_renders=np.asarray(out["input_rgb"][0]),
+                        depth=np.asarray(depth[0]))
 
 
 def format_table(summary: dict[str, dict[str, float]]) -> str:

@@ -290,6 +290,7 @@ def train(
                     tqdm.write(f"[{stage.name} step {step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
                                f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
                     result["eval"] = summary
+                    result.setdefault("evals", []).append({"step": step, **summary["model"]})
                 if out_of_time:
                     tqdm.write(f"time budget of {budget} min reached at step {step}; checkpoint saved")
                     break
@@ -304,7 +305,8 @@ def train(
     result["history"] = history
     result["params"] = params
     with open(os.path.join(workdir, "train_log.json"), "w") as f:
-        json.dump({"stages": result["stages"], "history": history, "eval": result.get("eval")}, f, indent=1)
+        json.dump({"stages": result["stages"], "history": history, "eval": result.get("eval"),
+                   "evals": result.get("evals", [])}, f, indent=1)
     return result
 
 

@@ -18,7 +18,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 EXPERIMENT_FILES = sorted(p for p in glob.glob(os.path.join(ROOT, "experiments", "*.py"))
-                          if not os.path.basename(p).startswith("bench"))  # bench_*.py are scripts
+                          if not os.path.basename(p).startswith(("bench", "ship")))  # scripts, not experiments
 
 
 @pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=os.path.basename)
