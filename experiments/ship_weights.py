@@ -22,7 +22,7 @@ import subprocess
 import numpy as np
 
 from llrmpp_jax.data.image_io import write_image
-from llrmpp_jax.evaluate import evaluate, format_table, picture_grid
+from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
@@ -44,18 +44,17 @@ def main() -> None:
     params, cfg = load_params(args.workdir, exp.model)
     stage = exp.stages[-1]
     samples, names = eval_samples(exp, stage)
-    rows, summary, preds = evaluate(params, cfg, samples, load_lpips_params(), names)
+    rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names)
     out = os.path.join(ROOT, "experiments", "results", args.name)
     os.makedirs(out, exist_ok=True)
     for i in range(min(args.pictures, len(samples))):
-        write_image(os.path.join(out, f"grid_{i}.png"), picture_grid(samples[i], preds[i]))
+        write_image(os.path.join(out, f"grid_{i}.png"), scene_picture(params, cfg, samples[i]))
 
     log_path = os.path.join(args.workdir, "train_log.json")
-    steps = None
     if os.path.isfile(log_path):
         shutil.copy(log_path, os.path.join(out, "train_log.json"))
-        with open(log_path) as f:
-            steps = max((s["steps"] for s in json.load(f)["stages"]), default=None)
+    # The step of the checkpoint load_params took: the newest one of the last stage.
+    steps = max(int(d) for d in os.listdir(os.path.join(args.workdir, "checkpoints", stage.name)) if d.isdigit())
     if os.path.isfile(os.path.join(args.workdir, "train.log")):
         with open(os.path.join(args.workdir, "train.log"), errors="replace") as f:
             lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if "held-out PSNR" in ln]
