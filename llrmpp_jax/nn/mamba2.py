@@ -55,22 +55,27 @@ def causal_depthwise_conv1d(
 
     Zero history before t=0; tap ``K-1`` multiplies the current token (PyTorch
     ``Conv1d(groups=C, padding=K-1)`` truncated to the first L outputs, cross-correlation).
+    One grouped ``conv_general_dilated`` (``feature_group_count=C``, K-1 zeros on the left)
+    rather than K shifted slices: the slices' transposes in the backward are K zero-padded
+    ``[..., L+K-1, C]`` buffers, the conv's backward is one conv of the cotangent.
     """
     if kernel.ndim != 2 or kernel.shape[1] != x.shape[-1] or bias.shape != (x.shape[-1],):
         raise ValueError(
             f"causal_depthwise_conv1d: x {x.shape} needs kernel [K, {x.shape[-1]}] and bias "
             f"[{x.shape[-1]}], got kernel {kernel.shape} and bias {bias.shape}"
         )
-    K, L = kernel.shape[0], x.shape[-2]
+    (K, C), L = kernel.shape, x.shape[-2]
     acc = _acc(x.dtype)
-    xf = x.astype(acc)
-    padded = jnp.pad(xf, [(0, 0)] * (x.ndim - 2) + [(K - 1, 0), (0, 0)])
-    lead = (1,) * (x.ndim - 1)
-    kf = kernel.astype(acc)
-    y = bias.astype(acc).reshape(*lead, -1)
-    for k in range(K):  # K = 4 shifted multiply-adds; cheaper than a grouped conv here
-        y = y + kf[k].reshape(*lead, -1) * padded[..., k : k + L, :]
-    return y.astype(x.dtype)
+    y = jax.lax.conv_general_dilated(
+        x.astype(acc).reshape(-1, L, C),
+        kernel.astype(acc)[:, None, :],  # [K, 1, C]: one input channel per group
+        window_strides=(1,),
+        padding=[(K - 1, 0)],
+        dimension_numbers=("NWC", "WIO", "NWC"),
+        feature_group_count=C,
+        precision=jax.lax.Precision.HIGHEST,  # no TF32/bf16 passes: exact float32 taps
+    )
+    return (y + bias.astype(acc)[None, None]).reshape(x.shape).astype(x.dtype)
 
 
 def gated_rms_norm(
