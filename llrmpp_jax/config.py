@@ -93,7 +93,10 @@ class BackboneConfig:
     num_global_tokens: int = 2
     mamba: Mamba2Config = field(default_factory=Mamba2Config)
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
-    remat: bool = False  # jax.checkpoint each block (recompute activations in backward)
+    # jax.checkpoint each block (recompute activations in backward); runs of >= 2 consecutive
+    # same-kind blocks then run as one lax.scan (nn.backbone.scan_blocks) so that the backward
+    # holds one block's activations at a time
+    remat: bool = False
 
     def __post_init__(self) -> None:
         if len(self.dims) != len(self.merge_layers) + 1:

@@ -103,6 +103,12 @@ class Backbone(nn.Module):
 
     ``__call__(pixels)`` takes per-pixel input features ``[B, V, H, W, C]`` (C=9 for
     ``[rgb*2-1, o x d, d]``) with H, W multiples of ``patch_size`` (times 2 per merge).
+
+    With ``cfg.remat`` every block is ``jax.checkpoint``-ed and, outside ``init``, each run
+    of >= 2 consecutive same-kind blocks (:func:`block_runs`) runs as one
+    :func:`scan_blocks` over the blocks' own ``blocks_<i>`` parameters: same numbers, same
+    parameter tree, but a backward pass that holds one block at a time. ``init`` creates
+    the blocks one by one (the same initial values with and without remat).
     """
 
     cfg: BackboneConfig
@@ -110,6 +116,14 @@ class Backbone(nn.Module):
 
     def layout(self) -> str:
         return parse_block_pattern(self.cfg.pattern, "TM", self.cfg.num_layers)
+
+    def _block(self, kind: str, dim: int, name: str | None, remat: bool = False, **kw) -> nn.Module:
+        """Block ``kind`` (``"M"``/``"T"``) of width ``dim``; ``kw`` goes to the constructor
+        (``parent=None``: an unbound module to ``apply`` with given parameters)."""
+        if kind == "M":
+            return (nn.remat(Mamba2Block) if remat else Mamba2Block)(d_model=dim, cfg=self.cfg.mamba, name=name, **kw)
+        cls = nn.remat(TransformerBlock) if remat else TransformerBlock
+        return cls(dim=dim, cfg=self.cfg.transformer, attention="global", name=name, **kw)
 
     @nn.compact
     def __call__(self, pixels: Float[Array, "B V H W C"]) -> BackboneOutput:
@@ -134,22 +148,59 @@ class Backbone(nn.Module):
         x = jnp.concatenate([jnp.broadcast_to(g[None].astype(x.dtype), (b, *g.shape)), x], axis=1)
         x = LayerNorm(name="input_norm")(x)
 
-        mamba_cls = nn.remat(Mamba2Block) if cfg.remat else Mamba2Block
-        attn_cls = nn.remat(TransformerBlock) if cfg.remat else TransformerBlock
         stage, ng = 0, cfg.num_global_tokens
-        for i, kind in enumerate(self.layout()):
-            if i in cfg.merge_layers:
+        for start, kind, count in block_runs(self.layout(), cfg.merge_layers):
+            if start in cfg.merge_layers:
                 gt, it, grid = TokenMerge(cfg.dims[stage], cfg.dims[stage + 1], name=f"merge_{stage}")(
                     x[:, :ng], x[:, ng:], v, grid
                 )
                 x = jnp.concatenate([gt, it], axis=1)
                 stage += 1
-            d = cfg.dims[stage]
-            if kind == "M":
-                x = mamba_cls(d_model=d, cfg=cfg.mamba, name=f"blocks_{i}")(x)
+            names = [f"blocks_{i}" for i in range(start, start + count)]
+            if cfg.remat and count > 1 and not self.is_initializing():
+                params = self.variables["params"]
+                block = self._block(kind, cfg.dims[stage], None, parent=None)
+                x = scan_blocks(block, [params[n] for n in names], x)
             else:
-                x = attn_cls(dim=d, cfg=cfg.transformer, attention="global", name=f"blocks_{i}")(x)
+                for name in names:
+                    x = self._block(kind, cfg.dims[stage], name, remat=cfg.remat)(x)
         return BackboneOutput(x[:, :ng], x[:, ng:], grid)
+
+
+def block_runs(layout: str, merge_layers: tuple[int, ...] = ()) -> list[tuple[int, str, int]]:
+    """Maximal runs of consecutive same-kind blocks as ``(first index, kind, length)``; a
+    run also ends before every index in ``merge_layers`` (the width may change there).
+
+    ``block_runs("TMMMT", (2,))`` -> ``[(0, "T", 1), (1, "M", 1), (2, "M", 2), (4, "T", 1)]``.
+    """
+    runs: list[tuple[int, str, int]] = []
+    for i, kind in enumerate(layout):
+        if runs and runs[-1][1] == kind and i not in merge_layers:
+            runs[-1] = (runs[-1][0], kind, runs[-1][2] + 1)
+        else:
+            runs.append((i, kind, 1))
+    return runs
+
+
+def scan_blocks(block: nn.Module, params: list, x: Float[Array, "B L D"]) -> Float[Array, "B L D"]:
+    """``x`` through ``len(params)`` copies of the unbound ``block``, one per parameter tree,
+    as one ``lax.scan`` whose step is ``jax.checkpoint``-ed.
+
+    Equal to applying the blocks one after another with remat, but the backward pass is a
+    loop that recomputes and differentiates one block per iteration, so at most one block's
+    activations are alive at a time. Unrolled, XLA:CPU's scheduler was free to interleave
+    the blocks' backward passes and held the buffers of all 24 paper blocks at once
+    (``experiments/results/bench_train.json``, ``paper_stage4.peak_breakdown``). The
+    parameter trees are stacked here, in the forward (a copy of the run's weights), so the
+    stored layout stays one subtree per block (``blocks_<i>``) as checkpoints expect.
+    """
+    stacked = jax.tree.map(lambda *p: jnp.stack(p), *params)
+
+    @jax.checkpoint
+    def step(h, p):
+        return block.apply({"params": p}, h), None
+
+    return jax.lax.scan(step, x, stacked)[0]
 
 
 def count_params(params) -> int:
