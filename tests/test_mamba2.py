@@ -28,9 +28,11 @@ from llrmpp_jax.config import Mamba2Config
 from llrmpp_jax.convert.long_lrm import mamba2_block_rules
 from llrmpp_jax.convert.table import conv1d_depthwise, convert_state_dict
 from llrmpp_jax.nn.mamba2 import (
+    InProj,
     Mamba2Block,
     causal_depthwise_conv1d,
     gated_rms_norm,
+    in_proj_widths,
     init_mamba2_params,
     mamba2_block,
     mamba2_scan_direction,
@@ -57,8 +59,10 @@ def _run(module: Mamba2Block, params, x) -> dict:
     cfg = module.cfg
     norm_out = rms_norm(x, params["norm"]["scale"], cfg.norm_eps)
     in_proj_out = norm_out @ params["in_proj"]["kernel"]
-    scan0 = mamba2_scan_direction(in_proj_out, params["mamba_scans_0"], cfg)
-    scan1_rev = mamba2_scan_direction(in_proj_out[:, ::-1], params["mamba_scans_1"], cfg)
+    bounds = np.cumsum(in_proj_widths(params["out_proj"]["kernel"].shape[0], cfg))[:-1]
+    blocks = jnp.split(in_proj_out, bounds, axis=-1)
+    scan0 = mamba2_scan_direction(InProj(*blocks), params["mamba_scans_0"], cfg)
+    scan1_rev = mamba2_scan_direction(InProj(*(b[:, ::-1] for b in blocks)), params["mamba_scans_1"], cfg)
     out_proj_in = scan0 + scan1_rev[:, ::-1]
     return {
         "norm_out": norm_out,
@@ -242,7 +246,7 @@ def test_bad_inputs_raise(key):
     params = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     with pytest.raises(ValueError, match="expected \\[..., L, 16\\]"):
         module.apply(params, jnp.zeros((1, 5, 12)))
-    with pytest.raises(ValueError, match="zxbcdt has shape"):
-        mamba2_scan_direction(jnp.zeros((5, 10)), params["params"]["mamba_scans_0"], cfg)
+    with pytest.raises(ValueError, match="in_proj blocks"):
+        mamba2_scan_direction(InProj(*(jnp.zeros((5, 2)),) * 5), params["params"]["mamba_scans_0"], cfg)
     with pytest.raises(ValueError, match="kernel"):
         causal_depthwise_conv1d(jnp.zeros((5, 3)), jnp.zeros((4, 2)), jnp.zeros(3))
