@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import flax.linen as nn
 import jax
@@ -104,11 +104,11 @@ class Backbone(nn.Module):
     ``__call__(pixels)`` takes per-pixel input features ``[B, V, H, W, C]`` (C=9 for
     ``[rgb*2-1, o x d, d]``) with H, W multiples of ``patch_size`` (times 2 per merge).
 
-    With ``cfg.remat`` every block is ``jax.checkpoint``-ed and, outside ``init``, each run
-    of >= 2 consecutive same-kind blocks (:func:`block_runs`) runs as one
-    :func:`scan_blocks` over the blocks' own ``blocks_<i>`` parameters: same numbers, same
-    parameter tree, but a backward pass that holds one block at a time. ``init`` creates
-    the blocks one by one (the same initial values with and without remat).
+    With ``cfg.remat`` every block is ``jax.checkpoint``-ed and, outside ``init``, each
+    stage's blocks run as loops (:func:`remat_blocks`) over the blocks' own ``blocks_<i>``
+    parameters: same numbers, same parameter tree, but a backward pass that holds one
+    repetition of the pattern at a time. ``init`` creates the blocks one by one (the same
+    initial values with and without remat).
     """
 
     cfg: BackboneConfig
@@ -148,59 +148,72 @@ class Backbone(nn.Module):
         x = jnp.concatenate([jnp.broadcast_to(g[None].astype(x.dtype), (b, *g.shape)), x], axis=1)
         x = LayerNorm(name="input_norm")(x)
 
-        stage, ng = 0, cfg.num_global_tokens
-        for start, kind, count in block_runs(self.layout(), cfg.merge_layers):
-            if start in cfg.merge_layers:
-                gt, it, grid = TokenMerge(cfg.dims[stage], cfg.dims[stage + 1], name=f"merge_{stage}")(
+        ng, layout = cfg.num_global_tokens, self.layout()
+        bounds = [0, *sorted(cfg.merge_layers), len(layout)]
+        for stage, (start, stop) in enumerate(zip(bounds[:-1], bounds[1:])):  # one stage per width
+            if stage:
+                gt, it, grid = TokenMerge(cfg.dims[stage - 1], cfg.dims[stage], name=f"merge_{stage - 1}")(
                     x[:, :ng], x[:, ng:], v, grid
                 )
                 x = jnp.concatenate([gt, it], axis=1)
-                stage += 1
-            names = [f"blocks_{i}" for i in range(start, start + count)]
-            if cfg.remat and count > 1 and not self.is_initializing():
-                params = self.variables["params"]
-                block = self._block(kind, cfg.dims[stage], None, parent=None)
-                x = scan_blocks(block, [params[n] for n in names], x)
+            kinds, d = layout[start:stop], cfg.dims[stage]
+            if cfg.remat and not self.is_initializing():
+                params = [self.variables["params"][f"blocks_{i}"] for i in range(start, stop)]
+                x = remat_blocks(kinds, lambda kind: self._block(kind, d, None, parent=None), params, x)
             else:
-                for name in names:
-                    x = self._block(kind, cfg.dims[stage], name, remat=cfg.remat)(x)
+                for i, kind in enumerate(kinds, start):
+                    x = self._block(kind, d, f"blocks_{i}", remat=cfg.remat)(x)
         return BackboneOutput(x[:, :ng], x[:, ng:], grid)
 
 
-def block_runs(layout: str, merge_layers: tuple[int, ...] = ()) -> list[tuple[int, str, int]]:
-    """Maximal runs of consecutive same-kind blocks as ``(first index, kind, length)``; a
-    run also ends before every index in ``merge_layers`` (the width may change there).
-
-    ``block_runs("TMMMT", (2,))`` -> ``[(0, "T", 1), (1, "M", 1), (2, "M", 2), (4, "T", 1)]``.
-    """
+def block_runs(layout: str) -> list[tuple[int, str, int]]:
+    """Maximal runs of consecutive same-kind blocks as ``(first index, kind, length)``:
+    ``block_runs("TMMMT")`` -> ``[(0, "T", 1), (1, "M", 3), (4, "T", 1)]``."""
     runs: list[tuple[int, str, int]] = []
     for i, kind in enumerate(layout):
-        if runs and runs[-1][1] == kind and i not in merge_layers:
+        if runs and runs[-1][1] == kind:
             runs[-1] = (runs[-1][0], kind, runs[-1][2] + 1)
         else:
             runs.append((i, kind, 1))
     return runs
 
 
-def scan_blocks(block: nn.Module, params: list, x: Float[Array, "B L D"]) -> Float[Array, "B L D"]:
-    """``x`` through ``len(params)`` copies of the unbound ``block``, one per parameter tree,
-    as one ``lax.scan`` whose step is ``jax.checkpoint``-ed.
+def layout_period(kinds: str) -> int:
+    """Length of the shortest ``period`` with ``kinds == period * k``: ``"TMMTMM"`` -> 3."""
+    n = len(kinds)
+    return next(p for p in range(1, n + 1) if n % p == 0 and kinds[:p] * (n // p) == kinds)
 
-    Equal to applying the blocks one after another with remat, but the backward pass is a
-    loop that recomputes and differentiates one block per iteration, so at most one block's
-    activations are alive at a time. Unrolled, XLA:CPU's scheduler was free to interleave
-    the blocks' backward passes and held the buffers of all 24 paper blocks at once
-    (``experiments/results/bench_train.json``, ``paper_stage4.peak_breakdown``). The
-    parameter trees are stacked here, in the forward (a copy of the run's weights), so the
-    stored layout stays one subtree per block (``blocks_<i>``) as checkpoints expect.
+
+def remat_blocks(
+    kinds: str, make: Callable[[str], nn.Module], params: list, x: Float[Array, "B L D"]
+) -> Float[Array, "B L D"]:
+    """``x`` through the blocks ``make(kinds[i])`` (unbound modules) with parameter trees
+    ``params[i]``, each block ``jax.checkpoint``-ed, as loops rather than unrolled code.
+
+    A layout that repeats a period (``"TMMMMMMM" * 3``; a run of one kind is a period of
+    one) runs as one ``lax.scan`` over the repetitions, with the period's parameter trees
+    stacked (``jnp.stack`` here, in the forward, so the stored layout stays one subtree per
+    block as checkpoints expect) and the period itself applied the same way, recursively;
+    otherwise the runs of one kind follow each other. Same numbers as the blocks applied one
+    after another, but the backward pass is a loop that holds one repetition's blocks at a
+    time: unrolled, XLA:CPU's scheduler interleaved the blocks' backward passes and held
+    the buffers of all 24 paper blocks at once (``experiments/results/bench_train.json``,
+    ``paper_stage4``).
     """
-    stacked = jax.tree.map(lambda *p: jnp.stack(p), *params)
+    n, period = len(kinds), layout_period(kinds)
+    if n == 1:
+        block = make(kinds)
+        return jax.checkpoint(lambda h, w: block.apply({"params": w}, h))(x, params[0])
+    if period < n:
+        stacked = [jax.tree.map(lambda *a: jnp.stack(a), *params[j::period]) for j in range(period)]
 
-    @jax.checkpoint
-    def step(h, p):
-        return block.apply({"params": p}, h), None
+        def step(h, ws):
+            return remat_blocks(kinds[:period], make, ws, h), None
 
-    return jax.lax.scan(step, x, stacked)[0]
+        return jax.lax.scan(step, x, stacked)[0]
+    for start, _, count in block_runs(kinds):
+        x = remat_blocks(kinds[start : start + count], make, params[start : start + count], x)
+    return x
 
 
 def count_params(params) -> int:
