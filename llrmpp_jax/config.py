@@ -32,6 +32,9 @@ class Mamba2Config:
     chunk_size: int = 256
     bidirectional: bool = True  # "bi": forward + reversed scan, outputs summed
     norm_eps: float = 1e-5
+    # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth) or
+    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens)
+    inter_chunk: str = "associative"
 
     def d_inner(self, d_model: int) -> int:
         return self.expand * d_model
@@ -231,7 +234,9 @@ class ModelConfig:
 
 
 def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelConfig:
-    """Memory-efficient attention in every global-attention block and remat everywhere.
+    """Memory-efficient attention in every global-attention block, remat everywhere and
+    the SSD's sequential inter-chunk recurrence (its backward holds one chunk state per
+    chunk; the associative scan's held ~9 full-size copies at stage 4, bench_train.json).
 
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
     (``attention_impl="cudnn"``; the run's compute dtype must be bf16/fp16), anywhere else
@@ -247,7 +252,7 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
     return replace(
         model,
         backbone=replace(model.backbone, transformer=replace(model.backbone.transformer, attention_impl=impl),
-                         remat=True),
+                         mamba=replace(model.backbone.mamba, inter_chunk="sequential"), remat=True),
         decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl=impl),
                         remat=True),
     )

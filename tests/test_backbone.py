@@ -10,15 +10,9 @@ import pytest
 
 from conftest import GOLDEN, shared_path
 from llrmpp_jax import config as C
-from llrmpp_jax.nn import backbone
-from llrmpp_jax.nn.backbone import (
-    Backbone,
-    block_runs,
-    count_params,
-    layout_period,
-    parse_block_pattern,
-    remat_blocks,
-)
+from llrmpp_jax.nn import backbone, remat_loops
+from llrmpp_jax.nn.backbone import Backbone, count_params, parse_block_pattern
+from llrmpp_jax.nn.remat_loops import block_runs, layout_period, remat_blocks
 
 
 @pytest.mark.parametrize(
@@ -164,7 +158,8 @@ def test_remat_loops_match_unrolled(cfg, size, calls, key, monkeypatch):
         assert _rel_err(g_s, np.asarray(g_u, np.float64)) < 1e-5, jax.tree_util.keystr(path)
     # The looped model really recurses into periods and runs (each level traced once).
     seen = []
-    monkeypatch.setattr(backbone, "remat_blocks", lambda k, *a: seen.append(k) or remat_blocks(k, *a))
+    for module in (backbone, remat_loops):
+        monkeypatch.setattr(module, "remat_blocks", lambda k, *a: seen.append(k) or remat_blocks(k, *a))
     jax.eval_shape(lambda p: unrolled.apply({"params": p}, pixels), params)
     assert seen == []
     jax.eval_shape(lambda p: looped.apply({"params": p}, pixels), params)

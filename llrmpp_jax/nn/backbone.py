@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import flax.linen as nn
 import jax
@@ -25,6 +25,7 @@ from llrmpp_jax.config import BackboneConfig
 from llrmpp_jax.nn.mamba2 import Mamba2Block
 from llrmpp_jax.nn.norms import LayerNorm
 from llrmpp_jax.nn.patchify import patchify
+from llrmpp_jax.nn.remat_loops import remat_blocks
 from llrmpp_jax.nn.transformer import TransformerBlock
 
 _GROUP = re.compile(r"\{([^{}]*)\}x(\d+)")
@@ -164,56 +165,6 @@ class Backbone(nn.Module):
                 for i, kind in enumerate(kinds, start):
                     x = self._block(kind, d, f"blocks_{i}", remat=cfg.remat)(x)
         return BackboneOutput(x[:, :ng], x[:, ng:], grid)
-
-
-def block_runs(layout: str) -> list[tuple[int, str, int]]:
-    """Maximal runs of consecutive same-kind blocks as ``(first index, kind, length)``:
-    ``block_runs("TMMMT")`` -> ``[(0, "T", 1), (1, "M", 3), (4, "T", 1)]``."""
-    runs: list[tuple[int, str, int]] = []
-    for i, kind in enumerate(layout):
-        if runs and runs[-1][1] == kind:
-            runs[-1] = (runs[-1][0], kind, runs[-1][2] + 1)
-        else:
-            runs.append((i, kind, 1))
-    return runs
-
-
-def layout_period(kinds: str) -> int:
-    """Length of the shortest ``period`` with ``kinds == period * k``: ``"TMMTMM"`` -> 3."""
-    n = len(kinds)
-    return next(p for p in range(1, n + 1) if n % p == 0 and kinds[:p] * (n // p) == kinds)
-
-
-def remat_blocks(
-    kinds: str, make: Callable[[str], nn.Module], params: list, x: Float[Array, "B L D"]
-) -> Float[Array, "B L D"]:
-    """``x`` through the blocks ``make(kinds[i])`` (unbound modules) with parameter trees
-    ``params[i]``, each block ``jax.checkpoint``-ed, as loops rather than unrolled code.
-
-    A layout that repeats a period (``"TMMMMMMM" * 3``; a run of one kind is a period of
-    one) runs as one ``lax.scan`` over the repetitions, with the period's parameter trees
-    stacked (``jnp.stack`` here, in the forward, so the stored layout stays one subtree per
-    block as checkpoints expect) and the period itself applied the same way, recursively;
-    otherwise the runs of one kind follow each other. Same numbers as the blocks applied one
-    after another, but the backward pass is a loop that holds one repetition's blocks at a
-    time: unrolled, XLA:CPU's scheduler interleaved the blocks' backward passes and held
-    the buffers of all 24 paper blocks at once (``experiments/results/bench_train.json``,
-    ``paper_stage4``).
-    """
-    n, period = len(kinds), layout_period(kinds)
-    if n == 1:
-        block = make(kinds)
-        return jax.checkpoint(lambda h, w: block.apply({"params": w}, h))(x, params[0])
-    if period < n:
-        stacked = [jax.tree.map(lambda *a: jnp.stack(a), *params[j::period]) for j in range(period)]
-
-        def step(h, ws):
-            return remat_blocks(kinds[:period], make, ws, h), None
-
-        return jax.lax.scan(step, x, stacked)[0]
-    for start, _, count in block_runs(kinds):
-        x = remat_blocks(kinds[start : start + count], make, params[start : start + count], x)
-    return x
 
 
 def count_params(params) -> int:
