@@ -35,6 +35,10 @@ class Mamba2Config:
     # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth) or
     # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens)
     inter_chunk: str = "associative"
+    # Run the two scan directions as a loop of two, each recomputed in the backward pass
+    # (remat): the block's backward then holds one direction's activations, for one more
+    # forward pass of the directions
+    remat_directions: bool = False
 
     def d_inner(self, d_model: int) -> int:
         return self.expand * d_model
@@ -234,9 +238,10 @@ class ModelConfig:
 
 
 def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelConfig:
-    """Memory-efficient attention in every global-attention block, remat everywhere and
-    the SSD's sequential inter-chunk recurrence (its backward holds one chunk state per
-    chunk; the associative scan's held ~9 full-size copies at stage 4, bench_train.json).
+    """Memory-efficient attention in every global-attention block, remat everywhere (the
+    Mamba2 blocks' two directions included) and the SSD's sequential inter-chunk
+    recurrence (its backward holds one chunk state per chunk; the associative scan's held
+    ~9 full-size copies at stage 4, bench_train.json).
 
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
     (``attention_impl="cudnn"``; the run's compute dtype must be bf16/fp16), anywhere else
@@ -252,7 +257,8 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
     return replace(
         model,
         backbone=replace(model.backbone, transformer=replace(model.backbone.transformer, attention_impl=impl),
-                         mamba=replace(model.backbone.mamba, inter_chunk="sequential"), remat=True),
+                         mamba=replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True),
+                         remat=True),
         decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl=impl),
                         remat=True),
     )

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float, KeyArray
 from llrmpp_jax.config import Mamba2Config
 from llrmpp_jax.nn.norms import rms_norm
+from llrmpp_jax.nn.remat_loops import remat_after_cotangent
 from llrmpp_jax.nn.ssd import ssd_scan
 
 Params = dict[str, dict[str, Array]]
@@ -176,10 +177,19 @@ def mamba2_block(params: Params, x: Float[Array, "... L D"], cfg: Mamba2Config) 
     xn = rms_norm(x, params["norm"]["scale"], cfg.norm_eps)
     kernels = _split_columns(params["in_proj"]["kernel"], in_proj_widths(d_inner, cfg))
     proj = InProj(*(_dense(xn, k) for k in kernels))
-    y = mamba2_scan_direction(proj, params["mamba_scans_0"], cfg)
-    if cfg.bidirectional:
+    if not cfg.bidirectional:
+        y = mamba2_scan_direction(proj, params["mamba_scans_0"], cfg)
+    else:
         flipped = InProj(*(jnp.flip(a, axis=-2) for a in proj))
-        y = y + jnp.flip(mamba2_scan_direction(flipped, params["mamba_scans_1"], cfg), axis=-2)
+        if cfg.remat_directions:  # a loop of two: the backward holds one direction at a time
+            run = remat_after_cotangent(lambda p, w: mamba2_scan_direction(p, w, cfg))
+            pair = jax.tree.map(lambda *a: jnp.stack(a), (proj, params["mamba_scans_0"]),
+                                (flipped, params["mamba_scans_1"]))
+            y0, y1 = jax.lax.map(lambda pw: run(*pw), pair)
+        else:
+            y0 = mamba2_scan_direction(proj, params["mamba_scans_0"], cfg)
+            y1 = mamba2_scan_direction(flipped, params["mamba_scans_1"], cfg)
+        y = y0 + jnp.flip(y1, axis=-2)
     return x + _dense(y, params["out_proj"]["kernel"])
 
 

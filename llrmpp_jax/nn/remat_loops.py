@@ -36,10 +36,10 @@ def layout_period(kinds: str) -> int:
     return next(p for p in range(1, n + 1) if n % p == 0 and kinds[:p] * (n // p) == kinds)
 
 
-def remat_after_cotangent(f: Callable[[Array, Any], Array]) -> Callable[[Array, Any], Array]:
-    """``jax.checkpoint(f)`` for ``f(h, w)``: the forward keeps only ``h`` and ``w``, the
-    backward recomputes ``f`` and differentiates it, but not before the output's cotangent
-    exists.
+def remat_after_cotangent(f: Callable[[Any, Any], Array]) -> Callable[[Any, Any], Array]:
+    """``jax.checkpoint(f)`` for ``f(h, w)`` (``h`` an array or a tuple of arrays, the
+    output one array): the forward keeps only ``h`` and ``w``, the backward recomputes ``f``
+    and differentiates it, but not before the output's cotangent exists.
 
     The recomputation is made to read the cotangent (``h + 0 * ct[0]``: XLA does not fold
     a float multiply by zero, it would change NaN/inf), so XLA cannot schedule it early.
@@ -57,7 +57,8 @@ def remat_after_cotangent(f: Callable[[Array, Any], Array]) -> Callable[[Array, 
 
     def bwd(res, ct):
         h, w = res
-        h = h + (ct.reshape(-1)[0] * 0).astype(h.dtype)
+        zero = ct.reshape(-1)[0] * 0
+        h = jax.tree.map(lambda a: a + zero.astype(a.dtype), h)
         return jax.vjp(f, h, w)[1](ct)
 
     g.defvjp(fwd, bwd)
