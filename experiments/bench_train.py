@@ -58,7 +58,12 @@ stage-4 step, written as JSON.
 
 Usage: ``python experiments/bench_train.py [--out PATH] [--quick] [--skip-paper]
 [--steps N] [--mid-sizes 256,192] [--max-step-gb G] [--max-rss-gb G] [--paper-timeout S]
-[--paper-max-rss-gb G]``. ``--quick``: the demo config only (with and without remat).
+[--paper-max-rss-gb G] [--paper-only] [--paper-note TEXT] [--paper-dump DIR]``. ``--quick``:
+the demo config only (with and without remat). ``--paper-only``: the stage-4 analysis
+alone, replacing ``paper_stage4`` in the existing ``--out`` file (the previous entry is
+appended to ``paper_stage4_history``); ``--paper-dump DIR``: also dump XLA's compile there
+and store its peak breakdown (``peak_breakdown``: the values alive at the peak as a tree
+of (depth, op name, bytes), a loop's row being its body's peak).
 """
 
 from __future__ import annotations
@@ -67,6 +72,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import resource
 import subprocess
 import sys
@@ -266,6 +272,38 @@ def compile_paper() -> dict:
             "memory_analysis": _memory(compiled), "max_rss_bytes": _max_rss_bytes()}
 
 
+_BREAKDOWN = re.compile(r"^(?P<indent>[\s│]*)[├└]── (?P<name>\S+) \([\d.]+%, total: (?P<total>[\d ]+) bytes")
+_SHORT = (("jit(_fun)/transpose(jvp(LongLRMPP.reconstruct))", "bwd(reconstruct)"),
+          ("jit(_fun)/transpose(jvp(LongLRMPP.render))", "bwd(render)"),
+          ("jit(_fun)/jvp(LongLRMPP.reconstruct)", "fwd(reconstruct)"),
+          ("jit(_fun)/jvp(LongLRMPP.render)", "fwd(render)"))
+
+
+def peak_breakdown(dump_dir: str, min_bytes: float = 1e9) -> dict:
+    """XLA's "Stack trace breakdown for peak usage" of the largest compiled module in an
+    ``--xla_dump_to`` folder (its ``*live-range.txt``): the values alive at the peak, as a
+    tree of (depth, op name, bytes) rows -- a loop's row is its body's peak -- keeping the
+    rows of at least ``min_bytes``."""
+    path = max((os.path.join(dump_dir, f) for f in os.listdir(dump_dir) if f.endswith("live-range.txt")),
+               key=os.path.getsize)
+    with open(path) as f:
+        lines = f.read().split("Stack trace breakdown for peak usage: ", 1)[1].splitlines()
+    rows = []
+    for line in lines[1:]:
+        m = _BREAKDOWN.match(line)
+        if m is None:
+            break
+        total = int(m["total"].replace(" ", ""))
+        if total >= min_bytes:
+            name = m["name"]
+            for long, short in _SHORT:
+                name = name.replace(long, short)
+            rows.append([len(m["indent"]) // 4, name, total])
+    return {"source": f"XLA live-range dump ({os.path.basename(path)}), values alive at the peak",
+            "peak_bytes": int(lines[0].split(" bytes")[0].replace(" ", "")),
+            "rows_depth_name_bytes": rows}
+
+
 def _nbytes(tree) -> int:
     return int(sum(np.prod(x.shape) * jnp.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree)))
 
@@ -387,6 +425,27 @@ def _watch(cmd: list[str], timeout: float, max_rss: float) -> tuple[dict | None,
     return json.loads(out.strip().splitlines()[-1]), f"ok in {time.time() - t0:.0f} s"
 
 
+def paper_stage4(args: argparse.Namespace) -> dict:
+    """Stage 4's estimate and XLA compile (in a watched subprocess), with the peak breakdown
+    when ``--paper-dump`` is given."""
+    est = paper_estimate()
+    env_flags = os.environ.get("XLA_FLAGS", "")
+    if args.paper_dump:
+        os.environ["XLA_FLAGS"] = (f"{env_flags} --xla_dump_to={args.paper_dump} --xla_dump_hlo_pass_re=NONE "
+                                   "--xla_dump_hlo_module_re=.*fun.*")
+    try:
+        res, why = _watch([sys.executable, os.path.abspath(__file__), "--_paper"], args.paper_timeout, args.paper_max_rss_gb * GIB)
+    finally:
+        os.environ["XLA_FLAGS"] = env_flags
+    out = {"compiled": res if res is not None else {"failed": why}, "estimate": est, "compile_attempt": why,
+           "xla_cpu_scheduler": "memory-minimising (--xla_cpu_enable_concurrency_optimized_scheduler=false)",
+           "changes": args.paper_note}
+    if args.paper_dump and res is not None:
+        out["peak_breakdown"] = peak_breakdown(args.paper_dump)
+    print("paper_stage4", why, json.dumps(out, indent=1), flush=True)
+    return out
+
+
 def main() -> None:
     if CPU_MEMORY_SCHEDULER not in os.environ.get("XLA_FLAGS", ""):  # before the backend starts
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_MEMORY_SCHEDULER}".strip()
@@ -402,6 +461,12 @@ def main() -> None:
     ap.add_argument("--max-rss-gb", type=float, default=16.0, help="kill a measured case above this RSS")
     ap.add_argument("--paper-timeout", type=float, default=600.0)
     ap.add_argument("--paper-max-rss-gb", type=float, default=12.0)
+    ap.add_argument("--paper-only", action="store_true",
+                    help="only the stage-4 analysis: replace paper_stage4 in the existing --out file, the "
+                         "previous entry moving to paper_stage4_history")
+    ap.add_argument("--paper-note", default="", help="what changed since the previous stage-4 entry (stored)")
+    ap.add_argument("--paper-dump", default=None,
+                    help="folder for XLA's dump of the stage-4 compile; its peak breakdown is stored")
     ap.add_argument("--_case", help=argparse.SUPPRESS)  # internal: name:remat, one measured case
     ap.add_argument("--_paper", action="store_true", help=argparse.SUPPRESS)  # internal: compile stage 4
     args = ap.parse_args()
@@ -413,6 +478,18 @@ def main() -> None:
         return
     if args._paper:
         print(json.dumps(compile_paper()))
+        return
+
+    if args.paper_only:
+        with open(args.out) as f:
+            result = json.load(f)
+        previous = result.pop("paper_stage4", None)
+        if previous is not None:
+            result.setdefault("paper_stage4_history", []).append(previous)
+        result["paper_stage4"] = paper_stage4(args)
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=2)
+        print("wrote", args.out)
         return
 
     dev = jax.devices()[0]
@@ -430,11 +507,7 @@ def main() -> None:
             result["cases"][key] = res if res is not None else {"failed": why}
             print(key, why, json.dumps(res), flush=True)
     if not args.skip_paper:
-        est = paper_estimate()
-        res, why = _watch(me + ["--_paper"], args.paper_timeout, args.paper_max_rss_gb * GIB)
-        result["paper_stage4"] = {"compiled": res if res is not None else {"failed": why}, "estimate": est,
-                                  "compile_attempt": why}
-        print("paper_stage4", why, json.dumps(result["paper_stage4"], indent=1), flush=True)
+        result["paper_stage4"] = paper_stage4(args)
     result["load_average_at_end"] = list(os.getloadavg())
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
