@@ -289,7 +289,7 @@ def peak_breakdown(dump_dir: str, min_bytes: float = 1e9) -> dict:
     with open(path) as f:
         lines = f.read().split("Stack trace breakdown for peak usage: ", 1)[1].splitlines()
     rows = []
-    for line in lines[1:]:
+    for line in lines[2:]:  # lines[1] is the entry computation (the whole peak)
         m = _BREAKDOWN.match(line)
         if m is None:
             break

@@ -139,14 +139,17 @@ class Backbone(nn.Module):
                 f"(patch {p} x 2^{len(cfg.merge_layers)} merges)"
             )
         grid = (hh // p, ww // p)
-        x = nn.Dense(cfg.dims[0], use_bias=False, name="tokenizer")(patchify(pixels, p))
         g = self.param(
             "global_tokens",
             nn.initializers.truncated_normal(0.02),
             (cfg.num_global_tokens, cfg.dims[0]),
             jnp.float32,
         )
-        x = jnp.concatenate([jnp.broadcast_to(g[None].astype(x.dtype), (b, *g.shape)), x], axis=1)
+        # The tokens take the parameters' dtype: bf16 when the train step casts them to its
+        # compute dtype. The pixel features arrive float32 and would otherwise promote the
+        # whole stack to float32 (twice the activation memory; bench_train.json paper_stage4).
+        x = nn.Dense(cfg.dims[0], use_bias=False, name="tokenizer")(patchify(pixels, p).astype(g.dtype))
+        x = jnp.concatenate([jnp.broadcast_to(g[None], (b, *g.shape)), x], axis=1)
         x = LayerNorm(name="input_norm")(x)
 
         ng, layout = cfg.num_global_tokens, self.layout()

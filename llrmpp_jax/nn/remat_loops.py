@@ -41,8 +41,9 @@ def remat_after_cotangent(f: Callable[[Any, Any], Array]) -> Callable[[Any, Any]
     output one array): the forward keeps only ``h`` and ``w``, the backward recomputes ``f``
     and differentiates it, but not before the output's cotangent exists.
 
-    The recomputation is made to read the cotangent (``h + 0 * ct[0]``: XLA does not fold
-    a float multiply by zero, it would change NaN/inf), so XLA cannot schedule it early.
+    The recomputation is made to read the cotangent through the parameters (``w + 0 *
+    ct[0]``: XLA does not fold a float multiply by zero, it would change NaN/inf; ``w`` is
+    small, ``h`` may be large), so XLA cannot schedule it early.
     With ``jax.checkpoint`` it could, and did: inside the loop over the backbone's
     ``T M M M M M M M`` pattern, XLA:CPU recomputed the ``T`` block before running the
     seven ``M`` blocks' backward loop and held its ~26 GB of activations through it.
@@ -58,7 +59,7 @@ def remat_after_cotangent(f: Callable[[Any, Any], Array]) -> Callable[[Any, Any]
     def bwd(res, ct):
         h, w = res
         zero = ct.reshape(-1)[0] * 0
-        h = jax.tree.map(lambda a: a + zero.astype(a.dtype), h)
+        w = jax.tree.map(lambda a: a + zero.astype(a.dtype), w)
         return jax.vjp(f, h, w)[1](ct)
 
     g.defvjp(fwd, bwd)
