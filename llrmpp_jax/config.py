@@ -100,9 +100,9 @@ class BackboneConfig:
     num_global_tokens: int = 2
     mamba: Mamba2Config = field(default_factory=Mamba2Config)
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
-    # jax.checkpoint each block (recompute activations in backward); runs of >= 2 consecutive
-    # same-kind blocks then run as one lax.scan (nn.backbone.scan_blocks) so that the backward
-    # holds one block's activations at a time
+    # recompute each block's activations in the backward pass; the blocks then run as loops
+    # over the pattern (nn.remat_loops.remat_blocks) so that the backward holds one block's
+    # activations at a time
     remat: bool = False
 
     def __post_init__(self) -> None:

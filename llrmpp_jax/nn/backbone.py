@@ -105,8 +105,8 @@ class Backbone(nn.Module):
     ``__call__(pixels)`` takes per-pixel input features ``[B, V, H, W, C]`` (C=9 for
     ``[rgb*2-1, o x d, d]``) with H, W multiples of ``patch_size`` (times 2 per merge).
 
-    With ``cfg.remat`` every block is ``jax.checkpoint``-ed and, outside ``init``, each
-    stage's blocks run as loops (:func:`remat_blocks`) over the blocks' own ``blocks_<i>``
+    With ``cfg.remat`` every block is rematerialised and, outside ``init``, each stage's
+    blocks run as loops (:func:`remat_blocks`) over the blocks' own ``blocks_<i>``
     parameters: same numbers, same parameter tree, but a backward pass that holds one
     repetition of the pattern at a time. ``init`` creates the blocks one by one (the same
     initial values with and without remat).
