@@ -184,10 +184,12 @@ def test_remat_directions_matches_plain_block(key):
                              for p, k in zip(leaves, jax.random.split(k_n, len(leaves)))])
     x = jax.random.normal(k_x, (2, 11, 16), jnp.float32)
     ct = jax.random.normal(k_ct, x.shape, jnp.float32)
-    results = []
-    for c in (cfg, dataclasses.replace(cfg, remat_directions=True)):
-        y, vjp = jax.vjp(lambda p, h, c=c: mamba2_block(p, h, c), params, x)
-        results.append((y, *vjp(ct)))
+    @functools.partial(jax.jit, static_argnums=0)
+    def value_and_vjp(c, p, h):
+        y, vjp = jax.vjp(lambda p, h: mamba2_block(p, h, c), p, h)
+        return y, *vjp(ct)
+
+    results = [value_and_vjp(c, params, x) for c in (cfg, dataclasses.replace(cfg, remat_directions=True))]
     for (path, want), got in zip(jax.tree_util.tree_leaves_with_path(results[0]), jax.tree.leaves(results[1])):
         err = float(jnp.max(jnp.abs(got - want)) / jnp.max(jnp.abs(want)))
         assert err <= 1e-5, (jax.tree_util.keystr(path), err)
