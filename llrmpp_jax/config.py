@@ -32,6 +32,13 @@ class Mamba2Config:
     chunk_size: int = 256
     bidirectional: bool = True  # "bi": forward + reversed scan, outputs summed
     norm_eps: float = 1e-5
+    # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth) or
+    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens)
+    inter_chunk: str = "associative"
+    # Run the two scan directions as a loop of two, each recomputed in the backward pass
+    # (remat): the block's backward then holds one direction's activations, for one more
+    # forward pass of the directions
+    remat_directions: bool = False
 
     def d_inner(self, d_model: int) -> int:
         return self.expand * d_model
@@ -93,7 +100,10 @@ class BackboneConfig:
     num_global_tokens: int = 2
     mamba: Mamba2Config = field(default_factory=Mamba2Config)
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
-    remat: bool = False  # jax.checkpoint each block (recompute activations in backward)
+    # recompute each block's activations in the backward pass; the blocks then run as loops
+    # over the pattern (nn.remat_loops.remat_blocks) so that the backward holds one block's
+    # activations at a time
+    remat: bool = False
 
     def __post_init__(self) -> None:
         if len(self.dims) != len(self.merge_layers) + 1:
@@ -228,7 +238,10 @@ class ModelConfig:
 
 
 def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelConfig:
-    """Memory-efficient attention in every global-attention block and remat everywhere.
+    """Memory-efficient attention in every global-attention block, remat everywhere (the
+    Mamba2 blocks' two directions included) and the SSD's sequential inter-chunk
+    recurrence (its backward holds one chunk state per chunk; the associative scan's held
+    ~9 full-size copies at stage 4, bench_train.json).
 
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
     (``attention_impl="cudnn"``; the run's compute dtype must be bf16/fp16), anywhere else
@@ -244,6 +257,7 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
     return replace(
         model,
         backbone=replace(model.backbone, transformer=replace(model.backbone.transformer, attention_impl=impl),
+                         mamba=replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True),
                          remat=True),
         decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl=impl),
                         remat=True),

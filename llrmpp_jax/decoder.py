@@ -31,6 +31,7 @@ from llrmpp_jax.nn.backbone import parse_block_pattern
 from llrmpp_jax.nn.norms import LayerNorm
 from llrmpp_jax.nn.patchify import patchify, unpatchify
 from llrmpp_jax.nn.position_embedding import sincos_2d
+from llrmpp_jax.nn.remat_loops import remat_blocks
 from llrmpp_jax.nn.transformer import TransformerBlock
 
 OUTPUT_CHANNELS = {"rgb": 3, "depth": 1}
@@ -72,13 +73,18 @@ class TargetDecoder(nn.Module):
                      kernel_init=nn.initializers.normal(0.02))(x)
         if cfg.absolute_positions:
             x = x + jnp.asarray(sincos_2d(*grid, cfg.dim), x.dtype)[None]
-        block_cls = nn.remat(TransformerBlock) if cfg.remat else TransformerBlock
-        for i, kind in enumerate(parse_block_pattern(cfg.blocks, "LG")):
-            x = block_cls(
-                dim=cfg.dim, cfg=cfg.transformer,
-                attention="local" if kind == "L" else "global",
-                grid=grid, num_neighbours=cfg.num_neighbours, name=f"blocks_{i}",
-            )(x)
+        def block(kind: str, name: str | None, remat: bool = False, **kw) -> nn.Module:
+            cls = nn.remat(TransformerBlock) if remat else TransformerBlock
+            return cls(dim=cfg.dim, cfg=cfg.transformer, attention="local" if kind == "L" else "global",
+                       grid=grid, num_neighbours=cfg.num_neighbours, name=name, **kw)
+
+        kinds = parse_block_pattern(cfg.blocks, "LG")
+        if cfg.remat and not self.is_initializing():  # loops whose backward holds one block
+            params = [self.variables["params"][f"blocks_{i}"] for i in range(len(kinds))]
+            x = remat_blocks(kinds, lambda kind: block(kind, None, parent=None), params, x)
+        else:
+            for i, kind in enumerate(kinds):
+                x = block(kind, f"blocks_{i}", cfg.remat)(x)
         x = LayerNorm(name="norm")(x)
         x = x.reshape(m, s, grid[0] * grid[1], cfg.dim)
         merge = nn.Dense(1, use_bias=False, name="merge", kernel_init=nn.initializers.normal(0.02))(x)

@@ -161,4 +161,7 @@ class GaussianHead(nn.Module):
         x = LayerNorm(name="norm")(tokens)
         raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj",
                        kernel_init=nn.initializers.normal(0.02))(x)
+        # Geometry in float32 at least: bf16 tokens (bf16 compute) would put pixel
+        # coordinates on a grid of 4 above 512 and ray depths to 3 digits.
+        raw = raw.astype(jnp.float64 if raw.dtype == jnp.float64 else jnp.float32)
         return decode_gaussians(raw.reshape(b, v, h, w, k, -1), c2w, intrinsics, self.token_stride, self.cfg)

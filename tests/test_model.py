@@ -1,5 +1,6 @@
 """The composed model: Long-LRM golden Gaussians, paper sizes, gradients, partition, decoder."""
 
+import functools
 import os
 
 import flax.linen as nn
@@ -10,11 +11,14 @@ import pytest
 
 from conftest import GOLDEN, shared_path
 from llrmpp_jax import config as C
+from llrmpp_jax import decoder
 from llrmpp_jax.decoder import TargetDecoder
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
+from llrmpp_jax.nn import remat_loops
 from llrmpp_jax.nn.backbone import count_params
+from llrmpp_jax.nn.remat_loops import remat_blocks
 from llrmpp_jax.perceptual import load_vgg16_lpips
 from llrmpp_jax.splat import render_features
 from test_backbone import golden_backbone_config
@@ -143,6 +147,39 @@ def test_local_decoder_is_translation_invariant(key):
     np.testing.assert_allclose(np.asarray(yb[m:-m - 2 * q, m:-m - 3 * q]),
                                np.asarray(ya[m + 2 * q:-m, m + 3 * q:-m]), atol=1e-5)
     assert not np.allclose(np.asarray(yb[:q, :q]), np.asarray(ya[2 * q:3 * q, 3 * q:4 * q]), atol=1e-5)
+
+
+def test_decoder_remat_loops_match_unrolled(key, monkeypatch):
+    """Decoder with remat: its ``LLGGG`` blocks run as loops (``remat_blocks``: a scan over
+    the L run, one over the G run); output and the gradients of every parameter and of the
+    canvas equal the unrolled blocks' (float32, <= 1e-5 relative), same random parameters."""
+    cfg = C.DecoderConfig(dim=32, blocks="LLGGG", num_neighbours=9, partitions=2,
+                          transformer=C.TransformerConfig(head_dim=16))
+    k_init, k_noise, k_x, k_ct = jax.random.split(key, 4)
+    canvas = jax.random.normal(k_x, (1, 2, 16, 24, 7), jnp.float32)
+    unrolled, looped = TargetDecoder(cfg), TargetDecoder(C.replace(cfg, remat=True))
+    params = jax.jit(unrolled.init)(k_init, canvas)["params"]
+    leaves, tree = jax.tree.flatten(params)
+    params = tree.unflatten([p + 0.1 * jax.random.normal(k, p.shape, p.dtype)
+                             for p, k in zip(leaves, jax.random.split(k_noise, len(leaves)))])
+
+    def loss(model, p, x):
+        y = model.apply({"params": p}, x)["rgb"]
+        return jnp.sum(y * jax.random.normal(k_ct, y.shape, y.dtype)), y
+
+    grad = lambda m: jax.jit(jax.grad(functools.partial(loss, m), argnums=(0, 1), has_aux=True))  # noqa: E731
+    (gp_u, gx_u), y_u = grad(unrolled)(params, canvas)
+    (gp_l, gx_l), y_l = grad(looped)(params, canvas)
+    assert _rel_err(y_l, np.asarray(y_u, np.float64)) < 1e-5
+    assert _rel_err(gx_l, np.asarray(gx_u, np.float64)) < 1e-5
+    for path, g_u in jax.tree_util.tree_leaves_with_path(gp_u):
+        g_l = functools.reduce(lambda t, k: t[k.key], path, gp_l)
+        assert _rel_err(g_l, np.asarray(g_u, np.float64)) < 1e-5, jax.tree_util.keystr(path)
+    seen = []
+    for module in (decoder, remat_loops):
+        monkeypatch.setattr(module, "remat_blocks", lambda k, *a: seen.append(k) or remat_blocks(k, *a))
+    jax.eval_shape(lambda p: looped.apply({"params": p}, canvas), params)
+    assert seen == ["LLGGG", "LL", "L", "GGG", "G"]
 
 
 def test_model_rejects_mismatched_cameras():

@@ -25,6 +25,7 @@ from llrmpp_jax.config import BackboneConfig
 from llrmpp_jax.nn.mamba2 import Mamba2Block
 from llrmpp_jax.nn.norms import LayerNorm
 from llrmpp_jax.nn.patchify import patchify
+from llrmpp_jax.nn.remat_loops import remat_blocks
 from llrmpp_jax.nn.transformer import TransformerBlock
 
 _GROUP = re.compile(r"\{([^{}]*)\}x(\d+)")
@@ -103,6 +104,12 @@ class Backbone(nn.Module):
 
     ``__call__(pixels)`` takes per-pixel input features ``[B, V, H, W, C]`` (C=9 for
     ``[rgb*2-1, o x d, d]``) with H, W multiples of ``patch_size`` (times 2 per merge).
+
+    With ``cfg.remat`` every block is rematerialised and, outside ``init``, each stage's
+    blocks run as loops (:func:`remat_blocks`) over the blocks' own ``blocks_<i>``
+    parameters: same numbers, same parameter tree, but a backward pass that holds one
+    repetition of the pattern at a time. ``init`` creates the blocks one by one (the same
+    initial values with and without remat).
     """
 
     cfg: BackboneConfig
@@ -110,6 +117,14 @@ class Backbone(nn.Module):
 
     def layout(self) -> str:
         return parse_block_pattern(self.cfg.pattern, "TM", self.cfg.num_layers)
+
+    def _block(self, kind: str, dim: int, name: str | None, remat: bool = False, **kw) -> nn.Module:
+        """Block ``kind`` (``"M"``/``"T"``) of width ``dim``; ``kw`` goes to the constructor
+        (``parent=None``: an unbound module to ``apply`` with given parameters)."""
+        if kind == "M":
+            return (nn.remat(Mamba2Block) if remat else Mamba2Block)(d_model=dim, cfg=self.cfg.mamba, name=name, **kw)
+        cls = nn.remat(TransformerBlock) if remat else TransformerBlock
+        return cls(dim=dim, cfg=self.cfg.transformer, attention="global", name=name, **kw)
 
     @nn.compact
     def __call__(self, pixels: Float[Array, "B V H W C"]) -> BackboneOutput:
@@ -124,31 +139,34 @@ class Backbone(nn.Module):
                 f"(patch {p} x 2^{len(cfg.merge_layers)} merges)"
             )
         grid = (hh // p, ww // p)
-        x = nn.Dense(cfg.dims[0], use_bias=False, name="tokenizer")(patchify(pixels, p))
         g = self.param(
             "global_tokens",
             nn.initializers.truncated_normal(0.02),
             (cfg.num_global_tokens, cfg.dims[0]),
             jnp.float32,
         )
-        x = jnp.concatenate([jnp.broadcast_to(g[None].astype(x.dtype), (b, *g.shape)), x], axis=1)
+        # The tokens take the parameters' dtype: bf16 when the train step casts them to its
+        # compute dtype. The pixel features arrive float32 and would otherwise promote the
+        # whole stack to float32 (twice the activation memory; bench_train.json paper_stage4).
+        x = nn.Dense(cfg.dims[0], use_bias=False, name="tokenizer")(patchify(pixels, p).astype(g.dtype))
+        x = jnp.concatenate([jnp.broadcast_to(g[None], (b, *g.shape)), x], axis=1)
         x = LayerNorm(name="input_norm")(x)
 
-        mamba_cls = nn.remat(Mamba2Block) if cfg.remat else Mamba2Block
-        attn_cls = nn.remat(TransformerBlock) if cfg.remat else TransformerBlock
-        stage, ng = 0, cfg.num_global_tokens
-        for i, kind in enumerate(self.layout()):
-            if i in cfg.merge_layers:
-                gt, it, grid = TokenMerge(cfg.dims[stage], cfg.dims[stage + 1], name=f"merge_{stage}")(
+        ng, layout = cfg.num_global_tokens, self.layout()
+        bounds = [0, *sorted(cfg.merge_layers), len(layout)]
+        for stage, (start, stop) in enumerate(zip(bounds[:-1], bounds[1:])):  # one stage per width
+            if stage:
+                gt, it, grid = TokenMerge(cfg.dims[stage - 1], cfg.dims[stage], name=f"merge_{stage - 1}")(
                     x[:, :ng], x[:, ng:], v, grid
                 )
                 x = jnp.concatenate([gt, it], axis=1)
-                stage += 1
-            d = cfg.dims[stage]
-            if kind == "M":
-                x = mamba_cls(d_model=d, cfg=cfg.mamba, name=f"blocks_{i}")(x)
+            kinds, d = layout[start:stop], cfg.dims[stage]
+            if cfg.remat and not self.is_initializing():
+                params = [self.variables["params"][f"blocks_{i}"] for i in range(start, stop)]
+                x = remat_blocks(kinds, lambda kind: self._block(kind, d, None, parent=None), params, x)
             else:
-                x = attn_cls(dim=d, cfg=cfg.transformer, attention="global", name=f"blocks_{i}")(x)
+                for i, kind in enumerate(kinds, start):
+                    x = self._block(kind, d, f"blocks_{i}", remat=cfg.remat)(x)
         return BackboneOutput(x[:, :ng], x[:, ng:], grid)
 
 

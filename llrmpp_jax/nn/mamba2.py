@@ -8,6 +8,12 @@ out-projection: split ``[z | x | B | C | dt]``, causal depthwise conv (k=4) + Si
 ``x|B|C``, ``dt = softplus(dt + dt_bias)``, ``A = -exp(A_log)``, the SSD scan with the
 ``D`` skip, then ``rms_norm(y * silu(z)) * w`` over the whole d_inner.
 
+The split is done on the weights, not on the activations: ``in_proj``'s kernel is cut
+into its five column blocks (:class:`InProj`) and the per-channel conv into its ``x|B|C``
+channels, so no ``[..., L, E]`` activation is sliced. The backward pass of an activation
+slice is a zero-padded full-size buffer; at the paper's L = 261,122 tokens those pads
+were ~10 GB per block (``experiments/results/bench_train.json``).
+
 Parameter tree (names mirror the PyTorch ``state_dict``; see ``convert/long_lrm.py``)::
 
     norm/scale [D]                 in_proj/kernel [D, 2*d_inner + 2*g*n + nh]
@@ -20,7 +26,9 @@ Activations keep the input dtype; matmuls, norms and the scan accumulate in floa
 
 from __future__ import annotations
 
+import itertools
 import math
+from typing import NamedTuple
 
 import flax.linen as nn
 import jax
@@ -29,6 +37,7 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float, KeyArray
 from llrmpp_jax.config import Mamba2Config
 from llrmpp_jax.nn.norms import rms_norm
+from llrmpp_jax.nn.remat_loops import remat_after_cotangent
 from llrmpp_jax.nn.ssd import ssd_scan
 
 Params = dict[str, dict[str, Array]]
@@ -55,22 +64,27 @@ def causal_depthwise_conv1d(
 
     Zero history before t=0; tap ``K-1`` multiplies the current token (PyTorch
     ``Conv1d(groups=C, padding=K-1)`` truncated to the first L outputs, cross-correlation).
+    One grouped ``conv_general_dilated`` (``feature_group_count=C``, K-1 zeros on the left)
+    rather than K shifted slices: the slices' transposes in the backward are K zero-padded
+    ``[..., L+K-1, C]`` buffers, the conv's backward is one conv of the cotangent.
     """
     if kernel.ndim != 2 or kernel.shape[1] != x.shape[-1] or bias.shape != (x.shape[-1],):
         raise ValueError(
             f"causal_depthwise_conv1d: x {x.shape} needs kernel [K, {x.shape[-1]}] and bias "
             f"[{x.shape[-1]}], got kernel {kernel.shape} and bias {bias.shape}"
         )
-    K, L = kernel.shape[0], x.shape[-2]
+    (K, C), L = kernel.shape, x.shape[-2]
     acc = _acc(x.dtype)
-    xf = x.astype(acc)
-    padded = jnp.pad(xf, [(0, 0)] * (x.ndim - 2) + [(K - 1, 0), (0, 0)])
-    lead = (1,) * (x.ndim - 1)
-    kf = kernel.astype(acc)
-    y = bias.astype(acc).reshape(*lead, -1)
-    for k in range(K):  # K = 4 shifted multiply-adds; cheaper than a grouped conv here
-        y = y + kf[k].reshape(*lead, -1) * padded[..., k : k + L, :]
-    return y.astype(x.dtype)
+    y = jax.lax.conv_general_dilated(
+        x.astype(acc).reshape(-1, L, C),
+        kernel.astype(acc)[:, None, :],  # [K, 1, C]: one input channel per group
+        window_strides=(1,),
+        padding=[(K - 1, 0)],
+        dimension_numbers=("NWC", "WIO", "NWC"),
+        feature_group_count=C,
+        precision=jax.lax.Precision.HIGHEST,  # no TF32/bf16 passes: exact float32 taps
+    )
+    return (y + bias.astype(acc)[None, None]).reshape(x.shape).astype(x.dtype)
 
 
 def gated_rms_norm(
@@ -90,37 +104,61 @@ def _sizes(d_model: int, cfg: Mamba2Config) -> tuple[int, int, int, int]:
     return d_inner, nheads, conv_ch, d_inner + conv_ch + nheads
 
 
-def mamba2_scan_direction(
-    zxbcdt: Float[Array, "... L E"], params: dict[str, Array], cfg: Mamba2Config
-) -> Float[Array, "... L C"]:
-    """One scan direction (``Mamba2SingleScan``): ``[..., L, E]`` in_proj output -> ``[..., L, d_inner]``.
+class InProj(NamedTuple):
+    """``in_proj``'s output as its five column blocks ``[z | x | B | C | dt]``."""
 
-    ``params`` holds ``conv_kernel, conv_bias, dt_bias, A_log, D, norm_scale``; ``E`` =
-    2*d_inner + 2*g*n + nh with d_inner = ``norm_scale.shape[0]``.
+    z: Float[Array, "... L di"]
+    x: Float[Array, "... L di"]
+    B: Float[Array, "... L gn"]  # gn = ngroups * d_state
+    C: Float[Array, "... L gn"]
+    dt: Float[Array, "... L nh"]
+
+
+def in_proj_widths(d_inner: int, cfg: Mamba2Config) -> tuple[int, int, int, int, int]:
+    """Widths of :class:`InProj`'s fields (in_proj's column blocks) for ``d_inner``."""
+    gn = cfg.ngroups * cfg.d_state
+    return d_inner, d_inner, gn, gn, d_inner // cfg.headdim
+
+
+def _split_columns(a: Float[Array, "... E"], widths: tuple[int, ...]) -> list[Float[Array, "... e"]]:
+    """``a`` cut along its last axis into consecutive blocks of ``widths``."""
+    return jnp.split(a, list(itertools.accumulate(widths))[:-1], axis=-1)
+
+
+def mamba2_scan_direction(proj: InProj, params: dict[str, Array], cfg: Mamba2Config) -> Float[Array, "... L C"]:
+    """One scan direction (``Mamba2SingleScan``): in_proj's output blocks -> ``[..., L, d_inner]``.
+
+    ``params`` holds ``conv_kernel, conv_bias, dt_bias, A_log, D, norm_scale``; the widths
+    of ``proj`` are :func:`in_proj_widths` with d_inner = ``norm_scale.shape[0]``.
     """
     d_inner = params["norm_scale"].shape[0]
     g, n = cfg.ngroups, cfg.d_state
     nh = d_inner // cfg.headdim
-    want = 2 * d_inner + 2 * g * n + nh
-    if zxbcdt.ndim < 2 or zxbcdt.shape[-1] != want or d_inner % cfg.headdim:
+    want = in_proj_widths(d_inner, cfg)
+    got = tuple(a.shape[-1] for a in proj)
+    lead_shapes = {a.shape[:-1] for a in proj}
+    if got != want or len(lead_shapes) != 1 or proj.z.ndim < 2 or d_inner % cfg.headdim:
         raise ValueError(
-            f"mamba2_scan_direction: zxbcdt has shape {zxbcdt.shape}, expected [..., L, {want}] "
-            f"(d_inner={d_inner} a multiple of headdim={cfg.headdim}, ngroups={g}, d_state={n}, nheads={nh})"
+            f"mamba2_scan_direction: in_proj blocks (z, x, B, C, dt) have shapes {[a.shape for a in proj]}, "
+            f"expected [..., L, w] with widths {want} (d_inner={d_inner} a multiple of headdim={cfg.headdim}, "
+            f"ngroups={g}, d_state={n}, nheads={nh})"
         )
-    *lead, L, _ = zxbcdt.shape
-    z = zxbcdt[..., :d_inner]
-    xBC = zxbcdt[..., d_inner : 2 * d_inner + 2 * g * n]
-    dt = zxbcdt[..., 2 * d_inner + 2 * g * n :]
-    xBC = jax.nn.silu(causal_depthwise_conv1d(xBC, params["conv_kernel"], params["conv_bias"]))
-    x = xBC[..., :d_inner].reshape(*lead, L, nh, cfg.headdim)
-    B = xBC[..., d_inner : d_inner + g * n].reshape(*lead, L, g, n)
-    C = xBC[..., d_inner + g * n :].reshape(*lead, L, g, n)
-    lead1 = (1,) * (dt.ndim - 1)
-    acc = _acc(zxbcdt.dtype)
-    dt = jax.nn.softplus(dt.astype(acc) + params["dt_bias"].astype(acc).reshape(*lead1, nh))
+    *lead, L, _ = proj.z.shape
+    xbc_widths = want[1:4]
+    kernels = _split_columns(params["conv_kernel"], xbc_widths)
+    biases = _split_columns(params["conv_bias"], xbc_widths)
+    x, B, C = (
+        jax.nn.silu(causal_depthwise_conv1d(a, k, b)) for a, k, b in zip((proj.x, proj.B, proj.C), kernels, biases)
+    )
+    lead1 = (1,) * (proj.dt.ndim - 1)
+    acc = _acc(proj.dt.dtype)
+    dt = jax.nn.softplus(proj.dt.astype(acc) + params["dt_bias"].astype(acc).reshape(*lead1, nh))
     A = -jnp.exp(params["A_log"].astype(acc))
-    y = ssd_scan(x, dt, A, B, C, chunk_size=cfg.chunk_size, D=params["D"].astype(acc))
-    return gated_rms_norm(y.reshape(*lead, L, d_inner), z, params["norm_scale"], cfg.norm_eps)
+    y = ssd_scan(
+        x.reshape(*lead, L, nh, cfg.headdim), dt, A, B.reshape(*lead, L, g, n), C.reshape(*lead, L, g, n),
+        chunk_size=cfg.chunk_size, D=params["D"].astype(acc), inter_chunk=cfg.inter_chunk,
+    )
+    return gated_rms_norm(y.reshape(*lead, L, d_inner), proj.z, params["norm_scale"], cfg.norm_eps)
 
 
 def mamba2_block(params: Params, x: Float[Array, "... L D"], cfg: Mamba2Config) -> Float[Array, "... L D"]:
@@ -136,11 +174,22 @@ def mamba2_block(params: Params, x: Float[Array, "... L D"], cfg: Mamba2Config) 
             f"mamba2_block: x has shape {x.shape}, expected [..., L, D] with in_proj/kernel "
             f"[{d_model}, {d_in_proj}], got {params['in_proj']['kernel'].shape}"
         )
-    zxbcdt = _dense(rms_norm(x, params["norm"]["scale"], cfg.norm_eps), params["in_proj"]["kernel"])
-    y = mamba2_scan_direction(zxbcdt, params["mamba_scans_0"], cfg)
-    if cfg.bidirectional:
-        y_rev = mamba2_scan_direction(jnp.flip(zxbcdt, axis=-2), params["mamba_scans_1"], cfg)
-        y = y + jnp.flip(y_rev, axis=-2)
+    xn = rms_norm(x, params["norm"]["scale"], cfg.norm_eps)
+    kernels = _split_columns(params["in_proj"]["kernel"], in_proj_widths(d_inner, cfg))
+    proj = InProj(*(_dense(xn, k) for k in kernels))
+    if not cfg.bidirectional:
+        y = mamba2_scan_direction(proj, params["mamba_scans_0"], cfg)
+    else:
+        flipped = InProj(*(jnp.flip(a, axis=-2) for a in proj))
+        if cfg.remat_directions:  # a loop of two: the backward holds one direction at a time
+            run = remat_after_cotangent(lambda p, w: mamba2_scan_direction(p, w, cfg))
+            pair = jax.tree.map(lambda *a: jnp.stack(a), (proj, params["mamba_scans_0"]),
+                                (flipped, params["mamba_scans_1"]))
+            y0, y1 = jax.lax.map(lambda pw: run(*pw), pair)
+        else:
+            y0 = mamba2_scan_direction(proj, params["mamba_scans_0"], cfg)
+            y1 = mamba2_scan_direction(flipped, params["mamba_scans_1"], cfg)
+        y = y0 + jnp.flip(y1, axis=-2)
     return x + _dense(y, params["out_proj"]["kernel"])
 
 

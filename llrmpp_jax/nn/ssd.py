@@ -155,14 +155,16 @@ def _intra_chunk(
     *,
     cd: jnp.dtype,
     acc: jnp.dtype,
-) -> Float[Array, "b c Q g hg P"]:
+) -> Float[Array, "b c g hg Q P"]:
     """Diagonal blocks: ``y_l = sum_{s<=l} (C_l . B_s) decay(s->l) dt_s x_s`` within each chunk.
 
     ``decay(s->l) = exp(cs_l - cs_s)`` from the chunk's running sum of ``dt * A`` carried
     as an unevaluated pair ``hi + lo`` (compensated), so the difference keeps full
     precision even where cs reaches -1e4; the scores are then one fused elementwise pass
     over the ``[hg, Q, Q]`` blocks (a masked cumsum over them costs several passes, see
-    :func:`segment_sum`). ``xdt_bt`` is ``dt * x`` in the matmul dtype ``cd``.
+    :func:`segment_sum`). ``xdt_bt`` is ``dt * x`` in the matmul dtype ``cd``. The output
+    keeps the batch axes leading (``[b, c, g, hg, Q, P]``): XLA:CPU writes a batched
+    matmul's result ~1.7x faster in that layout than transposed to ``[b, c, Q, g, hg, P]``.
     """
     Q = hi.shape[-1]
     seg = (hi[..., :, None] - hi[..., None, :]) + (lo[..., :, None] - lo[..., None, :])
@@ -172,7 +174,7 @@ def _intra_chunk(
     # backward of the where with inf * 0).
     decay = jnp.exp(jnp.minimum(seg, jnp.zeros((), acc)))
     scores = jnp.where(causal, CB[:, :, :, None] * decay, jnp.zeros((), acc)).astype(cd)
-    return jnp.einsum("bcghls,bcghsp->bclghp", scores, xdt_bt, preferred_element_type=acc)
+    return jnp.einsum("bcghls,bcghsp->bcghlp", scores, xdt_bt, preferred_element_type=acc)
 
 
 def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
@@ -236,13 +238,14 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     log_decay_from_start = jnp.cumsum(dA, axis=2)  # sum_{k<=l} dA_k, [b, c, Q, g, hg]
     s_in = _inter_chunk_states(log_decay_from_start[:, :, -1], states, inter_chunk)
 
-    # 4. State to output: y_l += decay(start->l) C_l . S_in.
-    y_off = jnp.einsum("bclgn,bcghpn->bclghp", Cc, s_in.astype(cd), preferred_element_type=acc)
-    y = y + y_off * jnp.exp(log_decay_from_start)[..., None]
+    # 4. State to output: y_l += decay(start->l) C_l . S_in. Everything in the matmuls'
+    #    [b, c, g, hg, Q, P] layout; one transpose back at the end.
+    y_off = jnp.einsum("bclgn,bcghpn->bcghlp", Cc, s_in.astype(cd), preferred_element_type=acc)
+    y = y + y_off * jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]
 
     if D is not None:
-        y = y + D.reshape(g, hg).astype(acc)[None, None, None, :, :, None] * xc.astype(acc)
-    y = y.reshape(b, nc * Q, nh, P)[:, :L]
+        y = y + D.reshape(g, hg).astype(acc)[None, None, :, :, None, None] * jnp.moveaxis(xc, 2, 4).astype(acc)
+    y = jnp.moveaxis(y, 4, 2).reshape(b, nc * Q, nh, P)[:, :L]
     return y.reshape(*batch, L, nh, P).astype(x.dtype)
 
 
