@@ -97,11 +97,14 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
     if got != meta["sha256"]:
         raise ValueError(f"{npz_path}: checksum mismatch: sha256 {got[:16]}..., {os.path.basename(meta_path)} "
                          f"records {meta['sha256'][:16]}... (a corrupt or replaced weights file)")
+    # A field the record lacks (added to ModelConfig after shipping) takes its default,
+    # which keeps the behaviour the weights were trained with.
+    shipped_cfg = from_dict(ModelConfig, meta["model"])
     if cfg is not None:
-        diff = _first_difference(meta["model"], json.loads(json.dumps(dataclasses.asdict(cfg))))
+        as_json = lambda c: json.loads(json.dumps(dataclasses.asdict(c)))  # noqa: E731
+        diff = _first_difference(as_json(shipped_cfg), as_json(cfg))
         if diff:
             raise ValueError(f"{npz_path}: weights are for another model config: {diff}")
-    shipped_cfg = from_dict(ModelConfig, meta["model"])
     with np.load(npz_path) as z:
         params = _unflatten({k: z[k].astype(np.float32) for k in z.files})
     from llrmpp_jax.params_io import check_params_fit

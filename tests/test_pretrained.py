@@ -65,6 +65,25 @@ def test_another_config_is_one_line_naming_the_field(shipped_tmp):
         load_pretrained("nope", weights_dir=d)
 
 
+def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
+    """A record written before a config field existed loads when the field's default is the
+    expected value, and is refused, naming the field, when it is not."""
+    d, cfg, _, _ = shipped_tmp
+    old = str(tmp_path / "w")
+    shutil.copytree(d, old)
+    meta_path = os.path.join(old, "tiny.json")
+    with open(meta_path) as f:
+        meta = json.load(f)
+    del meta["model"]["backbone"]["mamba"]["inter_chunk"]
+    with open(meta_path, "w") as f:
+        json.dump(meta, f)
+    _, got_cfg = load_pretrained("tiny", cfg, weights_dir=old)
+    assert got_cfg == cfg
+    other = C.replace(cfg, backbone=C.replace(cfg.backbone, mamba=C.replace(cfg.backbone.mamba, inter_chunk="sequential")))
+    with pytest.raises(ValueError, match=r"model\.backbone\.mamba\.inter_chunk: shipped 'associative', expected 'sequential'$"):
+        load_pretrained("tiny", other, weights_dir=old)
+
+
 @pytest.mark.slow
 def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
     """The model in the package: checksum, the config of experiments/small.py, provenance,
