@@ -53,7 +53,7 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
         opacity_bias=args.opacity_bias,
     )
     decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim)
-    backbone = C.replace(base.backbone, dims=(args.dim,))
+    backbone = C.replace(base.backbone, dims=(args.dim,), pattern=args.pattern, num_layers=args.layers)
     return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch)
 
 
@@ -99,6 +99,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--k", type=int, default=4, help="Gaussians per token (feature mode)")
     p.add_argument("--f", type=int, default=16, help="feature dimension (feature mode)")
     p.add_argument("--dim", type=int, default=64, help="backbone width")
+    p.add_argument("--pattern", default="{1T3M}x1", help="backbone block pattern (T transformer, M Mamba2)")
+    p.add_argument("--layers", type=int, default=4, help="backbone blocks (the pattern is tiled to this many)")
     p.add_argument("--patch", type=int, default=8, help="backbone patch size")
     p.add_argument("--ratio", type=int, default=2, help="decoder canvas ratio r")
     p.add_argument("--stride", type=int, default=8, help="decoder token stride q")

@@ -23,18 +23,25 @@ the model, bounds this run (~1 s per step with the 2 data workers) until scenes 
 
 import os
 
+from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """The demo's experiment (same model and head), with 8 inputs and a 9k-step budget."""
+    """The demo's experiment with an all-attention backbone, LeCun-initialised head and
+    decoder linears, 8 inputs and a 16k-step budget."""
     demo = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "demo.py"))
+    m = demo.model
+    model = C.replace(
+        m, backbone=C.replace(m.backbone, pattern="{4T}x1"),
+        head=C.replace(m.head, init_std=None), decoder=C.replace(m.decoder, init_std=None),
+    )
     stage = replace(
-        demo.stages[0], name="small", steps=9_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
+        demo.stages[0], name="small", steps=16_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
     )
     data = replace(
         demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
     )
     return replace(
-        demo, name="small", stages=(stage,), data=data, log_every=20, eval_every=2000, checkpoint_every=500, max_minutes=None,
+        demo, name="small", model=model, stages=(stage,), data=data, log_every=20, eval_every=2000, checkpoint_every=1000, max_minutes=None,
     )

@@ -155,6 +155,11 @@ class GaussianHeadConfig:
     # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
     # paper's "move freely"). Measured on the demo: 19.15 vs 19.18 dB, no difference (gaussians.py).
     offset_scale: float | None = 1.0
+    # Where the offsets start: "centre" (the paper: every Gaussian of a token at its patch
+    # centre, offset 0) or "grid" (Gaussian k at the centre of cell k of a ceil(sqrt(K))^2
+    # grid over the patch, offset added to it): the same function class, but the K
+    # Gaussians cover the patch from step 0 instead of piling up at its centre.
+    offset_origin: str = "centre"
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2
@@ -164,10 +169,16 @@ class GaussianHeadConfig:
     # most opaque. Its stage 3 (960x540, the released checkpoint) uses 0.6 / 0.1; 0: none.
     prune_ratio: float = 0.0
     prune_random_ratio: float = 0.0
+    # Std of the head's linear weights: Long-LRM's normal(0.02), or None for 1/sqrt(fan-in)
+    # (LeCun normal). At D=1024 the two agree; at the tiny widths a CPU trains (D=64) 0.02 is
+    # 8x smaller, and the head -> splat -> decoder chain of linear maps learns slowly.
+    init_std: float | None = 0.02
 
     def __post_init__(self) -> None:
         if self.mode not in ("feature", "color"):
             raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+        if self.offset_origin not in ("centre", "grid"):
+            raise ValueError(f"GaussianHeadConfig.offset_origin must be 'centre' or 'grid', got {self.offset_origin!r}")
         if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
             raise ValueError(
                 f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "
@@ -193,6 +204,9 @@ class DecoderConfig:
     absolute_positions: bool = False
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     remat: bool = False
+    # Std of the tokenizer, merge and output-head weights: normal(0.02) as Long-LRM's linear
+    # layers, or None for 1/sqrt(fan-in) (LeCun normal; see GaussianHeadConfig.init_std).
+    init_std: float | None = 0.02
 
     def __post_init__(self) -> None:
         if self.absolute_positions and self.dim % 4:

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import DecoderConfig
 from llrmpp_jax.nn.backbone import parse_block_pattern
+from llrmpp_jax.nn.initializers import linear_init
 from llrmpp_jax.nn.norms import LayerNorm
 from llrmpp_jax.nn.patchify import patchify, unpatchify
 from llrmpp_jax.nn.position_embedding import sincos_2d
@@ -70,7 +71,7 @@ class TargetDecoder(nn.Module):
         grid = (hc // cp, wc // cp)
         x = patchify(canvas.reshape(m * s, 1, hc, wc, -1), cp)  # [M*S, L, cp*cp*C]
         x = nn.Dense(cfg.dim, use_bias=False, name="tokenizer",
-                     kernel_init=nn.initializers.normal(0.02))(x)
+                     kernel_init=linear_init(cfg.init_std))(x)
         if cfg.absolute_positions:
             x = x + jnp.asarray(sincos_2d(*grid, cfg.dim), x.dtype)[None]
         def block(kind: str, name: str | None, remat: bool = False, **kw) -> nn.Module:
@@ -87,13 +88,13 @@ class TargetDecoder(nn.Module):
                 x = block(kind, f"blocks_{i}", cfg.remat)(x)
         x = LayerNorm(name="norm")(x)
         x = x.reshape(m, s, grid[0] * grid[1], cfg.dim)
-        merge = nn.Dense(1, use_bias=False, name="merge", kernel_init=nn.initializers.normal(0.02))(x)
+        merge = nn.Dense(1, use_bias=False, name="merge", kernel_init=linear_init(cfg.init_std))(x)
         x = jnp.sum(jax.nn.softmax(merge, axis=1) * x, axis=1)  # [M, L, E]
         q = cfg.token_stride
         images = {}
         for output in outputs:
             out = nn.Dense(q * q * OUTPUT_CHANNELS[output], use_bias=False, name=f"head_{output}",
-                           kernel_init=nn.initializers.normal(0.02))(x)
+                           kernel_init=linear_init(cfg.init_std))(x)
             img = unpatchify(out, q, 1, grid[0], grid[1])[:, 0]  # [M, H, W, C]
             images[output] = jax.nn.sigmoid(img) if output == "rgb" else jnp.exp(img)
         return images

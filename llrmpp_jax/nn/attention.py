@@ -18,13 +18,12 @@ import jax.numpy as jnp
 
 from llrmpp_jax.array_typing import Array, Bool, Float
 from llrmpp_jax.nn.blockwise_attention import blockwise_attention
+from llrmpp_jax.nn.initializers import DENSE_INIT
 from llrmpp_jax.nn.norms import RMSNorm
 
 # Global-attention kernels of multi_head_attention (TransformerConfig.attention_impl).
 ATTENTION_IMPLEMENTATIONS = ("xla", "cudnn", "blockwise")
 
-# Long-LRM ``_init_weights``: Linear weights ~ N(0, 0.02).
-DENSE_INIT = nn.initializers.normal(stddev=0.02)
 
 
 def multi_head_attention(

@@ -31,7 +31,8 @@ from jax import lax
 
 from llrmpp_jax.array_typing import Array, Float, Int
 from llrmpp_jax.nn.variance import common_variance, full_like_varying
-from llrmpp_jax.nn.attention import DENSE_INIT, _check_width, _num_heads, _out_proj, _qkv_heads
+from llrmpp_jax.nn.attention import _check_width, _num_heads, _out_proj, _qkv_heads
+from llrmpp_jax.nn.initializers import DENSE_INIT
 
 
 def _window_radius(h: int, w: int, kn: int) -> int:

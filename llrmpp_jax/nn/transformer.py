@@ -14,7 +14,8 @@ import jax.numpy as jnp
 
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import TransformerConfig
-from llrmpp_jax.nn.attention import DENSE_INIT, Attention
+from llrmpp_jax.nn.attention import Attention
+from llrmpp_jax.nn.initializers import DENSE_INIT
 from llrmpp_jax.nn.local_attention import LocalAttention
 from llrmpp_jax.nn.norms import LayerNorm
 
