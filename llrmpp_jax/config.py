@@ -155,11 +155,6 @@ class GaussianHeadConfig:
     # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
     # paper's "move freely"). Measured on the demo: 19.15 vs 19.18 dB, no difference (gaussians.py).
     offset_scale: float | None = 1.0
-    # Where the offsets start: "centre" (the paper: every Gaussian of a token at its patch
-    # centre, offset 0) or "grid" (Gaussian k at the centre of cell k of a ceil(sqrt(K))^2
-    # grid over the patch, offset added to it): the same function class, but the K
-    # Gaussians cover the patch from step 0 instead of piling up at its centre.
-    offset_origin: str = "centre"
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2
@@ -177,8 +172,6 @@ class GaussianHeadConfig:
     def __post_init__(self) -> None:
         if self.mode not in ("feature", "color"):
             raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
-        if self.offset_origin not in ("centre", "grid"):
-            raise ValueError(f"GaussianHeadConfig.offset_origin must be 'centre' or 'grid', got {self.offset_origin!r}")
         if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
             raise ValueError(
                 f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "

@@ -29,13 +29,11 @@ to the identity rotation).
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import GaussianHeadConfig
@@ -80,17 +78,6 @@ def _unit_quat(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
     return safe * jax.lax.rsqrt(jnp.sum(jnp.square(safe), axis=-1, keepdims=True))
 
 
-def offset_origins(k: int, token_stride: int, origin: str) -> np.ndarray:
-    """``[K, 2]`` pixel ``(x, y)`` from a patch's top-left corner where each of the K
-    Gaussians' offsets start: the patch centre (``"centre"``), or the centre of cell k of a
-    ``g x g`` grid over the patch, ``g = ceil(sqrt(K))``, row-major (``"grid"``)."""
-    if origin == "centre":
-        return np.full((k, 2), token_stride / 2)
-    g = math.ceil(math.sqrt(k))
-    cell = np.arange(k)
-    return (np.stack([cell % g, cell // g], axis=-1) + 0.5) * (token_stride / g)
-
-
 def decode_gaussians(
     raw: Float[Array, "B V h w K C"],
     c2w: Float[Array, "B V 4 4"],
@@ -125,9 +112,8 @@ def decode_gaussians(
         )
         dist_raw = dist_raw[..., 0]
         off = s * off if cfg.offset_scale is None else cfg.offset_scale * s * jnp.tanh(off)
-        origin = jnp.asarray(offset_origins(k, s, cfg.offset_origin), raw.dtype)  # [K, 2]
-        u = cols + origin[:, 0] + off[..., 0]
-        vv = rows + origin[:, 1] + off[..., 1]
+        u = cols + s / 2 + off[..., 0]
+        vv = rows + s / 2 + off[..., 1]
     uv = jnp.stack([u, vv], axis=-1)  # [B, V, h, w, K, 2]
     cam = lambda a: a[:, :, None, None, None]  # noqa: E731  broadcast cameras over h, w, K
     origins, dirs = rays_through_pixels(cam(c2w), cam(intrinsics), uv)
