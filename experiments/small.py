@@ -29,7 +29,7 @@ from llrmpp_jax.experiment import load_experiment, replace
 
 def get_config():
     """The demo's experiment with an all-attention backbone, LeCun-initialised head and
-    decoder linears, 8 inputs and a 16k-step budget."""
+    decoder linears, 8 inputs and a 6k-step budget."""
     demo = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "demo.py"))
     m = demo.model
     model = C.replace(
@@ -37,7 +37,7 @@ def get_config():
         head=C.replace(m.head, init_std=None), decoder=C.replace(m.decoder, init_std=None),
     )
     stage = replace(
-        demo.stages[0], name="small", steps=16_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
+        demo.stages[0], name="small", steps=6_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
     )
     data = replace(
         demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
