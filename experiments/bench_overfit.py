@@ -50,9 +50,10 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
     head = C.GaussianHeadConfig(
         mode=args.mode, gaussians_per_token=args.k, feature_dim=args.f, sh_degree=0,
         max_dist=args.max_dist, scale_bias=args.scale_bias, scale_max=args.scale_max,
-        opacity_bias=args.opacity_bias,
+        opacity_bias=args.opacity_bias, init_std=None if args.init_std == "lecun" else float(args.init_std),
     )
-    decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim)
+    decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim,
+                        init_std=head.init_std)
     backbone = C.replace(base.backbone, dims=(args.dim,), pattern=args.pattern, num_layers=args.layers)
     return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch)
 
@@ -109,6 +110,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--scale-bias", type=float, default=-2.5, help="log-scale bias")
     p.add_argument("--scale-max", type=float, default=-1.2, help="log-scale clamp")
     p.add_argument("--opacity-bias", type=float, default=-2.0, help="opacity logit bias")
+    p.add_argument("--init-std", default="0.02", help="std of the head and decoder linears, or 'lecun'")
     p.add_argument("--random-inputs", action="store_true",
                    help="draw the inputs from the training frames each step (evaluation keeps the fixed ones)")
     p.add_argument("--depth-weight", type=float, default=0.0,

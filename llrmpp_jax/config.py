@@ -165,8 +165,9 @@ class GaussianHeadConfig:
     prune_ratio: float = 0.0
     prune_random_ratio: float = 0.0
     # Std of the head's linear weights: Long-LRM's normal(0.02), or None for 1/sqrt(fan-in)
-    # (LeCun normal). At D=1024 the two agree; at the tiny widths a CPU trains (D=64) 0.02 is
-    # 8x smaller, and the head -> splat -> decoder chain of linear maps learns slowly.
+    # (LeCun normal). At the paper's widths (768-1024) they are within 1.6x; at the width of
+    # the CPU models (64) 0.02 is 8x smaller, and the chain of linear maps from head through
+    # splat to decoder output learns slowly (experiments/README.md, "Second round").
     init_std: float | None = 0.02
 
     def __post_init__(self) -> None:

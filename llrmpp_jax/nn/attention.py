@@ -25,7 +25,6 @@ from llrmpp_jax.nn.norms import RMSNorm
 ATTENTION_IMPLEMENTATIONS = ("xla", "cudnn", "blockwise")
 
 
-
 def multi_head_attention(
     q: Float[Array, "... Lq nh hd"],
     k: Float[Array, "... Lk nh hd"],
