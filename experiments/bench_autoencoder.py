@@ -34,6 +34,7 @@ from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.experiment import EXPERIMENTS_DIR, StageConfig, load_experiment
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
+from llrmpp_jax.nn.initializers import parse_init_std
 from llrmpp_jax.trainer import optimizer_config
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "learning")
@@ -43,10 +44,9 @@ SIZE, FRAMES, BATCH = 64, 16, 2
 def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
     m = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py")).model
-    std = None if args.init_std == "lecun" else float(args.init_std)
-    head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=std)
+    head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std)
     return C.replace(m, backbone=C.replace(m.backbone, pattern=args.pattern), head=head,
-                     decoder=C.replace(m.decoder, init_std=std))
+                     decoder=C.replace(m.decoder, init_std=args.init_std))
 
 
 def main() -> None:
@@ -56,10 +56,10 @@ def main() -> None:
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate")
     p.add_argument("--mode", default="feature", choices=("feature", "color"), help="Gaussian head mode")
     p.add_argument("--pattern", default="{4T}x1", help="backbone block pattern")
-    p.add_argument("--init-std", default="0.02", help="std of the head and decoder linears, or 'lecun'")
+    p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
     p.add_argument("--seed", type=int, default=0, help="data and init seed")
     args = p.parse_args()
-    name = args.name or f"{args.mode}_{args.init_std}_{args.pattern.strip('{}x1')}"
+    name = args.name or f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
     cfg = model_config(args)
     pc = ProceduralConfig(height=SIZE, width=SIZE, num_frames=FRAMES)
     geom = ViewGeometry(resize_h=SIZE, multiple=cfg.size_multiple, square_crop=True)

@@ -64,6 +64,11 @@ def _first_difference(a: object, b: object, where: str = "model") -> str | None:
     return None if norm(a) == norm(b) else f"{where}: shipped {a!r}, expected {b!r}"
 
 
+def _config_json(cfg: ModelConfig) -> dict:
+    """``cfg`` as it reads back from JSON (tuples become lists)."""
+    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+
+
 def _unflatten(flat: dict[str, np.ndarray]) -> dict:
     tree: dict = {}
     for key, value in flat.items():
@@ -99,10 +104,12 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
                          f"records {meta['sha256'][:16]}... (a corrupt or replaced weights file)")
     # A field the record lacks (added to ModelConfig after shipping) takes its default,
     # which keeps the behaviour the weights were trained with.
-    shipped_cfg = from_dict(ModelConfig, meta["model"])
+    try:
+        shipped_cfg = from_dict(ModelConfig, meta["model"])
+    except ValueError as e:  # a field this version does not know
+        raise ValueError(f"{npz_path}: weights are for another model config: {e}") from None
     if cfg is not None:
-        as_json = lambda c: json.loads(json.dumps(dataclasses.asdict(c)))  # noqa: E731
-        diff = _first_difference(as_json(shipped_cfg), as_json(cfg))
+        diff = _first_difference(_config_json(shipped_cfg), _config_json(cfg))
         if diff:
             raise ValueError(f"{npz_path}: weights are for another model config: {diff}")
     with np.load(npz_path) as z:
@@ -153,7 +160,7 @@ def export_pretrained(params: dict, cfg: ModelConfig, name: str, record: dict, r
     np.savez(ref_path, rgb=reference_forward(loaded, cfg, reference))
     meta = dict(record, format=_FORMAT, name=name, sha256=sha256(npz_path),
                 num_params=int(sum(v.size for v in half.values())), dtype="float16",
-                model=json.loads(json.dumps(dataclasses.asdict(cfg))), reference=reference)
+                model=_config_json(cfg), reference=reference)
     with open(meta_path, "w") as f:
         json.dump(meta, f, indent=1)
     return meta

@@ -10,9 +10,14 @@ from __future__ import annotations
 
 import flax.linen as nn
 
-DENSE_INIT = nn.initializers.normal(stddev=0.02)
-
-
 def linear_init(std: float | None) -> nn.initializers.Initializer:
     """``normal(std)``, or LeCun normal (std = 1/sqrt(fan-in)) for ``None``."""
     return nn.initializers.lecun_normal() if std is None else nn.initializers.normal(stddev=std)
+
+
+def parse_init_std(text: str) -> float | None:
+    """Command-line form of ``init_std``: a number, or ``"lecun"`` for ``None``."""
+    return None if text == "lecun" else float(text)
+
+
+DENSE_INIT = linear_init(0.02)
