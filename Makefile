@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-8)
 
-.PHONY: test demo install bench clean
+.PHONY: test demo install bench clean notebooks
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -19,6 +19,12 @@ test: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/llrmpp demo --out runs/demo
+
+# Long: runs the ablation notebooks at the cpu scale (each table under an hour on 2 cores;
+# about 3-4 hours for the four) and saves them with outputs. SCALE=smoke for a quick look.
+notebooks: $(STAMP)
+	JAX_COMPILATION_CACHE_DIR=$${JAX_COMPILATION_CACHE_DIR:-$$HOME/.cache/llrmpp-xla} \
+	  $(BIN)/python notebooks/_execute.py --scale $${SCALE:-cpu} $(NOTEBOOKS)
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

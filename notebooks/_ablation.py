@@ -2,34 +2,45 @@
 
 A notebook lists its table's rows as :class:`Variant` s (row labels, a function that
 turns the scale's base :class:`~llrmpp_jax.config.ModelConfig` into the row's config,
-and the paper's numbers), then calls :func:`run_table`: every runnable row is trained
-briefly on procedural scenes with :func:`train`, scored on held-out procedural scenes
-with :func:`evaluate` and timed with :func:`time_model`. :func:`format_table` prints the
-rows next to the paper's numbers.
+and the paper's numbers) and the paper's orderings as :class:`Ordering` s, then calls
+:func:`run_table`: every runnable row is trained on procedural scenes with :func:`train`
+once per seed, scored on held-out procedural scenes with :func:`evaluate` and timed with
+:func:`time_model`; :func:`references` scores the untrained chosen row and the two
+baselines (mean colour, nearest input view) on the same scenes. :func:`compare` turns the
+per-seed scores into paired differences with 95% intervals and a verdict per ordering,
+:func:`format_table` / :func:`format_orderings` print them next to the paper's numbers,
+:func:`plot` draws them and :func:`save` writes everything as JSON with the commit.
 
-Two scales (:func:`make_scale`):
+Three scales (:func:`make_scale`):
 
 * ``"smoke"``: a tiny model (:func:`llrmpp_jax.config.tiny` with a Gaussian head sized for
-  procedural rooms) at 32x32, 2 input views, 40 steps, MSE loss only, no LPIPS. The
-  numbers only show that the pipeline runs; they are not comparable with the paper's.
-  Compile-bound on a CPU: every row compiles its own init, train step and renderers, about
-  a minute per row on 2 cores (2 minutes when the cores are shared), so a table takes
-  several minutes. Setting ``JAX_COMPILATION_CACHE_DIR`` makes reruns about 2x faster.
+  procedural rooms) at 32x32, 2 input views, 40 steps, 1 seed, MSE loss only, no LPIPS.
+  The numbers only show that the pipeline runs. CI runs this scale.
+* ``"cpu"``: the demo model (``experiments/demo.py``: a 64-wide ``{4T}`` backbone, LeCun
+  head and decoder init) with each table's K, F, canvas, decoder blocks and S, at 64x64 with
+  4 input and 2 target views from windows of 6-10 frames of 16-frame paths (held out:
+  8-frame windows), as ``experiments/demo.py`` trains and evaluates, batch 2, :data:`CPU_STEPS` steps, 3 seeds, 16 held-out scenes with LPIPS. The budget is
+  the pilot's (``experiments/ablation_pilot.py``, figures in ``notebooks/README.md``).
 * ``"paper"``: the paper's architecture (:func:`paper_dl3dv` / :func:`paper_scannet`) at
-  256x256 with the table's view count, MSE + 0.5 perceptual loss, LPIPS; meant for
+  256x256 with the table's view count, MSE + 0.5 perceptual loss, LPIPS, 3 seeds; meant for
   accelerators. The data are still procedural scenes (swap ``source`` for a
   ``FileSource`` of DL3DV / ScanNet scenes to approach the paper's setting).
 
-Environment overrides (for tests and quick looks): ``LLRMPP_NOTEBOOK_STEPS`` sets the
-number of train steps, ``LLRMPP_NOTEBOOK_ROWS`` a comma-separated list of row indices to
-run (the others are left out of the results; ``none`` runs no row).
+Environment overrides: ``LLRMPP_NOTEBOOK_SCALE`` (smoke / cpu / paper),
+``LLRMPP_NOTEBOOK_STEPS`` the number of train steps, ``LLRMPP_NOTEBOOK_SEEDS`` the seeds
+per row, ``LLRMPP_NOTEBOOK_ROWS`` a comma-separated list of row indices to run (the others
+are left out of the results; ``none`` runs no row), ``LLRMPP_NOTEBOOK_OUT`` the folder
+:func:`save` writes to (default ``experiments/results/ablations``).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import os
+import platform
+import subprocess
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -38,6 +49,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 from llrmpp_jax import config as C
 from llrmpp_jax.data import (
@@ -49,7 +61,10 @@ from llrmpp_jax.data import (
     eval_views,
     make_sample,
     procedural_scene,
+    training_views,
 )
+from llrmpp_jax.evaluate import baseline_predictions
+from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.metrics import depth_metrics, load_lpips_params, lpips, psnr, ssim
 from llrmpp_jax.model import init_params, reconstruct, render
@@ -57,18 +72,25 @@ from llrmpp_jax.nn.backbone import count_params
 from llrmpp_jax.perceptual import load_vgg16_lpips
 from llrmpp_jax import train as T
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TRAIN_SCENES = 100_000  # training seeds are [0, TRAIN_SCENES)
 EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
+SCALES = ("smoke", "cpu", "paper")
+CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
+# Scores a row is compared on, and whether higher is better.
+METRICS = {"psnr": True, "ssim": True, "lpips": False, "abs_diff": False, "delta_1_25": True}
 
 
 @dataclass(frozen=True)
 class Scale:
     """Everything about a run that is not the architecture.
 
-    ``width_divisor`` shrinks the paper's layer widths (decoder E) in smoke mode so a row
-    like "E = 768" stays 3x its "E = 256" sibling. ``frames`` is the length of each
-    procedural camera path; training windows and the evaluation split (every 8th frame a
-    target, k-means inputs over the rest) are drawn from it.
+    ``width_divisor`` shrinks the paper's layer widths (decoder E) at the small scales so a
+    row like "E = 768" stays 3x its "E = 256" sibling. ``frames`` is the length of each
+    procedural camera path; training windows (``min_span``..``max_span`` frames, None = the
+    whole path) and the evaluation views (:func:`eval_samples`, ``eval_span``) are drawn
+    from it. ``seeds``: every row is trained once per seed ``0..seeds-1``
+    (model init and data order).
     """
 
     name: str
@@ -86,13 +108,17 @@ class Scale:
     lpips: bool
     timing_repeats: int
     width_divisor: int = 1
-    seed: int = 0
+    seeds: int = 1
+    min_span: int | None = None
+    max_span: int | None = None
+    eval_span: int | None = None
 
     def __str__(self) -> str:
         m = self.base
         return (f"{self.name}: {self.size}x{self.size}, {self.num_inputs} inputs + {self.num_targets} targets, "
-                f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.eval_scenes} held-out scenes; "
-                f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}")
+                f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.seeds} seed(s) per row, "
+                f"{self.eval_scenes} held-out scenes; backbone D={m.backbone.dims} {m.backbone.pattern!r} "
+                f"x{m.backbone.num_layers}, outputs {m.outputs}")
 
     def width(self, paper_width: int) -> int:
         """A paper layer width at this scale."""
@@ -110,26 +136,65 @@ def smoke_base() -> C.ModelConfig:
     return C.replace(base, head=C.replace(base.head, max_dist=16.0, scale_bias=-3.0))
 
 
+def cpu_base() -> C.ModelConfig:
+    """The demo model (``experiments/demo.py``), whose recipe was measured on this kind of
+    machine (``experiments/README.md``), with the paper's chosen rows: K = 16 Gaussians of
+    F = 32 features per token (Table 4) and an ``LLGGG`` decoder of width 256 / 4 with S = 2
+    partitions (Tables 5, 6). At 64x64 the K = 16 head gives one Gaussian per pixel per
+    input view, the paper's density at 256x256. Each row then sets its own K, F, decoder, S."""
+    base = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+    return C.replace(base, head=C.replace(base.head, gaussians_per_token=16, feature_dim=32),
+                     decoder=C.replace(base.decoder, blocks="LLGGG", dim=64, partitions=2))
+
+
+def _env_int(name: str, minimum: int) -> int | None:
+    text = os.environ.get(name)
+    if not text:
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise ValueError(f"{name}={text!r}: expected an integer >= {minimum}") from None
+    if value < minimum:
+        raise ValueError(f"{name}={text!r}: expected an integer >= {minimum}, got {value}")
+    return value
+
+
+def scale_name() -> str:
+    """``LLRMPP_NOTEBOOK_SCALE`` (default ``"smoke"``), checked."""
+    name = os.environ.get("LLRMPP_NOTEBOOK_SCALE", "smoke")
+    if name not in SCALES:
+        raise ValueError(f"LLRMPP_NOTEBOOK_SCALE={name!r}: expected one of {', '.join(SCALES)}")
+    return name
+
+
 def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps: int = 10_000) -> Scale:
-    """The ``"smoke"`` or ``"paper"`` scale of a table whose paper setting has
+    """The ``"smoke"``, ``"cpu"`` or ``"paper"`` scale of a table whose paper setting has
     ``paper_views`` input views at 256x256 (``depth``: ScanNet-style colour + depth)."""
-    steps_env = os.environ.get("LLRMPP_NOTEBOOK_STEPS")
     if name == "smoke":
-        base = smoke_base()
-        scale = Scale(name="smoke", base=base, size=32, num_inputs=2, num_targets=2, batch=2, steps=40,
+        scale = Scale(name="smoke", base=smoke_base(), size=32, num_inputs=2, num_targets=2, batch=2, steps=40,
                       lr=2e-3, warmup=10, perceptual_weight=0.0, eval_scenes=4, frames=16, lpips=False,
                       timing_repeats=3, width_divisor=4)
+    elif name == "cpu":
+        scale = Scale(name="cpu", base=cpu_base(), size=64, num_inputs=4, num_targets=2, batch=2, steps=CPU_STEPS,
+                      lr=2e-3, warmup=50, perceptual_weight=0.0, eval_scenes=16, frames=16, lpips=True,
+                      timing_repeats=3, width_divisor=4, seeds=3, min_span=6, max_span=10, eval_span=8)
     elif name == "paper":
         base = C.paper_scannet() if depth else C.paper_dl3dv()
         scale = Scale(name="paper", base=base, size=256, num_inputs=paper_views, num_targets=8, batch=8,
                       steps=paper_steps, lr=4e-4, warmup=min(2000, paper_steps // 10), perceptual_weight=0.5,
-                      eval_scenes=64, frames=max(64, 2 * paper_views + 16), lpips=True, timing_repeats=10)
+                      eval_scenes=64, frames=max(64, 2 * paper_views + 16), lpips=True, timing_repeats=10,
+                      seeds=3)
     else:
-        raise ValueError(f"make_scale: name must be 'smoke' or 'paper', got {name!r}")
+        raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
     if depth:
         scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
-    if steps_env:
-        scale = dataclasses.replace(scale, steps=int(steps_env), warmup=min(scale.warmup, int(steps_env)))
+    steps = _env_int("LLRMPP_NOTEBOOK_STEPS", 0)
+    if steps is not None:
+        scale = dataclasses.replace(scale, steps=steps, warmup=min(scale.warmup, steps))
+    seeds = _env_int("LLRMPP_NOTEBOOK_SEEDS", 1)
+    if seeds is not None:
+        scale = dataclasses.replace(scale, seeds=seeds)
     return scale
 
 
@@ -152,6 +217,21 @@ class Variant:
     note: str = ""
 
 
+@dataclass(frozen=True)
+class Ordering:
+    """A claim of the paper: row ``better`` beats row ``worse`` on ``metric`` (a key of
+    :data:`METRICS`; "beats" = higher, or lower for LPIPS and Abs Diff). ``text`` names it."""
+
+    text: str
+    better: int
+    worse: int
+    metric: str = "psnr"
+
+    def __post_init__(self) -> None:
+        if self.metric not in METRICS:
+            raise ValueError(f"Ordering {self.text!r}: metric must be one of {sorted(METRICS)}, got {self.metric!r}")
+
+
 def selected(variants: Sequence[Variant]) -> list[tuple[int, Variant]]:
     """``(index, variant)`` of the rows to run: all, or those in ``LLRMPP_NOTEBOOK_ROWS``."""
     rows = os.environ.get("LLRMPP_NOTEBOOK_ROWS")
@@ -159,7 +239,10 @@ def selected(variants: Sequence[Variant]) -> list[tuple[int, Variant]]:
         return list(enumerate(variants))
     if rows == "none":
         return []
-    keep = [int(r) for r in rows.split(",")]
+    try:
+        keep = [int(r) for r in rows.split(",")]
+    except ValueError:
+        raise ValueError(f"LLRMPP_NOTEBOOK_ROWS={rows!r}: expected comma-separated row indices or 'none'") from None
     bad = [r for r in keep if not 0 <= r < len(variants)]
     if bad:
         raise ValueError(f"LLRMPP_NOTEBOOK_ROWS={rows!r}: rows {bad} outside 0..{len(variants) - 1}")
@@ -196,93 +279,121 @@ def _device_count(batch: int) -> int:
     return max(d for d in range(1, jax.local_device_count() + 1) if batch % d == 0)
 
 
-def init_model(cfg: C.ModelConfig, scale: Scale) -> dict:
-    """Fresh float32 parameters of ``cfg`` (seeded by ``scale.seed``)."""
-    params = init_params(jax.random.key(scale.seed), cfg, scale.num_inputs, scale.size, scale.size,
-                         scale.num_targets)
+def init_model(cfg: C.ModelConfig, scale: Scale, seed: int = 0) -> dict:
+    """Fresh float32 parameters of ``cfg`` from ``seed``."""
+    params = init_params(jax.random.key(seed), cfg, scale.num_inputs, scale.size, scale.size, scale.num_targets)
     # Parameters are float32 by contract (train state); cast leaves that x64 made float64.
     return jax.tree.map(lambda x: x if x.dtype == jnp.float32 else x.astype(jnp.float32), params)
 
 
-@dataclass
-class Trained:
-    """A trained row: ``params``, per-step ``losses`` [steps], wall-clock ``seconds``
-    (compile included), ``dropped`` = splat intersections lost to capacity, summed."""
-
-    params: dict
-    losses: np.ndarray
-    seconds: float
-    dropped: int
-
-
-def train(cfg: C.ModelConfig, scale: Scale, variant: Variant) -> Trained:
-    """Train ``cfg`` for ``scale.steps`` steps on procedural scenes, data-parallel over the
-    local devices (pmap step of :mod:`llrmpp_jax.train`); every row sees the same batches."""
-    t0 = time.perf_counter()
-    depth = "depth" in cfg.outputs
+@functools.lru_cache(maxsize=None)
+def _train_fns(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weight: float):
+    """``(optimizer, pmapped step)`` of a row, built once so its seeds share one compilation."""
     vgg = load_vgg16_lpips() if scale.perceptual_weight else None
     opt_cfg = T.OptimizerConfig(lr=scale.lr, warmup_steps=scale.warmup, total_steps=max(scale.steps, 1),
                                 no_decay_names=("global_tokens",))
     optimizer = T.make_optimizer(opt_cfg)
     step = T.pmap_train_step(T.make_train_step(
-        _loss_fn(cfg, scale.size, scale.perceptual_weight, variant.grad_weight, variant.normal_weight, vgg),
+        _loss_fn(cfg, scale.size, scale.perceptual_weight, grad_weight, normal_weight, vgg),
         optimizer, T.make_schedule(opt_cfg)), donate=True)
+    init = jax.jit(lambda p, k: T.init_train_state(p, optimizer, k))
+    return init, step
+
+
+@dataclass
+class Trained:
+    """A trained row: ``params``, per-step ``losses`` [steps], wall-clock ``seconds``
+    (compile included), ``dropped`` = splat intersections lost to capacity, summed, and
+    ``snapshots``: the params after each step asked for in :func:`train`."""
+
+    params: dict
+    losses: np.ndarray
+    seconds: float
+    dropped: int
+    snapshots: dict[int, dict] = dataclasses.field(default_factory=dict)
+
+
+def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, snapshots: Sequence[int] = ()
+          ) -> Trained:
+    """Train ``cfg`` for ``scale.steps`` steps on procedural scenes, data-parallel over the
+    local devices (pmap step of :mod:`llrmpp_jax.train`). ``seed`` sets the init and the
+    data order; every row sees the same batches for the same seed (paired comparisons).
+    ``snapshots``: steps after which to keep a copy of the params (the pilot's budgets)."""
+    t0 = time.perf_counter()
+    depth = "depth" in cfg.outputs
+    init, step = _train_fns(cfg, dataclasses.replace(scale, seeds=1), variant.grad_weight, variant.normal_weight)
     n_dev = _device_count(scale.batch)
     # One jitted init: optimizer.init run eagerly would compile a fill op per leaf shape.
-    state = jax.jit(lambda p, k: T.init_train_state(p, optimizer, k))(init_model(cfg, scale),
-                                                                       jax.random.key(scale.seed))
-    state = T.replicate_for_pmap(state, n_dev)
+    state = T.replicate_for_pmap(init(init_model(cfg, scale, seed), jax.random.key(seed)), n_dev)
     source = ProceduralSource(ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames),
                               size=TRAIN_SCENES)
     batch_cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
-                            with_depth=depth)
-    losses, dropped = [], 0.0
-    with BatchIterator(source, batch_cfg, seed=scale.seed, num_devices=n_dev) as batches:
-        for _ in range(scale.steps):
+                            with_depth=depth, min_span=scale.min_span, max_span=scale.max_span)
+    losses, dropped, kept = [], 0.0, {}
+    host_params = lambda: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's copy)
+    with BatchIterator(source, batch_cfg, seed=seed, num_devices=n_dev) as batches:
+        for i in range(scale.steps):
             state, metrics = step(state, T.shard_for_pmap(next(batches), n_dev))
             metrics = jax.device_get(metrics)  # host copies: indexing device arrays compiles ops
             losses.append(float(metrics["loss"][0]))
             dropped += float(metrics["dropped"][0]) * n_dev
-    params = jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # NumPy, device 0's copy
-    return Trained(params, np.asarray(losses, np.float32), time.perf_counter() - t0, int(dropped))
+            if i + 1 in snapshots:
+                kept[i + 1] = host_params()
+    return Trained(host_params(), np.asarray(losses, np.float32), time.perf_counter() - t0, int(dropped), kept)
 
 
 # --------------------------------------------------------------------------- evaluation
 
 
 def eval_samples(scale: Scale, depth: bool) -> list[dict[str, np.ndarray]]:
-    """Held-out procedural scenes (seeds ``EVAL_SEED + i``), each split as the paper
-    evaluates: every 8th frame a target, k-means inputs over the rest. One sample per
-    scene, with a leading batch axis of 1."""
+    """Held-out procedural scenes (seeds ``EVAL_SEED + i``). With ``scale.eval_span`` None,
+    each is split as the paper evaluates (every 8th frame a target, k-means inputs over the
+    rest); otherwise, as :func:`llrmpp_jax.trainer.eval_samples` does for procedural data,
+    the training view sampler draws the views from a window of ``eval_span`` frames with a
+    fixed seed per scene (on short paths, every-8th targets are far from every input). One
+    sample per scene, with a leading batch axis of 1."""
     cfg = ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames)
     geom = ViewGeometry()
     samples = []
     for i in range(scale.eval_scenes):
         scene = procedural_scene(EVAL_SEED + i, cfg)
-        inputs, targets = eval_views(scene.c2w, scale.num_inputs)
+        if scale.eval_span is None:
+            inputs, targets = eval_views(scene.c2w, scale.num_inputs)
+        else:
+            inputs, targets = training_views(np.random.default_rng([7, i]), len(scene.c2w), scale.num_inputs,
+                                             scale.num_targets, scale.eval_span, scale.eval_span, input_weight=0.0)
         s = make_sample(scene, inputs, targets, geom, with_depth=depth)
         samples.append({k: v[None] for k, v in s.items()})
     return samples
 
 
+def _score(pred: jax.Array, s: dict, lpips_params: Any, depth: jax.Array | None) -> dict:
+    """Per-target scores of ``pred`` [1, T, H, W, 3] (and ``depth`` [1, T, H, W]) against sample ``s``."""
+    pred, gt = jnp.clip(pred[0], 0.0, 1.0), s["target_images"][0]  # [T, H, W, 3]
+    scores = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
+    if lpips_params is not None:
+        scores["lpips"] = lpips(lpips_params, pred, gt)
+    if depth is not None:
+        dm = depth_metrics(depth[0], s["target_depth"][0])
+        scores.update(abs_diff=dm["abs_diff"], delta_1_25=dm["delta_1_25"])
+    return scores
+
+
+_jitted_score = jax.jit(_score)
+
+
 @functools.lru_cache(maxsize=None)
 def _jitted(cfg: C.ModelConfig, size: int):
-    """Jitted ``reconstruct``, ``render`` and per-target scores for ``cfg``, one set per
-    ``(cfg, size)`` so evaluation and timing share their compilations."""
+    """Jitted ``reconstruct`` and ``render`` for ``cfg``, one pair per ``(cfg, size)`` so
+    evaluation and timing share their compilations."""
     recon = jax.jit(lambda p, s: reconstruct(p, cfg, s["input_images"], s["input_c2w"], s["input_intrinsics"]))
     rend = jax.jit(lambda p, g, c2w, k: render(p, cfg, g, c2w, k, size, size, cfg.outputs))
+    return recon, rend
 
-    def score(images: dict, s: dict, lpips_params: Any) -> dict:
-        pred, gt = images["rgb"][0], s["target_images"][0]  # [T, H, W, 3]
-        scores = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt)}
-        if lpips_params is not None:
-            scores["lpips"] = lpips(lpips_params, pred, gt)
-        if "depth" in cfg.outputs:
-            dm = depth_metrics(images["depth"][0, ..., 0], s["target_depth"][0])
-            scores.update(abs_diff=dm["abs_diff"], delta_1_25=dm["delta_1_25"])
-        return scores
 
-    return recon, rend, jax.jit(score)
+def _mean_scores(per_sample: Sequence[dict]) -> dict[str, float]:
+    keys = per_sample[0].keys()
+    return {k: float(np.nanmean(np.concatenate([np.atleast_1d(d[k]) for d in per_sample]))) for k in keys}
 
 
 def evaluate(params: dict, cfg: C.ModelConfig, scale: Scale, samples: Sequence[dict],
@@ -290,17 +401,14 @@ def evaluate(params: dict, cfg: C.ModelConfig, scale: Scale, samples: Sequence[d
     """Mean PSNR / SSIM (/ LPIPS with ``lpips_params``) over every target of ``samples``,
     plus depth Abs Diff and delta < 1.25 when ``cfg`` renders depth, and ``eval_dropped``
     (splat intersections lost to capacity, summed)."""
-    recon, rend, score = _jitted(cfg, scale.size)
-    scores: dict[str, list[np.ndarray]] = {}
-    dropped = 0
+    recon, rend = _jitted(cfg, scale.size)
+    scores, dropped = [], 0
     for s in samples:
         out = rend(params, recon(params, s), s["target_c2w"], s["target_intrinsics"])
-        for k, v in jax.device_get(score(out.images, s, lpips_params)).items():
-            scores.setdefault(k, []).append(v)
+        depth = out.images["depth"][..., 0] if "depth" in cfg.outputs else None
+        scores.append(jax.device_get(_jitted_score(out.images["rgb"], s, lpips_params, depth)))
         dropped += int(np.sum(out.dropped))
-    result = {k: float(np.nanmean(np.concatenate(v))) for k, v in scores.items()}
-    result["eval_dropped"] = dropped
-    return result
+    return {**_mean_scores(scores), "eval_dropped": dropped}
 
 
 def _median_seconds(fn: Callable[[], Any], repeats: int) -> float:
@@ -316,7 +424,7 @@ def _median_seconds(fn: Callable[[], Any], repeats: int) -> float:
 def time_model(params: dict, cfg: C.ModelConfig, scale: Scale, sample: dict) -> dict[str, float]:
     """Median wall-clock seconds of ``reconstruct`` (one scene) and of ``render`` per target
     frame (all outputs, splat + decode), after compilation; ``gaussians`` per scene."""
-    recon, rend, _ = _jitted(cfg, scale.size)
+    recon, rend = _jitted(cfg, scale.size)
     g = recon(params, sample)
     n_targets = sample["target_c2w"].shape[1]
     return {
@@ -327,42 +435,141 @@ def time_model(params: dict, cfg: C.ModelConfig, scale: Scale, sample: dict) -> 
     }
 
 
+# --------------------------------------------------------------------------- statistics
+
+
+def interval(values: Sequence[float], confidence: float = 0.95) -> dict[str, float]:
+    """Mean, sample standard deviation and the half-width of the two-sided Student-t
+    ``confidence`` interval of the mean (NaN for fewer than 2 values)."""
+    x = np.asarray(values, np.float64)
+    n = len(x)
+    if n < 2:
+        return {"mean": float(np.mean(x)) if n else float("nan"), "std": float("nan"), "ci": float("nan")}
+    sd = float(np.std(x, ddof=1))
+    return {"mean": float(np.mean(x)), "std": sd,
+            "ci": float(stats.t.ppf(0.5 + confidence / 2, n - 1) * sd / np.sqrt(n))}
+
+
+def _summarise(per_seed: Sequence[dict[str, float]]) -> dict[str, Any]:
+    """Per-metric mean (under the metric's own key, so tables read as before), ``_std``,
+    ``_ci`` and the per-seed ``_seeds`` list."""
+    out: dict[str, Any] = {}
+    for k in per_seed[0]:
+        values = [d[k] for d in per_seed]
+        iv = interval(values)
+        out.update({k: iv["mean"], f"{k}_std": iv["std"], f"{k}_ci": iv["ci"], f"{k}_seeds": values})
+    return out
+
+
+def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering]) -> list[dict[str, Any]]:
+    """For each ordering, the paired per-seed difference ``better - worse`` (sign flipped for
+    lower-is-better metrics, so > 0 means the paper's ordering holds) with its 95% interval,
+    and a verdict: ``reproduced`` (interval above 0), ``reversed`` (below 0), ``not resolved``
+    (contains 0, or fewer than 2 seeds), ``not run`` (a row did not run)."""
+    by_row = {r["row"]: r for r in results}
+    out = []
+    for o in orderings:
+        a, b = by_row.get(o.better), by_row.get(o.worse)
+        entry: dict[str, Any] = {"ordering": o.text, "better": o.better, "worse": o.worse, "metric": o.metric}
+        if a is None or b is None or a["status"] != "ok" or b["status"] != "ok" or o.metric not in a:
+            out.append({**entry, "verdict": "not run"})
+            continue
+        sign = 1.0 if METRICS[o.metric] else -1.0
+        diffs = sign * (np.asarray(a[f"{o.metric}_seeds"]) - np.asarray(b[f"{o.metric}_seeds"]))
+        iv = interval(diffs)
+        paper = _paper_number(a, o.metric), _paper_number(b, o.metric)
+        if len(diffs) < 2 or not abs(iv["mean"]) > iv["ci"]:
+            verdict = "not resolved"
+        else:
+            verdict = "reproduced" if iv["mean"] > 0 else "reversed"
+        out.append({**entry, "diff": iv["mean"], "diff_ci": iv["ci"], "diff_seeds": diffs.tolist(),
+                    "paper_diff": None if None in paper else sign * (paper[0] - paper[1]), "verdict": verdict})
+    return out
+
+
+_PAPER_KEY = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "abs_diff": "Abs Diff", "delta_1_25": "delta<1.25"}
+
+
+def _paper_number(row: dict[str, Any], metric: str) -> float | None:
+    try:
+        return float(row["paper"].get(_PAPER_KEY[metric], "-"))
+    except ValueError:
+        return None
+
+
 # ------------------------------------------------------------------------------- tables
 
 
-def run_table(variants: Sequence[Variant], scale: Scale) -> list[dict[str, Any]]:
-    """Train, evaluate and time each selected row (:func:`selected`); rows without a
-    config are kept with ``status`` saying why. One result dict per row: its labels,
-    ``paper`` numbers, ``status``, and for run rows ``params``, ``decoder_params``,
-    ``decoder_dim`` (None in colour mode), ``train_s``, ``final_loss``, ``train_dropped``, the :func:`evaluate` scores and the
-    :func:`time_model` timings."""
+def references(cfg: C.ModelConfig, scale: Scale, samples: Sequence[dict], lpips_params: Any = None
+               ) -> list[dict[str, Any]]:
+    """What a row must beat, on the held-out ``samples``: ``cfg`` untrained (one init per
+    seed) and the two baselines of :func:`llrmpp_jax.evaluate.baseline_predictions`
+    (mean input colour; the input view nearest each target, shown as-is)."""
+    untrained = [evaluate(init_model(cfg, scale, seed), cfg, scale, samples, lpips_params)
+                 for seed in range(scale.seeds)]
+    rows = [{"name": "untrained", **_summarise(untrained)}]
+    for method in ("mean_colour", "nearest_view"):
+        scores = []
+        for s in samples:
+            pred = baseline_predictions({k: v[0] for k, v in s.items()})[method]
+            scores.append(jax.device_get(_jitted_score(jnp.asarray(pred)[None], s, lpips_params, None)))
+        rows.append({"name": method.replace("_", " "), **_mean_scores(scores)})
+    return rows
+
+
+@dataclass
+class TableRun:
+    """Everything a notebook shows: the ``results`` of each selected row, the
+    ``references`` (untrained chosen row, baselines), per-row mean training ``curves``
+    (loss per step, averaged over seeds) and the wall ``seconds`` of the whole table."""
+
+    scale: Scale
+    results: list[dict[str, Any]]
+    references: list[dict[str, Any]]
+    curves: dict[int, list[float]]
+    seconds: float
+
+
+def run_table(variants: Sequence[Variant], scale: Scale) -> TableRun:
+    """Train (once per seed), evaluate and time each selected row (:func:`selected`); rows
+    without a config are kept with ``status`` saying why. One result dict per row: its
+    labels, ``paper`` numbers, ``status``, and for run rows ``params``, ``decoder_params``,
+    ``decoder_dim`` (None in colour mode), ``train_s`` (per seed, mean), ``final_loss``,
+    ``train_dropped``, the :func:`evaluate` scores summarised over seeds by
+    :func:`_summarise` and the :func:`time_model` timings (first seed)."""
+    t_start = time.perf_counter()
     rows = selected(variants)
-    runnable = any(v.build is not None for _, v in rows)
+    runnable = [(i, v) for i, v in rows if v.build is not None]
     samples = eval_samples(scale, "depth" in scale.base.outputs) if runnable else []
     lp = load_lpips_params() if scale.lpips and runnable else None
-    results = []
+    results, curves = [], {}
     for index, v in rows:
         row: dict[str, Any] = {"row": index, **v.labels, "chosen": v.chosen, "paper": dict(v.paper)}
         if v.build is None:
             results.append({**row, "status": f"not run: {v.note}"})
             continue
         cfg = v.build(scale.base)
-        trained = train(cfg, scale, v)
-        tail = trained.losses[-max(1, len(trained.losses) // 10):]
-        row.update(
-            status="ok",
-            params=count_params(trained.params),
-            decoder_params=count_params(trained.params.get("decoder", {})),
-            decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None,
-            train_s=trained.seconds,
-            final_loss=float(np.mean(tail)) if len(tail) else float("nan"),
-            train_dropped=trained.dropped,
-        )
-        row.update(evaluate(trained.params, cfg, scale, samples, lp))
-        row.update(time_model(trained.params, cfg, scale, samples[0]))
+        per_seed, losses = [], []
+        for seed in range(scale.seeds):
+            trained = train(cfg, scale, v, seed)
+            tail = trained.losses[-max(1, len(trained.losses) // 10):]
+            scores = evaluate(trained.params, cfg, scale, samples, lp)
+            per_seed.append({**scores, "train_s": trained.seconds, "train_dropped": float(trained.dropped),
+                             "final_loss": float(np.mean(tail)) if len(tail) else float("nan")})
+            losses.append(trained.losses)
+            if seed == 0:
+                row.update(time_model(trained.params, cfg, scale, samples[0]),
+                           params=count_params(trained.params),
+                           decoder_params=count_params(trained.params.get("decoder", {})),
+                           decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None)
+            print(f"row {index} {v.labels} seed {seed}: PSNR {scores['psnr']:.2f}, {trained.seconds:.0f} s",
+                  flush=True)
+        row.update(status="ok", seeds=scale.seeds, **_summarise(per_seed))
+        curves[index] = np.mean(losses, axis=0).tolist()
         results.append(row)
-        print(f"row {index} {v.labels}: {row['status']}, PSNR {row['psnr']:.2f}, {row['train_s']:.0f} s", flush=True)
-    return results
+    chosen = [v for _, v in runnable if v.chosen] or [v for _, v in runnable]
+    refs = references(chosen[0].build(scale.base), scale, samples, lp) if runnable else []
+    return TableRun(scale, results, refs, curves, time.perf_counter() - t_start)
 
 
 def _fmt(x: Any, digits: int) -> str:
@@ -379,7 +586,7 @@ def _fmt(x: Any, digits: int) -> str:
 class Column:
     """A column of :func:`format_table`: ``key`` in a result (``"paper:NAME"`` reads the
     paper's number), its ``title``, decimal ``digits`` and a ``scale`` factor (e.g. 1000
-    for ms)."""
+    for ms). A key with a ``_ci`` companion is printed as ``mean ± half-width``."""
 
     key: str
     title: str
@@ -387,22 +594,125 @@ class Column:
     scale: float = 1.0
 
 
-def format_table(results: Sequence[dict[str, Any]], label_keys: Sequence[str],
-                 columns: Sequence[Column] = ()) -> str:
-    """A Markdown table: one line per result, the label columns, then ``columns``;
-    ``*`` marks the paper's chosen row, rows that did not run show their status."""
+def _cell(r: dict[str, Any], c: Column) -> str:
+    if c.key.startswith("paper:"):
+        return r["paper"].get(c.key[6:], "-")
+    if r.get("status", "ok") != "ok":
+        return "-"
+    value = r.get(c.key)
+    if isinstance(value, float):
+        value = value * c.scale
+    text = _fmt(value, c.digits)
+    ci = r.get(f"{c.key}_ci")
+    if isinstance(ci, float) and np.isfinite(ci):
+        text += f" ± {_fmt(ci * c.scale, c.digits)}"
+    return text
+
+
+def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Column] = ()) -> str:
+    """A Markdown table: one line per result, the label columns, then ``columns``; ``*``
+    marks the paper's chosen row; then the references (untrained, baselines); rows that did
+    not run show their status; a last line gives the scale, seeds, wall time and commit.
+    ``±``: half-width of the 95% interval over seeds."""
     head = ["", *label_keys, *[c.title for c in columns]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in results:
+    for r in run.results:
         cells = ["*" if r["chosen"] else "", *[str(r[k]) for k in label_keys]]
-        for c in columns:
-            if c.key.startswith("paper:"):
-                cells.append(r["paper"].get(c.key[6:], "-"))
-            else:
-                value = r.get(c.key)
-                if isinstance(value, float):
-                    value = value * c.scale
-                cells.append(_fmt(value, c.digits) if r["status"] == "ok" else "-")
-        lines.append("| " + " | ".join(cells) + " |")
-    notes = [f"row {r['row']}: {r['status']}" for r in results if r["status"] != "ok"]
-    return "\n".join(lines + ([""] + notes if notes else []))
+        lines.append("| " + " | ".join(cells + [_cell(r, c) for c in columns]) + " |")
+    for ref in run.references:
+        cells = ["", ref["name"], *[""] * (len(label_keys) - 1)]
+        own = [c for c in columns if not c.key.startswith("paper:")]
+        lines.append("| " + " | ".join(cells + [_cell({"paper": {}, **ref}, c) if c in own and c.key in ref
+                                                else "" for c in columns]) + " |")
+    notes = [f"row {r['row']}: {r['status']}" for r in run.results if r["status"] != "ok"]
+    footer = (f"{run.scale.name} scale, {run.scale.seeds} seed(s) per row, {run.scale.steps} steps, "
+              f"wall time {run.seconds / 60:.1f} min, commit {commit()}")
+    return "\n".join(lines + [""] + notes + ([""] if notes else []) + [footer])
+
+
+def format_orderings(comparisons: Sequence[dict[str, Any]]) -> str:
+    """A Markdown table of :func:`compare`'s verdicts: the paper's difference, ours (mean
+    paired difference over seeds ± 95% half-width; > 0 = the paper's ordering holds)."""
+    lines = ["| paper ordering | metric | paper diff | our diff (95% interval) | verdict |", "|---|---|---|---|---|"]
+    for c in comparisons:
+        ours = (f"{c['diff']:+.3f} ± {c['diff_ci']:.3f}" if "diff" in c and np.isfinite(c["diff_ci"])
+                else f"{c['diff']:+.3f}" if "diff" in c else "-")
+        paper = f"{c['paper_diff']:+.3f}" if c.get("paper_diff") is not None else "-"
+        lines.append(f"| {c['ordering']} | {c['metric']} | {paper} | {ours} | {c['verdict']} |")
+    return "\n".join(lines)
+
+
+def _row_name(r: dict[str, Any], label_keys: Sequence[str]) -> str:
+    return " ".join(str(r[k]) for k in label_keys)
+
+
+def plot(run: TableRun, label_keys: Sequence[str], metric: str = "psnr", title: str = ""):
+    """A matplotlib figure: left, ``metric`` per row (mean and 95% interval over seeds, each
+    seed a dot, the references as horizontal lines); right, each row's training loss (mean
+    over seeds, 25-step moving average)."""
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax_loss) = plt.subplots(1, 2, figsize=(12, 4.2))
+    ok = [r for r in run.results if r["status"] == "ok"]
+    names = [_row_name(r, label_keys) + (" *" if r["chosen"] else "") for r in ok]
+    for i, r in enumerate(ok):
+        ci = r.get(f"{metric}_ci", float("nan"))
+        ax.errorbar(i, r[metric], yerr=ci if np.isfinite(ci) else None, fmt="o", color="C0", capsize=4)
+        ax.plot([i] * len(r[f"{metric}_seeds"]), r[f"{metric}_seeds"], ".", color="C0", alpha=0.4)
+    for j, ref in enumerate(run.references):
+        if metric in ref:
+            ax.axhline(ref[metric], color=f"C{j + 1}", ls="--", lw=1, label=ref["name"])
+    ax.set_xticks(range(len(ok)), names, rotation=30, ha="right")
+    ax.set_ylabel(f"held-out {metric} (mean, 95% interval)")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    ax.set_title(title or "rows")
+    window = 25
+    for i, r in enumerate(ok):
+        loss = np.asarray(run.curves[r["row"]])
+        if len(loss) >= window:
+            loss = np.convolve(loss, np.ones(window) / window, mode="valid")
+        ax_loss.plot(np.arange(len(loss)) + 1, loss, label=names[i], color=f"C{i}")
+    ax_loss.set_yscale("log")
+    ax_loss.set_xlabel("step")
+    ax_loss.set_ylabel("training loss (mean over seeds)")
+    if ok:
+        ax_loss.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def commit() -> str:
+    """The repository's short commit, with ``+dirty`` when tracked files differ from it."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    head = git("rev-parse", "--short", "HEAD") or "unknown"
+    return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def machine() -> str:
+    """One line: CPU / accelerator, core count, JAX backend and version."""
+    dev = jax.devices()[0]
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"jax {jax.__version__} on {dev.platform} ({dev.device_kind})")
+
+
+def save(name: str, run: TableRun, comparisons: Sequence[dict[str, Any]], figure: Any = None) -> str:
+    """Write ``{name}_{scale}.json`` (and ``.png`` for ``figure``) under
+    ``LLRMPP_NOTEBOOK_OUT`` (default ``experiments/results/ablations``), print and return the
+    JSON path."""
+    out = os.environ.get("LLRMPP_NOTEBOOK_OUT") or os.path.join(ROOT, "experiments", "results", "ablations")
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, f"{name}_{run.scale.name}.json")
+    record = {
+        "table": name, "scale": str(run.scale), "scale_name": run.scale.name, "seeds": run.scale.seeds,
+        "steps": run.scale.steps, "commit": commit(), "machine": machine(), "wall_s": run.seconds,
+        "results": run.results, "references": run.references, "orderings": list(comparisons),
+        "curves": {str(k): v for k, v in run.curves.items()},
+    }
+    with open(path, "w") as f:
+        json.dump(record, f, indent=1, default=float)
+    if figure is not None:
+        figure.savefig(path[:-5] + ".png", dpi=100)
+    print(f"saved {path}")
+    return path

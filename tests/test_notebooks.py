@@ -74,15 +74,15 @@ def test_ipynb_in_sync_with_py(name):
     py = jupytext.read(os.path.join(NB_DIR, name + ".py"), fmt="py:percent")
     nb = jupytext.read(os.path.join(NB_DIR, name + ".ipynb"))
     cells = lambda n: [(c.cell_type, c.source) for c in n.cells]  # noqa: E731
-    assert cells(nb) == cells(py), f"{name}.ipynb is stale: run `jupytext --to ipynb notebooks/{name}.py`"
-    assert all(not c.get("outputs") for c in nb.cells), f"{name}.ipynb holds outputs; regenerate it"
+    assert cells(nb) == cells(py), f"{name}.ipynb is stale: run `make notebooks` (or jupytext --to ipynb)"
 
 
 @pytest.mark.parametrize("name", sorted(NOTEBOOKS))
-def test_rows_match_paper_table(name, monkeypatch, capsys):
+def test_rows_match_paper_table(name, monkeypatch, capsys, tmp_path):
     label, label_keys, _ = NOTEBOOKS[name]
     monkeypatch.setenv("LLRMPP_NOTEBOOK_ROWS", "none")
     monkeypatch.setenv("LLRMPP_NOTEBOOK_SCALE", "smoke")
+    monkeypatch.setenv("LLRMPP_NOTEBOOK_OUT", str(tmp_path))
     monkeypatch.syspath_prepend(NB_DIR)
     g = runpy.run_path(os.path.join(NB_DIR, name + ".py"))
     assert g["results"] == []
@@ -97,6 +97,12 @@ def test_rows_match_paper_table(name, monkeypatch, capsys):
         assert tuple(v.paper[k] for k in keys) == tuple(cells[n_labels:])
         assert v.chosen == chosen
     assert "|" in capsys.readouterr().out  # the (empty) table's header was printed
+    for o in g["ORDERINGS"]:  # each claim names two rows, in the paper's direction
+        a, b = variants[o.better].paper, variants[o.worse].paper
+        key = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "abs_diff": "Abs Diff",
+               "delta_1_25": "delta<1.25"}[o.metric]
+        higher = o.metric in ("psnr", "ssim", "delta_1_25")
+        assert (float(a[key]) > float(b[key])) == higher, o.text
 
 
 def _finite(x) -> bool:
@@ -108,18 +114,23 @@ def _finite(x) -> bool:
 def test_smoke_run(name, tmp_path):
     label, label_keys, rows = NOTEBOOKS[name]
     out = tmp_path / "results.json"
+    saved = tmp_path / "saved"
     runner = (
         "import json, runpy, sys\n"
         f"sys.path.insert(0, {NB_DIR!r})\n"
         f"g = runpy.run_path({os.path.join(NB_DIR, name + '.py')!r}, run_name='__main__')\n"
         "labels = [v.labels for v in g['VARIANTS']]\n"
-        f"json.dump({{'results': g['results'], 'labels': labels}}, open({str(out)!r}, 'w'))\n"
+        f"json.dump({{'results': g['results'], 'labels': labels, 'orderings': g['comparisons']}}, "
+        f"open({str(out)!r}, 'w'))\n"
     )
     env = dict(
         os.environ,
         LLRMPP_NOTEBOOK_SCALE="smoke",
         LLRMPP_NOTEBOOK_STEPS="2",
         LLRMPP_NOTEBOOK_ROWS=rows,
+        LLRMPP_NOTEBOOK_SEEDS="2",
+        LLRMPP_NOTEBOOK_OUT=str(saved),
+        MPLBACKEND="Agg",
         JAX_PLATFORMS="cpu",
         JAX_NUMPY_DTYPE_PROMOTION="strict",
         JAX_NUMPY_RANK_PROMOTION="raise",
@@ -134,8 +145,14 @@ def test_smoke_run(name, tmp_path):
     results, labels = data["results"], data["labels"]
     wanted = [int(r) for r in rows.split(",")]
     assert [r["row"] for r in results] == wanted
-    table_lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("| ")][1:]  # minus the header
-    assert len(table_lines) == len(wanted)
+    lines = proc.stdout.splitlines()
+    first = next(i for i, ln in enumerate(lines) if ln.startswith("| "))
+    table = [ln for ln in lines[first:first + 3 + len(wanted) + 3] if ln.startswith("| ")][1:]  # minus the header
+    table_lines, reference_lines = table[:len(wanted)], table[len(wanted):]
+    runnable = any(r["status"] == "ok" for r in results)
+    # the untrained chosen row and the two baselines follow the rows
+    assert [ln.split("|")[2].strip() for ln in reference_lines] == (
+        ["untrained", "mean colour", "nearest view"] if runnable else [])
     for r, line in zip(results, table_lines, strict=True):
         assert {k: r[k] for k in label_keys} == labels[r["row"]]
         cells = [c.strip() for c in line.strip("|").split("|")]
@@ -143,10 +160,97 @@ def test_smoke_run(name, tmp_path):
         if r["status"] != "ok":
             assert r["status"].startswith("not run: ") and f"row {r['row']}: not run" in proc.stdout
             continue
-        assert f"{r['psnr']:.2f}" in cells  # the printed table shows this row's PSNR
+        assert f"{r['psnr']:.2f} ± {r['psnr_ci']:.2f}" in cells  # the table shows this row's PSNR and interval
         for k in ("psnr", "ssim", "final_loss", "recon_s", "render_s"):
             assert _finite(r[k]), (k, r[k])
         assert -1.0 <= r["ssim"] <= 1.0 and r["recon_s"] > 0 and r["render_s"] > 0
         assert r["params"] > 0 and r["gaussians"] > 0
+        assert r["seeds"] == 2 and len(r["psnr_seeds"]) == 2 and r["psnr_std"] >= 0 and r["psnr_ci"] > 0
         if label == "tb:dep_ab":
             assert _finite(r["abs_diff"]) and 0.0 <= r["delta_1_25"] <= 1.0
+    record = json.loads((saved / f"{name}_smoke.json").read_text())
+    assert [r["row"] for r in record["results"]] == wanted and record["seeds"] == 2
+    assert record["commit"] and record["wall_s"] > 0 and len(record["orderings"]) == len(data["orderings"])
+    assert (saved / f"{name}_smoke.png").stat().st_size > 0
+    assert "| paper ordering |" in proc.stdout
+
+
+@pytest.fixture
+def ablation(monkeypatch):
+    monkeypatch.syspath_prepend(NB_DIR)
+    import _ablation
+
+    return _ablation
+
+
+def test_interval_matches_student_t(ablation):
+    rng = __import__("numpy").random.default_rng(7)
+    x = rng.normal(20.0, 0.3, size=3)
+    iv = ablation.interval(x)
+    sd = math.sqrt(sum((v - sum(x) / 3) ** 2 for v in x) / 2)
+    # t_{0.975, 2 dof} = 4.302652729911275 (statistical tables), independent of scipy
+    assert iv["mean"] == pytest.approx(sum(x) / 3, abs=1e-12)
+    assert iv["std"] == pytest.approx(sd, rel=1e-12)
+    assert iv["ci"] == pytest.approx(4.302652729911275 * sd / math.sqrt(3), rel=1e-9)
+    assert math.isnan(ablation.interval([1.0])["ci"])
+
+
+def _row(i: int, psnr_seeds, lpips_seeds, paper_psnr: str, paper_lpips: str, status: str = "ok") -> dict:
+    return {"row": i, "status": status, "psnr_seeds": psnr_seeds, "lpips_seeds": lpips_seeds, "psnr": 0.0,
+            "lpips": 0.0, "paper": {"PSNR": paper_psnr, "LPIPS": paper_lpips}}
+
+
+def test_compare_verdicts(ablation):
+    O = ablation.Ordering
+    results = [
+        _row(0, [20.0, 20.5, 21.0], [0.50, 0.40, 0.45], "28.0", "0.10"),
+        _row(1, [20.3, 20.9, 21.2], [0.40, 0.30, 0.34], "28.5", "0.08"),  # +0.3/+0.4/+0.2 dB, LPIPS -0.1
+        _row(2, [19.0, 21.9, 20.0], [0.5, 0.4, 0.45], "28.9", "0.07"),  # -1/+1.4/-1: straddles 0
+        {"row": 3, "status": "not run: no splatter", "paper": {}},
+    ]
+    got = ablation.compare(results, [O("1 > 0", 1, 0), O("0 > 1", 0, 1), O("1 > 0 lpips", 1, 0, "lpips"),
+                                     O("2 > 0", 2, 0), O("3 > 0", 3, 0)])
+    assert [c["verdict"] for c in got] == ["reproduced", "reversed", "reproduced", "not resolved", "not run"]
+    assert got[0]["diff"] == pytest.approx(0.3) and got[0]["paper_diff"] == pytest.approx(0.5)
+    assert got[1]["diff"] == pytest.approx(-0.3) and got[0]["diff_ci"] == pytest.approx(got[1]["diff_ci"])
+    assert got[2]["diff"] == pytest.approx(0.1037, abs=1e-3) and got[2]["paper_diff"] == pytest.approx(0.02)
+    table = ablation.format_orderings(got)
+    assert "| 2 > 0 | psnr | +0.900 | -0.200 ± " in table and table.count("\n") == 6
+
+
+@pytest.mark.parametrize("env, value, message", [
+    ("LLRMPP_NOTEBOOK_SCALE", "huge", "LLRMPP_NOTEBOOK_SCALE='huge': expected one of smoke, cpu, paper"),
+    ("LLRMPP_NOTEBOOK_SEEDS", "0", "LLRMPP_NOTEBOOK_SEEDS='0': expected an integer >= 1, got 0"),
+    ("LLRMPP_NOTEBOOK_SEEDS", "three", "LLRMPP_NOTEBOOK_SEEDS='three': expected an integer >= 1"),
+    ("LLRMPP_NOTEBOOK_STEPS", "-5", "LLRMPP_NOTEBOOK_STEPS='-5': expected an integer >= 0, got -5"),
+])
+def test_bad_environment_is_one_line(ablation, monkeypatch, env, value, message):
+    monkeypatch.setenv(env, value)
+    with pytest.raises(ValueError) as err:
+        ablation.make_scale(ablation.scale_name(), paper_views=4)
+    assert str(err.value) == message
+
+
+@pytest.mark.parametrize("rows, message", [
+    ("0,9", "LLRMPP_NOTEBOOK_ROWS='0,9': rows [9] outside 0..2"),
+    ("1;2", "LLRMPP_NOTEBOOK_ROWS='1;2': expected comma-separated row indices or 'none'"),
+])
+def test_bad_rows_are_one_line(ablation, monkeypatch, rows, message):
+    monkeypatch.setenv("LLRMPP_NOTEBOOK_ROWS", rows)
+    variants = [ablation.Variant({"x": str(i)}, None, {}) for i in range(3)]
+    with pytest.raises(ValueError) as err:
+        ablation.selected(variants)
+    assert str(err.value) == message
+
+
+def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
+    """The cpu scale: the demo model with the paper's chosen head and decoder, 3 seeds, and the
+    step budget the pilot recorded in experiments/results/ablations/pilot_cpu.json."""
+    for env in ("LLRMPP_NOTEBOOK_STEPS", "LLRMPP_NOTEBOOK_SEEDS"):
+        monkeypatch.delenv(env, raising=False)
+    scale = ablation.make_scale("cpu", paper_views=8, depth=True)
+    assert scale.seeds == 3 and scale.size == 64 and scale.base.outputs == ("rgb", "depth")
+    assert (scale.base.head.gaussians_per_token, scale.base.head.feature_dim) == (16, 32)
+    assert (scale.base.decoder.blocks, scale.base.decoder.dim, scale.base.decoder.partitions) == ("LLGGG", 64, 2)
+    pilot = json.load(open(os.path.join(ROOT, "experiments", "results", "ablations", "pilot_cpu.json")))
+    assert scale.steps in pilot["budgets"]

@@ -1,0 +1,102 @@
+"""Pilot of the ablation notebooks' ``cpu`` scale: how many steps before rows can be told apart.
+
+Run:  python experiments/ablation_pilot.py --budgets 200,400,600 --seeds 3
+      (about 15 minutes per row on a 2-core CPU; writes experiments/results/ablations/pilot_cpu.json)
+
+Trains each table's chosen row (Table 4: K16 F32 canvas 0.5 with an LLG decoder; Tables 5
+and 6: LLGGG, S=2; Table 7: LLGGG with the depth loss) at the cpu scale of
+``notebooks/_ablation.py`` for the largest budget, once per seed, scoring the held-out scenes
+after each budget. Prints, per budget, the mean held-out PSNR / LPIPS with the seed spread
+and 95% interval next to the untrained model and the two baselines (mean colour, nearest
+view): the cpu scale's step count is the smallest budget at which every chosen row is
+clearly (interval clear of) above all three.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import jax
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks"))
+import _ablation as A  # noqa: E402
+from llrmpp_jax import config as C  # noqa: E402
+from llrmpp_jax.metrics import load_lpips_params  # noqa: E402
+
+
+def chosen_rows(scale: A.Scale | None) -> dict[str, tuple[A.Scale, A.Variant]]:
+    """The chosen row of each table, as its notebook builds it at ``scale`` (None: names only)."""
+    if scale is None:
+        return dict.fromkeys(("table4 K16 F32 0.5 (LLG)", "table5/6 LLGGG S=2", "table7 Ours (depth)"))
+
+    def decoder(blocks: str):
+        return lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks, dim=scale.width(256),
+                                                               partitions=2))
+    depth_scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
+    return {
+        "table4 K16 F32 0.5 (LLG)": (scale, A.Variant({"row": "t4"}, decoder("LLG"), {}, chosen=True)),
+        "table5/6 LLGGG S=2": (scale, A.Variant({"row": "t5"}, decoder("LLGGG"), {}, chosen=True)),
+        "table7 Ours (depth)": (depth_scale, A.Variant({"row": "t7"}, decoder("LLGGG"), {}, chosen=True)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--budgets", default="200,400,600", help="comma-separated step counts to score")
+    parser.add_argument("--seeds", type=int, default=3, help="seeds per row (init and data order)")
+    parser.add_argument("--rows", default="table5/6 LLGGG S=2",
+                        help="comma-separated chosen rows to pilot, of: " + "; ".join(chosen_rows(None)))
+    parser.add_argument("--out", default=os.path.join("experiments", "results", "ablations", "pilot_cpu.json"),
+                        help="JSON file to write")
+    args = parser.parse_args()
+    budgets = sorted(int(b) for b in args.budgets.split(","))
+    if args.seeds < 1 or budgets[0] < 1:
+        parser.error(f"--seeds and --budgets must be >= 1, got {args.seeds} and {budgets}")
+    base_scale = dataclasses.replace(A.make_scale("cpu", paper_views=4), steps=budgets[-1], seeds=args.seeds)
+    lp = load_lpips_params()
+    record = {"scale": str(base_scale), "budgets": budgets, "machine": A.machine(), "commit": A.commit(), "rows": {}}
+    t0 = time.perf_counter()
+    rows = chosen_rows(base_scale)
+    unknown = [r for r in args.rows.split(",") if r not in rows]
+    if unknown:
+        parser.error(f"--rows: unknown {unknown}; known: {list(rows)}")
+    for name in args.rows.split(","):
+        scale, variant = rows[name]
+        cfg = variant.build(scale.base)
+        samples = A.eval_samples(scale, "depth" in cfg.outputs)
+        per_budget: dict[int, list[dict]] = {b: [] for b in budgets}
+        seconds = []
+        for seed in range(scale.seeds):
+            trained = A.train(cfg, scale, variant, seed, snapshots=budgets)
+            seconds.append(trained.seconds)
+            for b in budgets:
+                per_budget[b].append(A.evaluate(trained.snapshots[b], cfg, scale, samples, lp))
+            print(f"{name} seed {seed}: {trained.seconds:.0f} s, PSNR by budget "
+                  + ", ".join(f"{b}: {per_budget[b][-1]['psnr']:.2f}" for b in budgets), flush=True)
+        refs = A.references(cfg, scale, samples, lp)
+        record["rows"][name] = {
+            "train_s": seconds, "references": refs,
+            "budgets": {str(b): A._summarise(per_budget[b]) for b in budgets},
+        }
+        print(f"\n{name} ({sum(seconds) / len(seconds):.0f} s per seed for {budgets[-1]} steps)")
+        print("| steps | PSNR (± 95%) | std | LPIPS |")
+        print("|---|---|---|---|")
+        for b in budgets:
+            s = record["rows"][name]["budgets"][str(b)]
+            print(f"| {b} | {s['psnr']:.2f} ± {s['psnr_ci']:.2f} | {s['psnr_std']:.2f} | {s['lpips']:.3f} |")
+        for ref in refs:
+            print(f"| {ref['name']} | {ref['psnr']:.2f} | | {ref['lpips']:.3f} |")
+        record["wall_s"] = time.perf_counter() - t0
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        with open(args.out, "w") as f:
+            json.dump(record, f, indent=1, default=float)
+    print(f"\nwrote {args.out} ({record['wall_s'] / 60:.1f} min, {jax.devices()[0].platform})")
+
+
+if __name__ == "__main__":
+    main()
