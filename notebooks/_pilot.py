@@ -1,6 +1,6 @@
 """Pilot of the ablation notebooks' ``cpu`` scale: how many steps before rows can be told apart.
 
-Run:  python experiments/ablation_pilot.py --budgets 200,400,600 --seeds 3
+Run:  python notebooks/_pilot.py --budgets 200,400,600 --seeds 3
       (about 15 minutes per row on a 2-core CPU; writes experiments/results/ablations/pilot_cpu.json)
 
 Trains each table's chosen row (Table 4: K16 F32 canvas 0.5 with an LLG decoder; Tables 5
@@ -23,7 +23,7 @@ import time
 
 import jax
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _ablation as A  # noqa: E402
 from llrmpp_jax import config as C  # noqa: E402
 from llrmpp_jax.metrics import load_lpips_params  # noqa: E402
@@ -51,8 +51,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=3, help="seeds per row (init and data order)")
     parser.add_argument("--rows", default="table5/6 LLGGG S=2",
                         help="comma-separated chosen rows to pilot, of: " + "; ".join(chosen_rows(None)))
-    parser.add_argument("--out", default=os.path.join("experiments", "results", "ablations", "pilot_cpu.json"),
-                        help="JSON file to write")
+    parser.add_argument("--out", help="JSON file to write (default: experiments/results/ablations/pilot_cpu.json)",
+                        default=os.path.join(A.ROOT, "experiments", "results", "ablations", "pilot_cpu.json"))
     args = parser.parse_args()
     budgets = sorted(int(b) for b in args.budgets.split(","))
     if args.seeds < 1 or budgets[0] < 1:
