@@ -29,20 +29,22 @@ from llrmpp_jax import config as C  # noqa: E402
 from llrmpp_jax.metrics import load_lpips_params  # noqa: E402
 
 
-def chosen_rows(scale: A.Scale | None) -> dict[str, tuple[A.Scale, A.Variant]]:
-    """The chosen row of each table, as its notebook builds it at ``scale`` (None: names only)."""
-    if scale is None:
-        return dict.fromkeys(("table4 K16 F32 0.5 (LLG)", "table5/6 LLGGG S=2", "table7 Ours (depth)"))
+# The chosen row of each table: name -> (decoder blocks, renders depth). The cpu base is
+# already the chosen head (K16 F32, canvas 0.5) and decoder (LLGGG, S=2).
+CHOSEN = {
+    "table4 K16 F32 0.5 (LLG)": ("LLG", False),
+    "table5/6 LLGGG S=2": ("LLGGG", False),
+    "table7 Ours (depth)": ("LLGGG", True),
+}
 
-    def decoder(blocks: str):
-        return lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks, dim=scale.width(256),
-                                                               partitions=2))
-    depth_scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
-    return {
-        "table4 K16 F32 0.5 (LLG)": (scale, A.Variant({"row": "t4"}, decoder("LLG"), {}, chosen=True)),
-        "table5/6 LLGGG S=2": (scale, A.Variant({"row": "t5"}, decoder("LLGGG"), {}, chosen=True)),
-        "table7 Ours (depth)": (depth_scale, A.Variant({"row": "t7"}, decoder("LLGGG"), {}, chosen=True)),
-    }
+
+def chosen_row(name: str, scale: A.Scale) -> tuple[A.Scale, A.Variant]:
+    """The chosen row ``name`` of :data:`CHOSEN`, as its notebook builds it at ``scale``."""
+    blocks, depth = CHOSEN[name]
+    if depth:
+        scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
+    build = lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks))  # noqa: E731
+    return scale, A.Variant({"row": name}, build, {}, chosen=True)
 
 
 def main() -> None:
@@ -50,7 +52,7 @@ def main() -> None:
     parser.add_argument("--budgets", default="200,400,600", help="comma-separated step counts to score")
     parser.add_argument("--seeds", type=int, default=3, help="seeds per row (init and data order)")
     parser.add_argument("--rows", default="table5/6 LLGGG S=2",
-                        help="comma-separated chosen rows to pilot, of: " + "; ".join(chosen_rows(None)))
+                        help="comma-separated chosen rows to pilot, of: " + "; ".join(CHOSEN))
     parser.add_argument("--out", help="JSON file to write (default: experiments/results/ablations/pilot_cpu.json)",
                         default=os.path.join(A.ROOT, "experiments", "results", "ablations", "pilot_cpu.json"))
     args = parser.parse_args()
@@ -61,12 +63,11 @@ def main() -> None:
     lp = load_lpips_params()
     record = {"scale": str(base_scale), "budgets": budgets, "machine": A.machine(), "commit": A.commit(), "rows": {}}
     t0 = time.perf_counter()
-    rows = chosen_rows(base_scale)
-    unknown = [r for r in args.rows.split(",") if r not in rows]
+    unknown = [r for r in args.rows.split(",") if r not in CHOSEN]
     if unknown:
-        parser.error(f"--rows: unknown {unknown}; known: {list(rows)}")
+        parser.error(f"--rows: unknown {unknown}; known: {list(CHOSEN)}")
     for name in args.rows.split(","):
-        scale, variant = rows[name]
+        scale, variant = chosen_row(name, base_scale)
         cfg = variant.build(scale.base)
         samples = A.eval_samples(scale, "depth" in cfg.outputs)
         per_budget: dict[int, list[dict]] = {b: [] for b in budgets}
