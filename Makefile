@@ -21,7 +21,7 @@ demo: $(STAMP)
 	$(BIN)/llrmpp demo --out runs/demo
 
 # Long: runs the ablation notebooks at the cpu scale (each table under an hour on 2 cores;
-# about 3-4 hours for the four) and saves them with outputs. SCALE=smoke for a quick look.
+# about 2-3 hours for the four) and saves them with outputs. SCALE=smoke for a quick look.
 notebooks: $(STAMP)
 	JAX_COMPILATION_CACHE_DIR=$${JAX_COMPILATION_CACHE_DIR:-$$HOME/.cache/llrmpp-xla} \
 	  $(BIN)/python notebooks/_execute.py --scale $${SCALE:-cpu} $(NOTEBOOKS)

@@ -19,8 +19,10 @@ Three scales (:func:`make_scale`):
 * ``"cpu"``: the demo model (``experiments/demo.py``: a 64-wide ``{4T}`` backbone, LeCun
   head and decoder init) with each table's K, F, canvas, decoder blocks and S, at 64x64 with
   4 input and 2 target views from windows of 6-10 frames of 16-frame paths (held out:
-  8-frame windows), as ``experiments/demo.py`` trains and evaluates, batch 2, :data:`CPU_STEPS` steps, 3 seeds, 16 held-out scenes with LPIPS. The budget is
-  the pilot's (``notebooks/_pilot.py``, figures in ``notebooks/README.md``).
+  8-frame windows), as ``experiments/demo.py`` trains and evaluates, batch 2,
+  :data:`CPU_STEPS` steps, 3 seeds, 16 held-out scenes with LPIPS. The budget is the
+  pilot's (``notebooks/_pilot.py``, figures in ``notebooks/README.md``). The trainings run
+  on one single-core worker process per core (:attr:`Scale.workers`, :func:`run_table`).
 * ``"paper"``: the paper's architecture (:func:`paper_dl3dv` / :func:`paper_scannet`) at
   256x256 with the table's view count, MSE + 0.5 perceptual loss, LPIPS, 3 seeds; meant for
   accelerators. The data are still procedural scenes (swap ``source`` for a
@@ -28,21 +30,27 @@ Three scales (:func:`make_scale`):
 
 Environment overrides: ``LLRMPP_NOTEBOOK_SCALE`` (smoke / cpu / paper),
 ``LLRMPP_NOTEBOOK_STEPS`` the number of train steps, ``LLRMPP_NOTEBOOK_SEEDS`` the seeds
-per row, ``LLRMPP_NOTEBOOK_ROWS`` a comma-separated list of row indices to run (the others
+per row, ``LLRMPP_NOTEBOOK_WORKERS`` the trainings run at once (:attr:`Scale.workers`),
+``LLRMPP_NOTEBOOK_ROWS`` a comma-separated list of row indices to run (the others
 are left out of the results; ``none`` runs no row), ``LLRMPP_NOTEBOOK_OUT`` the folder
 :func:`save` writes to (default ``experiments/results/ablations``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import json
+import multiprocessing
 import os
 import platform
 import subprocess
+import sys
 import time
-from collections.abc import Callable, Sequence
+import types
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,6 +85,7 @@ TRAIN_SCENES = 100_000  # training seeds are [0, TRAIN_SCENES)
 EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
 SCALES = ("smoke", "cpu", "paper")
 CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
+CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu scale (memory)
 # Scores a row is compared on, and whether higher is better.
 METRICS = {"psnr": True, "ssim": True, "lpips": False, "abs_diff": False, "delta_1_25": True}
 
@@ -90,7 +99,10 @@ class Scale:
     procedural camera path; training windows (``min_span``..``max_span`` frames, None = the
     whole path) and the evaluation views (:func:`eval_samples`, ``eval_span``) are drawn
     from it. ``seeds``: every row is trained once per seed ``0..seeds-1``
-    (model init and data order).
+    (model init and data order). ``workers``: how many (row, seed) trainings run at once,
+    each in its own process pinned to one CPU core (1: one after another in this process,
+    on every core). On small models a CPU core is used better by its own training than by
+    XLA's threads inside one step (:func:`run_table`); a worker holds ~1.5 GB.
     """
 
     name: str
@@ -112,13 +124,14 @@ class Scale:
     min_span: int | None = None
     max_span: int | None = None
     eval_span: int | None = None
+    workers: int = 1
 
     def __str__(self) -> str:
         m = self.base
         return (f"{self.name}: {self.size}x{self.size}, {self.num_inputs} inputs + {self.num_targets} targets, "
                 f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.seeds} seed(s) per row, "
-                f"{self.eval_scenes} held-out scenes; backbone D={m.backbone.dims} {m.backbone.pattern!r} "
-                f"x{m.backbone.num_layers}, outputs {m.outputs}")
+                f"{self.eval_scenes} held-out scenes, {self.workers} worker(s); "
+                f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}")
 
     def width(self, paper_width: int) -> int:
         """A paper layer width at this scale."""
@@ -178,7 +191,8 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     elif name == "cpu":
         scale = Scale(name="cpu", base=cpu_base(), size=64, num_inputs=4, num_targets=2, batch=2, steps=CPU_STEPS,
                       lr=2e-3, warmup=50, perceptual_weight=0.0, eval_scenes=16, frames=16, lpips=True,
-                      timing_repeats=3, width_divisor=4, seeds=3, min_span=6, max_span=10, eval_span=8)
+                      timing_repeats=3, width_divisor=4, seeds=3, min_span=6, max_span=10, eval_span=8,
+                      workers=min(CPU_WORKERS, len(os.sched_getaffinity(0))))
     elif name == "paper":
         base = C.paper_scannet() if depth else C.paper_dl3dv()
         scale = Scale(name="paper", base=base, size=256, num_inputs=paper_views, num_targets=8, batch=8,
@@ -195,6 +209,9 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     seeds = _env_int("LLRMPP_NOTEBOOK_SEEDS", 1)
     if seeds is not None:
         scale = dataclasses.replace(scale, seeds=seeds)
+    workers = _env_int("LLRMPP_NOTEBOOK_WORKERS", 1)
+    if workers is not None:
+        scale = dataclasses.replace(scale, workers=workers)
     return scale
 
 
@@ -530,45 +547,138 @@ class TableRun:
     seconds: float
 
 
+@functools.lru_cache(maxsize=None)
+def _held_out(scale: Scale, depth: bool) -> tuple[dict[str, np.ndarray], ...]:
+    """:func:`eval_samples`, made once per process."""
+    return tuple(eval_samples(scale, depth))
+
+
+@functools.lru_cache(maxsize=None)
+def _lpips_params(scale: Scale) -> Any:
+    """The LPIPS weights when ``scale.lpips``, else None; loaded once per process."""
+    return load_lpips_params() if scale.lpips else None
+
+
+@dataclass
+class SeedRun:
+    """One row trained at one seed and scored on the held-out scenes: the
+    :func:`evaluate` ``scores``, the :class:`Trained` ``losses``, ``seconds`` and
+    ``dropped``, and its ``params`` when asked for (the row's timings use seed 0's)."""
+
+    scores: dict[str, float]
+    losses: np.ndarray
+    seconds: float
+    dropped: int
+    params: dict | None
+
+
+def run_seed(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int, keep_params: bool = False) -> SeedRun:
+    """:func:`train` ``cfg`` at ``seed`` and :func:`evaluate` it on the held-out scenes."""
+    trained = train(cfg, scale, variant, seed)
+    scores = evaluate(trained.params, cfg, scale, _held_out(scale, "depth" in cfg.outputs), _lpips_params(scale))
+    return SeedRun(scores, trained.losses, trained.seconds, trained.dropped, trained.params if keep_params else None)
+
+
+def _pin_to_core(cores: Any) -> None:
+    """Pool initializer: bind this worker to one core before JAX sizes its thread pool."""
+    os.sched_setaffinity(0, {cores.get()})
+
+
+@contextlib.contextmanager
+def _main_hidden() -> Iterator[None]:
+    """Hide ``__main__`` while pool workers start: multiprocessing's spawn re-runs the main
+    script in every worker, which for a table run as ``python notebooks/table*.py`` would be
+    the whole table again. Workers need only this module (in a notebook kernel, ``__main__``
+    is no script and nothing changes)."""
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
+
+
+def _progress(text: str) -> None:
+    """Print ``text`` in the notebook, and on the kernel's own stderr where it differs (the
+    terminal of ``make notebooks``, which shows cell outputs only at the end)."""
+    print(text, flush=True)
+    if sys.__stderr__ is not None and sys.stderr is not sys.__stderr__:
+        print(text, file=sys.__stderr__, flush=True)
+
+
+def _run_seeds(jobs: Sequence[tuple[int, C.ModelConfig, Variant, int]], scale: Scale
+               ) -> Iterator[tuple[int, int, SeedRun]]:
+    """Run each ``(row, cfg, variant, seed)`` job with :func:`run_seed`, yielding
+    ``(row, seed, SeedRun)`` as they finish: in this process when ``scale.workers`` is 1,
+    else on a pool of ``scale.workers`` spawned processes, each pinned to its own core (by
+    ``os.sched_setaffinity``, the worker ``i`` on the ``i``-th core this process may use).
+    Seed 0's params come back for the row's timings."""
+    if scale.workers == 1:
+        for row, cfg, variant, seed in jobs:
+            yield row, seed, run_seed(cfg, scale, variant, seed, keep_params=seed == 0)
+        return
+    ctx = multiprocessing.get_context("spawn")  # fork after JAX has started threads is unsafe
+    cores = ctx.Queue()
+    allowed = sorted(os.sched_getaffinity(0))
+    for i in range(scale.workers):
+        cores.put(allowed[i % len(allowed)])
+    with ProcessPoolExecutor(scale.workers, mp_context=ctx, initializer=_pin_to_core, initargs=(cores,)) as pool:
+        # A Variant's build function may be a notebook lambda (not picklable); workers need
+        # only its loss weights.
+        with _main_hidden():  # workers start on submit (spawn context)
+            futures = {pool.submit(run_seed, cfg, scale, dataclasses.replace(variant, build=None), seed, seed == 0):
+                       (row, seed) for row, cfg, variant, seed in jobs}
+        for future in as_completed(futures):
+            row, seed = futures[future]
+            yield row, seed, future.result()
+
+
 def run_table(variants: Sequence[Variant], scale: Scale) -> TableRun:
     """Train (once per seed), evaluate and time each selected row (:func:`selected`); rows
     without a config are kept with ``status`` saying why. One result dict per row: its
     labels, ``paper`` numbers, ``status``, and for run rows ``params``, ``decoder_params``,
     ``decoder_dim`` (None in colour mode), ``train_s`` (per seed, mean), ``final_loss``,
     ``train_dropped``, the :func:`evaluate` scores summarised over seeds by
-    :func:`_summarise` and the :func:`time_model` timings (first seed)."""
+    :func:`_summarise` and the :func:`time_model` timings (seed 0's params, timed in this
+    process after every training has finished, so no worker competes with them).
+
+    The trainings of all rows and seeds run ``scale.workers`` at a time
+    (:func:`_run_seeds`); ``train_s`` is then the time of a training that shared the
+    machine with the other workers, each on one core."""
     t_start = time.perf_counter()
     rows = selected(variants)
-    runnable = [(i, v) for i, v in rows if v.build is not None]
-    samples = eval_samples(scale, "depth" in scale.base.outputs) if runnable else []
-    lp = load_lpips_params() if scale.lpips and runnable else None
+    configs = {index: v.build(scale.base) for index, v in rows if v.build is not None}
+    jobs = [(index, configs[index], v, seed) for index, v in rows if index in configs for seed in range(scale.seeds)]
+    runs: dict[int, dict[int, SeedRun]] = {index: {} for index in configs}
+    for index, seed, r in _run_seeds(jobs, scale):
+        runs[index][seed] = r
+        _progress(f"row {index} {variants[index].labels} seed {seed}: PSNR {r.scores['psnr']:.2f}, "
+                  f"trained in {r.seconds:.0f} s ({sum(map(len, runs.values()))}/{len(jobs)} done, "
+                  f"{(time.perf_counter() - t_start) / 60:.1f} min)")
     results, curves = [], {}
     for index, v in rows:
         row: dict[str, Any] = {"row": index, **v.labels, "chosen": v.chosen, "paper": dict(v.paper)}
-        if v.build is None:
+        if index not in configs:
             results.append({**row, "status": f"not run: {v.note}"})
             continue
-        cfg = v.build(scale.base)
-        per_seed, losses = [], []
-        for seed in range(scale.seeds):
-            trained = train(cfg, scale, v, seed)
-            tail = trained.losses[-max(1, len(trained.losses) // 10):]
-            scores = evaluate(trained.params, cfg, scale, samples, lp)
-            per_seed.append({**scores, "train_s": trained.seconds, "train_dropped": float(trained.dropped),
-                             "final_loss": float(np.mean(tail)) if len(tail) else float("nan")})
-            losses.append(trained.losses)
-            if seed == 0:
-                row.update(time_model(trained.params, cfg, scale, samples[0]),
-                           params=count_params(trained.params),
-                           decoder_params=count_params(trained.params.get("decoder", {})),
-                           decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None)
-            print(f"row {index} {v.labels} seed {seed}: PSNR {scores['psnr']:.2f}, {trained.seconds:.0f} s",
-                  flush=True)
-        row.update(status="ok", seeds=scale.seeds, **_summarise(per_seed))
-        curves[index] = np.mean(losses, axis=0).tolist()
+        cfg, per_seed = configs[index], [runs[index][seed] for seed in range(scale.seeds)]
+        samples = _held_out(scale, "depth" in cfg.outputs)
+        row.update(time_model(per_seed[0].params, cfg, scale, samples[0]),
+                   params=count_params(per_seed[0].params),
+                   decoder_params=count_params(per_seed[0].params.get("decoder", {})),
+                   decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None)
+        tails = [r.losses[-max(1, len(r.losses) // 10):] for r in per_seed]
+        row.update(status="ok", seeds=scale.seeds, **_summarise([
+            {**r.scores, "train_s": r.seconds, "train_dropped": float(r.dropped),
+             "final_loss": float(np.mean(tail)) if len(tail) else float("nan")} for r, tail in zip(per_seed, tails)]))
+        curves[index] = np.mean([r.losses for r in per_seed], axis=0).tolist()
         results.append(row)
-    chosen = [v for _, v in runnable if v.chosen] or [v for _, v in runnable]
-    refs = references(chosen[0].build(scale.base), scale, samples, lp) if runnable else []
+    runnable = [v for index, v in rows if index in configs]
+    chosen = [v for v in runnable if v.chosen] or runnable
+    refs = []
+    if chosen:
+        cfg = chosen[0].build(scale.base)
+        refs = references(cfg, scale, _held_out(scale, "depth" in cfg.outputs), _lpips_params(scale))
     return TableRun(scale, results, refs, curves, time.perf_counter() - t_start)
 
 

@@ -11,6 +11,8 @@ as printed in the paper's .tex, and a smoke run per notebook.
   Compile time dominates (~4.5 min for the four on 2 shared cores); the process uses XLA's
   lowest optimisation level and a persistent compilation cache in the system temp folder,
   so later runs take about half as long.
+* Workers (slow): one row trained on a pool of 2 worker processes scores as the same
+  trainings run in the notebook's own process.
 """
 
 import json
@@ -109,12 +111,12 @@ def _finite(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(NOTEBOOKS))
-def test_smoke_run(name, tmp_path):
-    label, label_keys, rows = NOTEBOOKS[name]
+def _run_notebook(name: str, tmp_path, rows: str, **env: str) -> tuple[subprocess.CompletedProcess, dict]:
+    """Run ``notebooks/{name}.py`` as a script at the smoke scale (2 seeds, 2 steps, the
+    ``rows``), results saved under ``tmp_path/saved``; returns the process and its results,
+    labels and orderings."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     out = tmp_path / "results.json"
-    saved = tmp_path / "saved"
     runner = (
         "import json, runpy, sys\n"
         f"sys.path.insert(0, {NB_DIR!r})\n"
@@ -129,7 +131,7 @@ def test_smoke_run(name, tmp_path):
         LLRMPP_NOTEBOOK_STEPS="2",
         LLRMPP_NOTEBOOK_ROWS=rows,
         LLRMPP_NOTEBOOK_SEEDS="2",
-        LLRMPP_NOTEBOOK_OUT=str(saved),
+        LLRMPP_NOTEBOOK_OUT=str(tmp_path / "saved"),
         MPLBACKEND="Agg",
         JAX_PLATFORMS="cpu",
         JAX_NUMPY_DTYPE_PROMOTION="strict",
@@ -137,11 +139,20 @@ def test_smoke_run(name, tmp_path):
         JAX_COMPILATION_CACHE_DIR=os.path.join(tempfile.gettempdir(), "llrmpp-notebook-xla-cache"),
         JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
         XLA_FLAGS="--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+        **env,
     )
     proc = subprocess.run([sys.executable, "-c", runner], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
-    data = json.loads(out.read_text())
+    return proc, json.loads(out.read_text())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(NOTEBOOKS))
+def test_smoke_run(name, tmp_path):
+    label, label_keys, rows = NOTEBOOKS[name]
+    saved = tmp_path / "saved"
+    proc, data = _run_notebook(name, tmp_path, rows)
     results, labels = data["results"], data["labels"]
     wanted = [int(r) for r in rows.split(",")]
     assert [r["row"] for r in results] == wanted
@@ -173,6 +184,22 @@ def test_smoke_run(name, tmp_path):
     assert record["commit"] and record["wall_s"] > 0 and len(record["orderings"]) == len(data["orderings"])
     assert (saved / f"{name}_smoke.png").stat().st_size > 0
     assert "| paper ordering |" in proc.stdout
+
+
+@pytest.mark.slow
+def test_workers_give_the_same_numbers(tmp_path):
+    """Trainings on a pool of 2 single-core worker processes (``LLRMPP_NOTEBOOK_WORKERS``)
+    score as the same trainings run one after another in the notebook's process (the oracle):
+    same seeds, same batches, so equal up to float reassociation (<= 1e-4 dB, 1e-5 relative
+    loss). Also checks that the workers do not re-run the notebook script (one table)."""
+    runs = {w: _run_notebook("table6_partitions", tmp_path / f"w{w}", "0", LLRMPP_NOTEBOOK_WORKERS=str(w))
+            for w in (1, 2)}
+    (_, one), (proc, two) = runs[1], runs[2]
+    assert proc.stdout.count("| paper ordering |") == 1 and "2 worker(s)" in proc.stdout
+    a, b = one["results"][0], two["results"][0]
+    assert b["psnr_seeds"] == pytest.approx(a["psnr_seeds"], abs=1e-4)
+    assert b["final_loss_seeds"] == pytest.approx(a["final_loss_seeds"], rel=1e-5)
+    assert a["psnr_seeds"][0] != a["psnr_seeds"][1]  # the seeds differ, so a mix-up would show
 
 
 @pytest.fixture
@@ -223,6 +250,7 @@ def test_compare_verdicts(ablation):
     ("LLRMPP_NOTEBOOK_SEEDS", "0", "LLRMPP_NOTEBOOK_SEEDS='0': expected an integer >= 1, got 0"),
     ("LLRMPP_NOTEBOOK_SEEDS", "three", "LLRMPP_NOTEBOOK_SEEDS='three': expected an integer >= 1"),
     ("LLRMPP_NOTEBOOK_STEPS", "-5", "LLRMPP_NOTEBOOK_STEPS='-5': expected an integer >= 0, got -5"),
+    ("LLRMPP_NOTEBOOK_WORKERS", "0", "LLRMPP_NOTEBOOK_WORKERS='0': expected an integer >= 1, got 0"),
 ])
 def test_bad_environment_is_one_line(ablation, monkeypatch, env, value, message):
     monkeypatch.setenv(env, value)
@@ -246,7 +274,7 @@ def test_bad_rows_are_one_line(ablation, monkeypatch, rows, message):
 def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     """The cpu scale: the demo model with the paper's chosen head and decoder, 3 seeds, and the
     step budget the pilot recorded in experiments/results/ablations/pilot_cpu.json."""
-    for env in ("LLRMPP_NOTEBOOK_STEPS", "LLRMPP_NOTEBOOK_SEEDS"):
+    for env in ("LLRMPP_NOTEBOOK_STEPS", "LLRMPP_NOTEBOOK_SEEDS", "LLRMPP_NOTEBOOK_WORKERS"):
         monkeypatch.delenv(env, raising=False)
     scale = ablation.make_scale("cpu", paper_views=8, depth=True)
     assert scale.seeds == 3 and scale.size == 64 and scale.base.outputs == ("rgb", "depth")
