@@ -740,14 +740,21 @@ def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Col
     return "\n".join(lines + [""] + notes + ([""] if notes else []) + [footer])
 
 
+def ordering_cells(c: dict[str, Any]) -> tuple[str, str]:
+    """The paper's difference and ours (mean paired difference over seeds ± 95% half-width)
+    of one :func:`compare` entry, as printed ("-" where there is none)."""
+    ours = (f"{c['diff']:+.3f} ± {c['diff_ci']:.3f}" if "diff" in c and np.isfinite(c["diff_ci"])
+            else f"{c['diff']:+.3f}" if "diff" in c else "-")
+    paper = f"{c['paper_diff']:+.3f}" if c.get("paper_diff") is not None else "-"
+    return paper, ours
+
+
 def format_orderings(comparisons: Sequence[dict[str, Any]]) -> str:
-    """A Markdown table of :func:`compare`'s verdicts: the paper's difference, ours (mean
-    paired difference over seeds ± 95% half-width; > 0 = the paper's ordering holds)."""
+    """A Markdown table of :func:`compare`'s verdicts: the paper's difference, ours
+    (:func:`ordering_cells`; > 0 = the paper's ordering holds)."""
     lines = ["| paper ordering | metric | paper diff | our diff (95% interval) | verdict |", "|---|---|---|---|---|"]
     for c in comparisons:
-        ours = (f"{c['diff']:+.3f} ± {c['diff_ci']:.3f}" if "diff" in c and np.isfinite(c["diff_ci"])
-                else f"{c['diff']:+.3f}" if "diff" in c else "-")
-        paper = f"{c['paper_diff']:+.3f}" if c.get("paper_diff") is not None else "-"
+        paper, ours = ordering_cells(c)
         lines.append(f"| {c['ordering']} | {c['metric']} | {paper} | {ours} | {c['verdict']} |")
     return "\n".join(lines)
 

@@ -282,3 +282,21 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     assert (scale.base.decoder.blocks, scale.base.decoder.dim, scale.base.decoder.partitions) == ("LLGGG", 64, 2)
     pilot = json.load(open(os.path.join(ROOT, "experiments", "results", "ablations", "pilot_cpu.json")))
     assert scale.steps in pilot["budgets"]
+
+
+def test_summary_lists_every_table_and_ordering(ablation, tmp_path, monkeypatch):
+    """``notebooks/_summary.py``: one line per ordering of an executed table, with the
+    numbers of its JSON record; every other table is listed as not executed."""
+    import _summary
+
+    record = {"wall_s": 1926.0, "seeds": 3, "steps": 400, "commit": "abc1234", "orderings": [
+        {"ordering": "S=2 > S=1 (PSNR)", "metric": "psnr", "diff": 0.9582, "diff_ci": 1.9061, "paper_diff": 0.99,
+         "verdict": "not resolved"},
+        {"ordering": "x > y", "metric": "lpips", "verdict": "not run"}]}
+    (tmp_path / "table6_partitions_cpu.json").write_text(json.dumps(record))
+    lines = _summary.summary("cpu", str(tmp_path)).splitlines()
+    assert "- `table6_partitions`: 32.1 min, 3 seeds x 400 steps, commit abc1234" in lines
+    assert {ln for ln in lines if "not executed" in ln} == {
+        f"- `{n}`: not executed at the cpu scale" for n in NOTEBOOKS if n != "table6_partitions"}
+    assert "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | not resolved |" in lines
+    assert "| 6 | x > y | lpips | - | - | not run |" in lines

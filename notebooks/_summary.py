@@ -1,0 +1,66 @@
+"""One table of every executed ablation: each paper ordering, the paper's difference, ours.
+
+Run:  python notebooks/_summary.py [--scale cpu]
+      (reads experiments/results/ablations/table*_{scale}.json, prints Markdown)
+
+The JSON records are the ones the notebooks write (:func:`_ablation.save`); a table that has
+not been executed at the scale is listed as such, so the summary never hides a missing run.
+``notebooks/README.md`` carries this output under "Verdicts".
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import re
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _ablation as A  # noqa: E402
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESULTS = os.path.join(A.ROOT, "experiments", "results", "ablations")
+
+
+def tables() -> list[str]:
+    """The notebooks' table names (``table*.py`` in this folder), sorted."""
+    return sorted(os.path.basename(p)[:-3] for p in glob.glob(os.path.join(HERE, "table*.py")))
+
+
+def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
+    """Markdown: a line per executed table (wall time, commit, seeds, steps), then one table
+    with every ordering of every executed table: the paper's difference, our paired
+    difference with its 95% interval, and the verdict (:func:`_ablation.compare`)."""
+    runs, missing = [], []
+    for name in tables():
+        path = os.path.join(folder, f"{name}_{scale}.json")
+        if os.path.isfile(path):
+            with open(path) as f:
+                runs.append((name, json.load(f)))
+        else:
+            missing.append(name)
+    lines = [f"- `{name}`: {r['wall_s'] / 60:.1f} min, {r['seeds']} seeds x {r['steps']} steps, commit {r['commit']}"
+             for name, r in runs]
+    lines += [f"- `{name}`: not executed at the {scale} scale" for name in missing]
+    lines += ["", "| table | paper ordering | metric | paper diff | our diff (95% interval) | verdict |",
+              "|---|---|---|---|---|---|"]
+    for name, r in runs:
+        number = re.match(r"table(\d+)", name).group(1)
+        for c in r["orderings"]:
+            paper, ours = A.ordering_cells(c)
+            lines.append(f"| {number} | {c['ordering']} | {c['metric']} | {paper} | {ours} | {c['verdict']} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scale", default="cpu", choices=A.SCALES, help="the scale whose results to read")
+    parser.add_argument("--folder", default=RESULTS, help="where the notebooks wrote their JSON")
+    args = parser.parse_args()
+    print(summary(args.scale, args.folder))
+
+
+if __name__ == "__main__":
+    main()
