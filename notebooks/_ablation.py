@@ -737,7 +737,8 @@ def _cell(r: dict[str, Any], c: Column) -> str:
 def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Column] = ()) -> str:
     """A Markdown table: one line per result, the label columns, then ``columns``; ``*``
     marks the paper's chosen row; then the references (untrained, baselines); rows that did
-    not run show their status; a last line gives the scale, seeds, wall time and commit.
+    not run show their status, rows whose splat buffer overflowed say by how much; a last
+    line gives the scale, seeds, wall time and commit.
     ``±``: half-width of the 95% interval over seeds."""
     head = ["", *label_keys, *[c.title for c in columns]]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -750,6 +751,11 @@ def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Col
         lines.append("| " + " | ".join(cells + [_cell({"paper": {}, **ref}, c) if c in own and c.key in ref
                                                 else "" for c in columns]) + " |")
     notes = [f"row {r['row']}: {r['status']}" for r in run.results if r["status"] != "ok"]
+    # Splat capacity overflow (SplatConfig.max_intersections) loses Gaussians: say so by row.
+    notes += [f"row {r['row']}: the splat buffer overflowed: {r['train_dropped'] / max(run.scale.steps, 1):,.0f} "
+              f"intersections dropped per training step, {r['eval_dropped'] / run.scale.eval_scenes:,.0f} "
+              "per held-out scene (mean over seeds)"
+              for r in run.results if r["status"] == "ok" and (r["train_dropped"] > 0 or r["eval_dropped"] > 0)]
     footer = (f"{run.scale.name} scale, {run.scale.seeds} seed(s) per row, {run.scale.steps} steps, "
               f"wall time {run.seconds / 60:.1f} min, commit {commit()}")
     return "\n".join(lines + [""] + notes + ([""] if notes else []) + [footer])

@@ -306,3 +306,17 @@ def test_summary_lists_every_table_and_ordering(ablation, tmp_path, monkeypatch)
         f"- `{n}`: not executed at the cpu scale" for n in NOTEBOOKS if n != "table6_partitions"}
     assert "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | not resolved |" in lines
     assert "| 6 | x > y | lpips | - | - | not run |" in lines
+
+
+def test_table_reports_splat_overflow(ablation):
+    """A row whose splat buffer overflowed gets a note with the dropped intersections per
+    training step and per held-out scene; a row without overflow gets none."""
+    scale = ablation.make_scale("smoke", paper_views=4)  # 40 steps, 4 held-out scenes
+    rows = [{"row": 0, "x": "a", "chosen": False, "paper": {}, "status": "ok", "train_dropped": 8000.0,
+             "eval_dropped": 8.0},
+            {"row": 1, "x": "b", "chosen": True, "paper": {}, "status": "ok", "train_dropped": 0.0,
+             "eval_dropped": 0.0}]
+    text = ablation.format_table(ablation.TableRun(scale, rows, [], {}, 60.0), ["x"])
+    assert ("row 0: the splat buffer overflowed: 200 intersections dropped per training step, "
+            "2 per held-out scene (mean over seeds)") in text.splitlines()
+    assert "row 1:" not in text
