@@ -281,6 +281,9 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     assert scale.seeds == 3 and scale.size == 64 and scale.base.outputs == ("rgb", "depth")
     assert (scale.base.head.gaussians_per_token, scale.base.head.feature_dim) == (16, 32)
     assert (scale.base.decoder.blocks, scale.base.decoder.dim, scale.base.decoder.partitions) == ("LLGGG", 64, 2)
+    # the splat buffer can hold every (Gaussian, tile) pair of a full-size render: no overflow
+    n = 4 * 64 * 64  # colour mode: one Gaussian per input pixel
+    assert scale.base.splat.capacity(n, 64, 64) == n * 16
     pilot = json.load(open(os.path.join(ROOT, "experiments", "results", "ablations", "pilot_cpu.json")))
     assert scale.steps in pilot["budgets"]
     # Depth tables: poses normalised so that 95% of the held-out depths lie within the
