@@ -86,14 +86,6 @@ EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
 SCALES = ("smoke", "cpu", "paper")
 CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
 CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu scale (memory)
-# Depth tables at the cpu scale normalise poses with this scene_scale. A window of 8 frames
-# spans little camera motion, so at scene_scale 1 (input cameras in [-1, 1]^3) the held-out
-# median depth is 12.4 units (5-95%: 0.8-29), 4x beyond the demo head's reach (max_dist 3)
-# and the exp depth head's start (1): Table 7 run that way (commit c734909) ended 400 steps
-# with colour-Gaussian depth capped below 3 units and the feature model's delta < 1.25 at
-# 7%. At 10 the median depth is 1.2 units and 95% lie within max_dist, as ScanNet rooms
-# (~2 m) sit within Long-LRM's range with cameras in [-1, 1]^3.
-CPU_DEPTH_SCENE_SCALE = 10.0
 # Scores a row is compared on, and whether higher is better.
 METRICS = {"psnr": True, "ssim": True, "lpips": False, "abs_diff": False, "delta_1_25": True}
 
@@ -111,9 +103,6 @@ class Scale:
     each in its own process pinned to one CPU core (1: one after another in this process,
     on every core). On small models a CPU core is used better by its own training than by
     XLA's threads inside one step (:func:`run_table`); a worker holds ~1.5 GB.
-    ``scene_scale``: Long-LRM's pose normalisation divisor (``geometry.normalize_scene``:
-    input cameras in ``[-1/scene_scale, 1/scene_scale]^3``), which sets the scenes' depth
-    in model units.
     """
 
     name: str
@@ -136,13 +125,12 @@ class Scale:
     max_span: int | None = None
     eval_span: int | None = None
     workers: int = 1
-    scene_scale: float = 1.0
 
     def __str__(self) -> str:
         m = self.base
         return (f"{self.name}: {self.size}x{self.size}, {self.num_inputs} inputs + {self.num_targets} targets, "
                 f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.seeds} seed(s) per row, "
-                f"{self.eval_scenes} held-out scenes, scene scale {self.scene_scale:g}, {self.workers} worker(s); "
+                f"{self.eval_scenes} held-out scenes, {self.workers} worker(s); "
                 f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}")
 
     def width(self, paper_width: int) -> int:
@@ -220,8 +208,7 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     else:
         raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
     if depth:
-        scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")),
-                                    scene_scale=CPU_DEPTH_SCENE_SCALE if name == "cpu" else scale.scene_scale)
+        scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
     steps = _env_int("LLRMPP_NOTEBOOK_STEPS", 0)
     if steps is not None:
         scale = dataclasses.replace(scale, steps=steps, warmup=min(scale.warmup, steps))
@@ -364,8 +351,7 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
     source = ProceduralSource(ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames),
                               size=TRAIN_SCENES)
     batch_cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
-                            with_depth=depth, min_span=scale.min_span, max_span=scale.max_span,
-                            scene_scale=scale.scene_scale)
+                            with_depth=depth, min_span=scale.min_span, max_span=scale.max_span)
     losses, dropped, kept = [], 0.0, {}
     host_params = lambda: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's copy)
     with BatchIterator(source, batch_cfg, seed=seed, num_devices=n_dev) as batches:
@@ -399,7 +385,7 @@ def eval_samples(scale: Scale, depth: bool) -> list[dict[str, np.ndarray]]:
         else:
             inputs, targets = training_views(np.random.default_rng([7, i]), len(scene.c2w), scale.num_inputs,
                                              scale.num_targets, scale.eval_span, scale.eval_span, input_weight=0.0)
-        s = make_sample(scene, inputs, targets, geom, with_depth=depth, scene_scale=scale.scene_scale)
+        s = make_sample(scene, inputs, targets, geom, with_depth=depth)
         samples.append({k: v[None] for k, v in s.items()})
     return samples
 

@@ -24,7 +24,6 @@ import subprocess
 import sys
 import tempfile
 
-import numpy as np
 import pytest
 
 from conftest import shared_path
@@ -286,11 +285,6 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     assert scale.base.splat.capacity(n, 64, 64) == n * 16
     pilot = json.load(open(os.path.join(ROOT, "experiments", "results", "ablations", "pilot_cpu.json")))
     assert scale.steps in pilot["budgets"]
-    # Depth tables: poses normalised so that 95% of the held-out depths lie within the
-    # Gaussian head's reach (max_dist); colour-only tables keep Long-LRM's scene_scale 1.
-    assert ablation.make_scale("cpu", paper_views=8).scene_scale == 1.0
-    depths = np.concatenate([s["target_depth"].ravel() for s in ablation.eval_samples(scale, True)])
-    assert np.percentile(depths, 95) <= scale.base.head.max_dist < np.percentile(depths, 99)
 
 
 def test_summary_lists_every_table_and_ordering(ablation, tmp_path, monkeypatch):
