@@ -159,7 +159,7 @@ def cpu_base() -> C.ModelConfig:
     The splat buffer holds 16 intersections per Gaussian, every tile of a 64x64 canvas, so
     it cannot overflow at this scale: with the default 8, the colour-Gaussian rows (one
     Gaussian per pixel, grown towards Long-LRM's largest scale within 400 steps) dropped
-    ~5,000 intersections per training step (Table 5, commit d07505d)."""
+    ~5,000 intersections per training step (an interrupted Table 5 run, commit d07505d)."""
     base = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
     return C.replace(base, head=C.replace(base.head, gaussians_per_token=16, feature_dim=32),
                      decoder=C.replace(base.decoder, blocks="LLGGG", dim=64, partitions=2),
