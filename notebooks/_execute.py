@@ -43,12 +43,17 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
     return time.perf_counter() - t0
 
 
+def notebook_names() -> list[str]:
+    """The ablation notebooks: every ``notebooks/table*.py``, by name, sorted."""
+    return sorted(f[:-3] for f in os.listdir(HERE) if f.startswith("table") and f.endswith(".py"))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("names", nargs="*", help="notebooks to run (default: every table*.py)")
     parser.add_argument("--scale", default="cpu", choices=SCALES, help="LLRMPP_NOTEBOOK_SCALE for the run")
     args = parser.parse_args()
-    names = args.names or sorted(f[:-3] for f in os.listdir(HERE) if f.startswith("table") and f.endswith(".py"))
+    names = args.names or notebook_names()
     for name in names:
         print(f"{name}: running at the {args.scale} scale ...", flush=True)
         try:

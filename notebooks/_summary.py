@@ -11,7 +11,6 @@ not been executed at the scale is listed as such, so the summary never hides a m
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import os
 import re
@@ -19,14 +18,9 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _ablation as A  # noqa: E402
+from _execute import notebook_names  # noqa: E402
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 RESULTS = os.path.join(A.ROOT, "experiments", "results", "ablations")
-
-
-def tables() -> list[str]:
-    """The notebooks' table names (``table*.py`` in this folder), sorted."""
-    return sorted(os.path.basename(p)[:-3] for p in glob.glob(os.path.join(HERE, "table*.py")))
 
 
 def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
@@ -34,7 +28,7 @@ def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
     with every ordering of every executed table: the paper's difference, our paired
     difference with its 95% interval, and the verdict (:func:`_ablation.compare`)."""
     runs, missing = [], []
-    for name in tables():
+    for name in notebook_names():
         path = os.path.join(folder, f"{name}_{scale}.json")
         if os.path.isfile(path):
             with open(path) as f:

@@ -64,8 +64,8 @@ run = A.run_table(VARIANTS, scale)
 results = run.results
 
 # %% [markdown]
-# Ours (held-out procedural scenes; mean ± 95% interval over seeds; depth in normalised
-# scene units) next to the paper's numbers (ScanNetv2, metres).
+# Ours (held-out procedural scenes; mean ± 95% interval over seeds; depth in the scenes'
+# own units) next to the paper's numbers (ScanNetv2, metres).
 
 # %%
 print(A.format_table(run, ["method"], [
