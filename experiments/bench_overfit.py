@@ -2,17 +2,22 @@
 
 Run:  python experiments/bench_overfit.py --name feat_base --steps 1500
       python experiments/bench_overfit.py --name colour --mode color --steps 600
+      python experiments/bench_overfit.py --name depth_aux --decoder-depth-weight 1 --steps 300
 
 One seeded scene of ``--frames`` frames; ``--inputs`` evenly spaced frames are the fixed
 inputs, the frames half-way between consecutive inputs are held out (never a target), and
 every other frame (inputs included) is a training target (``--random-inputs``: each step
 also draws its inputs from those frames; evaluation keeps the fixed inputs). The scene is ray-cast once and
 kept in memory, so a step costs only the model. Each step renders ``--targets`` training
-frames drawn at random; MSE only; AdamW with warmup + cosine (the trainer's optimizer).
+frames drawn at random; MSE, plus with ``--decoder-depth-weight`` the paper's depth loss
+on the decoder's depth head (log smooth-L1 + ``--depth-aux-weight`` x (gradient + normal));
+AdamW with warmup + cosine (the trainer's optimizer).
 
 Writes ``experiments/results/learning/<name>.json`` (config, steps, wall time, PSNR on the
-input views and on the held-out views, Gaussian statistics) and ``<name>.png``: the first
-row the inputs, then per shown view: target, prediction, |error| x4, nearest input.
+input views and on the held-out views, Gaussian statistics; with depth, depth metrics of the model and of the best constant)
+and ``<name>.png``: the first row the inputs, then per shown view: target, prediction,
+|error| x4, nearest input; with depth also ``<name>_depth.png`` (target and predicted
+depth of the shown views on one colour scale).
 """
 
 from __future__ import annotations
@@ -36,8 +41,8 @@ from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.evaluate import gaussian_statistics, picture_grid
 from llrmpp_jax.experiment import StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
-from llrmpp_jax.losses import rgb_loss
-from llrmpp_jax.metrics import psnr
+from llrmpp_jax.losses import depth_loss, rgb_loss
+from llrmpp_jax.metrics import depth_metrics, psnr
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.initializers import parse_init_std
 from llrmpp_jax.trainer import optimizer_config
@@ -54,9 +59,10 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
         opacity_bias=args.opacity_bias, init_std=args.init_std,
     )
     decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim,
-                        init_std=head.init_std)
+                        init_std=head.init_std, depth_bias=args.depth_bias)
     backbone = C.replace(base.backbone, dims=(args.dim,), pattern=args.pattern, num_layers=args.layers)
-    return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch)
+    outputs = ("rgb", "depth") if args.decoder_depth_weight else ("rgb",)
+    return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch, outputs=outputs)
 
 
 def split_frames(num_frames: int, num_inputs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -69,11 +75,40 @@ def split_frames(num_frames: int, num_inputs: int) -> tuple[np.ndarray, np.ndarr
     return inputs, held, train
 
 
+def depth_scores(pred: np.ndarray, target: np.ndarray) -> dict[str, dict[str, float]]:
+    """Mean :func:`~llrmpp_jax.metrics.depth_metrics` of ``pred`` [V, H, W] against
+    ``target`` and of the best constant: the one depth (geometric mean of the valid target
+    pixels) that minimises the log depth loss over these views, the simplest baseline."""
+    valid = np.isfinite(target) & (target > 0)
+    constant = np.full_like(target, np.exp(np.mean(np.log(target[valid]))))
+    return {name: {k: float(np.nanmean(v)) for k, v in depth_metrics(jnp.asarray(p), jnp.asarray(target)).items()}
+            for name, p in (("model", pred), ("constant", constant))}
+
+
+def write_depth_figure(path: str, target: np.ndarray, pred: np.ndarray) -> None:
+    """Target (top) and predicted (bottom) depth [V, H, W] of V views, one colour scale per view."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(target), figsize=(3 * len(target), 6), squeeze=False)
+    for v in range(len(target)):
+        lo, hi = np.percentile(target[v][target[v] > 0], [2, 98])
+        for row, (name, d) in enumerate((("target", target[v]), ("predicted", pred[v]))):
+            im = axes[row, v].imshow(d, vmin=lo, vmax=hi, cmap="viridis")
+            axes[row, v].set_title(f"{name} depth, view {v}")
+            axes[row, v].axis("off")
+        fig.colorbar(im, ax=axes[:, v], shrink=0.6, label="scene units")
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
 def table() -> str:
     """Markdown table of every run in ``RESULTS``, in name order; ``change`` lists the
     arguments that differ from the defaults."""
-    lines = ["| run | change | steps | wall (min) | s/step | input PSNR | held-out PSNR | mean scale | mean opacity |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| run | change | steps | wall (min) | s/step | input PSNR | held-out PSNR | held-out delta<1.25 "
+             "(constant) | mean scale | mean opacity |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     skip, defaults = {"name", "steps", "minutes", "table"}, vars(parser().parse_args([]))
     for path in sorted(glob.glob(os.path.join(RESULTS, "*.json"))):
         with open(path) as f:
@@ -81,9 +116,11 @@ def table() -> str:
         if "held_out_psnr" not in r:  # another benchmark's record (autoencoder_*, pilots_*)
             continue
         change = ", ".join(f"{k}={v}" for k, v in r["args"].items() if k not in skip and v != defaults.get(k))
-        g = r["gaussians"]
+        g, d = r["gaussians"], r.get("depth", {}).get("held_out")
+        delta = f"{d['model']['delta_1_25']:.3f} ({d['constant']['delta_1_25']:.3f})" if d else "-"
         lines.append(f"| {r['name']} | {change or 'defaults'} | {r['steps']} | {r['wall_min']:.1f} | {r['step_s']:.2f} "
-                     f"| {r['input_psnr']:.2f} | {r['held_out_psnr']:.2f} | {g['mean_scale']:.3f} | {g['mean_opacity']:.2f} |")
+                     f"| {r['input_psnr']:.2f} | {r['held_out_psnr']:.2f} | {delta} | {g['mean_scale']:.3f} "
+                     f"| {g['mean_opacity']:.2f} |")
     return "\n".join(lines)
 
 
@@ -93,6 +130,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--table", action="store_true", help="print the Markdown table of every stored run and exit")
     p.add_argument("--seed", type=int, default=3, help="procedural scene seed")
     p.add_argument("--res", type=int, default=64, help="square image side (pixels)")
+    p.add_argument("--scene-scale", type=float, default=1.0,
+                   help="make_sample's scene_scale: input cameras in [-1/s, 1/s]^3, depths x 1/s "
+                        "(0.1: depths ~15 units, as in the notebooks' 8-frame windows)")
     p.add_argument("--frames", type=int, default=16, help="frames of the scene's camera path")
     p.add_argument("--inputs", type=int, default=4, help="fixed input views")
     p.add_argument("--targets", type=int, default=2, help="training target views per step")
@@ -119,6 +159,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-weight", type=float, default=0.0,
                    help="weight of a depth loss on the Gaussians' own splatted depth (expected z at "
                         "canvas resolution) against the procedural ground truth; 0: none")
+    p.add_argument("--decoder-depth-weight", type=float, default=0.0,
+                   help="weight of the paper's depth loss on the decoder's depth head (adds the 'depth' output); "
+                        "0: RGB only")
+    p.add_argument("--depth-bias", type=float, default=0.0,
+                   help="DecoderConfig.depth_bias: log-depth offset of the depth head (depth = exp(head + bias))")
+    p.add_argument("--depth-aux-weight", type=float, default=0.1,
+                   help="lambda_grad = lambda_normal of that depth loss (the paper's 0.1)")
     p.add_argument("--minutes", type=float, default=8.0, help="wall-clock budget of the training loop")
     return p
 
@@ -137,7 +184,8 @@ def main() -> None:
     inputs, held, train = split_frames(args.frames, args.inputs)
     geom = ViewGeometry(resize_h=args.res, multiple=cfg.size_multiple, square_crop=True)
     t0 = time.time()
-    everything = make_sample(scene, inputs, np.arange(args.frames), geom, with_depth=True)  # targets = every frame
+    everything = make_sample(scene, inputs, np.arange(args.frames), geom, with_depth=True,
+                             scene_scale=args.scene_scale)  # targets = every frame
     data_s = time.time() - t0
     frames = {k[len("target_"):]: v for k, v in everything.items() if k.startswith("target_")}
     fixed = {k: v[None] for k, v in everything.items() if k.startswith("input_")}
@@ -150,10 +198,18 @@ def main() -> None:
     def loss_fn(params, batch, key):
         del key
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
-        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], args.res, args.res)
+        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], args.res, args.res,
+                     cfg.outputs)
         loss, metrics = rgb_loss(out.images["rgb"].reshape(-1, args.res, args.res, 3),
                                  batch["target_images"].reshape(-1, args.res, args.res, 3), None,
                                  perceptual_weight=0.0)
+        if args.decoder_depth_weight:
+            d_loss, _ = depth_loss(out.images["depth"][..., 0].reshape(-1, args.res, args.res),
+                                   batch["target_depth"].reshape(-1, args.res, args.res),
+                                   batch["target_intrinsics"].reshape(-1, 4),
+                                   grad_weight=args.depth_aux_weight, normal_weight=args.depth_aux_weight)
+            loss = loss + args.decoder_depth_weight * d_loss
+            metrics = dict(metrics, depth_loss=d_loss)
         if args.depth_weight:
             d_loss, _ = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"],
                                             batch["target_depth"], cfg)
@@ -171,7 +227,8 @@ def main() -> None:
         pick = rng.choice(train, args.targets, replace=False)
         if args.random_inputs:  # a fresh input subset: the decoder cannot memorise views
             ins = np.sort(rng.choice(train, args.inputs, replace=False))
-            batch = {k: v[None] for k, v in make_sample(scene, ins, pick, geom, with_depth=True).items()}
+            batch = {k: v[None] for k, v in make_sample(scene, ins, pick, geom, with_depth=True,
+                                                             scene_scale=args.scene_scale).items()}
             batch.pop("scene_scale")
         else:
             batch = dict(fixed, **{f"target_{k}": v[pick][None] for k, v in frames.items()})
@@ -190,12 +247,14 @@ def main() -> None:
     @jax.jit
     def view(params, c2w, intrinsics):
         g = reconstruct(params, cfg, fixed["input_images"], fixed["input_c2w"], fixed["input_intrinsics"])
-        out = render(params, cfg, g, c2w[None], intrinsics[None], args.res, args.res)
-        return out.images["rgb"][0], g
+        out = render(params, cfg, g, c2w[None], intrinsics[None], args.res, args.res, cfg.outputs)
+        return {k: v[0] for k, v in out.images.items()}, g
 
-    def score(views: np.ndarray) -> tuple[np.ndarray, list[float]]:
-        rgb, _ = view(params, frames["c2w"][views], frames["intrinsics"][views])
-        return np.asarray(rgb), [float(x) for x in psnr(jnp.clip(rgb, 0, 1), jnp.asarray(frames["images"][views]))]
+    def score(views: np.ndarray) -> tuple[dict[str, np.ndarray], list[float]]:
+        images, _ = view(params, frames["c2w"][views], frames["intrinsics"][views])
+        rgb = images["rgb"]
+        return ({k: np.asarray(v) for k, v in images.items()},
+                [float(x) for x in psnr(jnp.clip(rgb, 0, 1), jnp.asarray(frames["images"][views]))])
 
     pred_in, psnr_in = score(inputs)
     pred_held, psnr_held = score(held)
@@ -207,13 +266,18 @@ def main() -> None:
         "gaussians": {k: float(v) for k, v in gaussian_statistics(g).items()},
         "frames": {"inputs": inputs.tolist(), "held_out": held.tolist()}, "log": log,
     }
+    if args.decoder_depth_weight:
+        result["depth"] = {"inputs": depth_scores(pred_in["depth"][..., 0], frames["depth"][inputs]),
+                           "held_out": depth_scores(pred_held["depth"][..., 0], frames["depth"][held])}
+        write_depth_figure(os.path.join(RESULTS, f"{args.name}_depth.png"), frames["depth"][held[:2]],
+                           pred_held["depth"][:2, ..., 0])
     os.makedirs(RESULTS, exist_ok=True)
     with open(os.path.join(RESULTS, f"{args.name}.json"), "w") as f:
         json.dump(result, f, indent=1)
     shown = {"input_images": fixed["input_images"][0], "input_c2w": fixed["input_c2w"][0],
              "target_images": np.concatenate([frames["images"][held[:2]], frames["images"][inputs[:1]]]),
              "target_c2w": np.concatenate([frames["c2w"][held[:2]], frames["c2w"][inputs[:1]]])}
-    grid = picture_grid(shown, np.concatenate([pred_held[:2], pred_in[:1]]))
+    grid = picture_grid(shown, np.concatenate([pred_held["rgb"][:2], pred_in["rgb"][:1]]))
     write_image(os.path.join(RESULTS, f"{args.name}.png"), grid)
     print(json.dumps({k: result[k] for k in ("name", "steps", "wall_min", "step_s", "input_psnr",
                                              "held_out_psnr", "gaussians")}))

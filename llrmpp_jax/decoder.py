@@ -16,7 +16,8 @@ For one target camera and the S partition copies of the Gaussians:
    token, unpatchified to ``[H, W, C]``.
 
 Output heads (our choice, documented): RGB = ``sigmoid`` (as LVSM's decoder), depth =
-``exp`` of a log-depth head (positive, and the depth loss works on log depth).
+``exp(head + depth_bias)``, a log-depth head (positive, and the depth loss works on log
+depth) offset by the config's ``depth_bias`` (``DecoderConfig``: where depths start).
 """
 
 from __future__ import annotations
@@ -96,5 +97,5 @@ class TargetDecoder(nn.Module):
             out = nn.Dense(q * q * OUTPUT_CHANNELS[output], use_bias=False, name=f"head_{output}",
                            kernel_init=linear_init(cfg.init_std))(x)
             img = unpatchify(out, q, 1, grid[0], grid[1])[:, 0]  # [M, H, W, C]
-            images[output] = jax.nn.sigmoid(img) if output == "rgb" else jnp.exp(img)
+            images[output] = jax.nn.sigmoid(img) if output == "rgb" else jnp.exp(img + cfg.depth_bias)
         return images

@@ -218,6 +218,21 @@ def test_absolute_positions_add_the_sincos_embedding(key):
         C.DecoderConfig(dim=30, absolute_positions=True)
 
 
+def test_depth_bias_offsets_the_log_depth_head(key):
+    """``depth_bias`` b: the depth output is exp(b) times the unbiased one (depth =
+    exp(head + b)), the RGB output is unchanged; random parameters and canvas."""
+    cfg = C.DecoderConfig(dim=32, blocks="LG", num_neighbours=9, partitions=2, transformer=C.TransformerConfig(head_dim=16))
+    k_init, k_x = jax.random.split(key)
+    canvas = jax.random.normal(k_x, (2, 2, 16, 24, 7), jnp.float32)
+    params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
+    base = TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))
+    biased = TargetDecoder(C.replace(cfg, depth_bias=1.7)).apply({"params": params}, canvas, ("rgb", "depth"))
+    assert base["depth"].shape == (2, 32, 48, 1)
+    np.testing.assert_allclose(np.asarray(biased["depth"], np.float64),
+                               np.exp(1.7) * np.asarray(base["depth"], np.float64), rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(biased["rgb"]), np.asarray(base["rgb"]))
+
+
 def _golden_colour_scene():
     """The golden Long-LRM Gaussians (float64) and their input cameras as render targets."""
     from llrmpp_jax.gaussians import Gaussians
