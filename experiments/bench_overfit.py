@@ -14,10 +14,10 @@ on the decoder's depth head (log smooth-L1 + ``--depth-aux-weight`` x (gradient 
 AdamW with warmup + cosine (the trainer's optimizer).
 
 Writes ``experiments/results/learning/<name>.json`` (config, steps, wall time, PSNR on the
-input views and on the held-out views, Gaussian statistics; with depth, depth metrics of the model and of the best constant)
-and ``<name>.png``: the first row the inputs, then per shown view: target, prediction,
-|error| x4, nearest input; with depth also ``<name>_depth.png`` (target and predicted
-depth of the shown views on one colour scale).
+input views and on the held-out views, Gaussian statistics; with depth, depth metrics of
+the model and of the best constant) and ``<name>.png``: the first row the inputs, then per
+shown view: target, prediction, |error| x4, nearest input; with depth also
+``<name>_depth.png`` (target and predicted depth of the shown views on one colour scale).
 """
 
 from __future__ import annotations

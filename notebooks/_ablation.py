@@ -159,7 +159,8 @@ def cpu_base() -> C.ModelConfig:
     machine (``experiments/README.md``), with the paper's chosen rows: K = 16 Gaussians of
     F = 32 features per token (Table 4) and an ``LLGGG`` decoder of width 256 / 4 with S = 2
     partitions (Tables 5, 6). At 64x64 the K = 16 head gives one Gaussian per half-resolution
-    canvas pixel (2x2 image pixels) per input view, the paper's density at 256x256. Each row then sets its own K, F, decoder, S.
+    canvas pixel (2x2 image pixels) per input view, the paper's density at 256x256. Each row
+    then sets its own K, F, decoder, S.
 
     The splat buffer holds 16 intersections per Gaussian, every tile of a 64x64 canvas, so
     it cannot overflow at this scale: with the default 8, the colour-Gaussian rows (one

@@ -221,7 +221,8 @@ def test_absolute_positions_add_the_sincos_embedding(key):
 def test_depth_bias_offsets_the_log_depth_head(key):
     """``depth_bias`` b: the depth output is exp(b) times the unbiased one (depth =
     exp(head + b)), the RGB output is unchanged; random parameters and canvas."""
-    cfg = C.DecoderConfig(dim=32, blocks="LG", num_neighbours=9, partitions=2, transformer=C.TransformerConfig(head_dim=16))
+    cfg = C.DecoderConfig(dim=32, blocks="LG", num_neighbours=9, partitions=2,
+                          transformer=C.TransformerConfig(head_dim=16))
     k_init, k_x = jax.random.split(key)
     canvas = jax.random.normal(k_x, (2, 2, 16, 24, 7), jnp.float32)
     params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
