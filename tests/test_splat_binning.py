@@ -15,9 +15,9 @@ H, W, N = 37, 53, 300
 
 
 @functools.partial(jax.jit, static_argnames=("capacity",))
-def _bin(means, quats, scales, c2w, intr, capacity):
+def _bin(means, quats, scales, c2w, intr, capacity, opacities=None):
     proj = project_gaussians(means, quats, scales, c2w, intr, H, W)
-    return bin_gaussians(proj, H, W, capacity, SplatConfig())
+    return bin_gaussians(proj, H, W, capacity, SplatConfig(), opacities)
 
 
 def _lists(bins):
@@ -40,6 +40,19 @@ def test_tile_lists_match_oracle(rng):
     assert int(bins.num_intersections) == needed and not bool(bins.overflow)
     assert int(bins.num_dropped) == 0
     assert int(count_intersections(*scene, H, W)) == needed
+
+
+def test_opacity_trimmed_lists_match_oracle_and_are_shorter(rng):
+    scene = _scene(rng)
+    opac = rng.uniform(0.0, 1.0, N) ** 2  # mostly faint, a few below 1/255
+    full, needed_full = oracle_tile_lists(oracle_project(*scene, H, W), H, W)
+    expected, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W, opacities=opac)
+    bins = _bin(*(jnp.asarray(a) for a in scene), capacity=4 * N, opacities=jnp.asarray(opac, jnp.float32))
+    assert _lists(bins) == expected
+    assert int(bins.num_intersections) == needed and not bool(bins.overflow)
+    assert needed < 0.9 * needed_full  # the trim removes real work on faint Gaussians
+    assert all(set(t) <= set(f) for t, f in zip(expected, full))  # it only removes entries
+    assert int(count_intersections(*scene, H, W)) == needed_full  # the sizing bound stays the full count
 
 
 def test_overflow_is_reported_and_keeps_nearest(rng):

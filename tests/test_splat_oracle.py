@@ -57,28 +57,40 @@ def oracle_project(means, quats, scales, c2w, intr, height, width, eps2d=0.3, ne
         visible = (det > 0) & (tz > near) & (tz < far)
         visible &= (means2d[:, 0] + radius > 0) & (means2d[:, 0] - radius < width)
         visible &= (means2d[:, 1] + radius > 0) & (means2d[:, 1] - radius < height)
-    return dict(means2d=means2d, conics=conics, depths=tz, radii=np.where(visible, radius, 0.0), visible=visible)
+    return dict(means2d=means2d, conics=conics, cov2d=cov2d, depths=tz, radii=np.where(visible, radius, 0.0),
+                visible=visible)
 
 
-def oracle_tile_boxes(proj, height, width):
-    """gsplat ``_isect_tiles`` box per Gaussian: half-open [x0, x1) x [y0, y1) tiles."""
+def oracle_tile_boxes(proj, height, width, opacities=None):
+    """gsplat ``_isect_tiles`` box per Gaussian: half-open [x0, x1) x [y0, y1) tiles.
+
+    With ``opacities``, each axis's half-width is capped where ``o exp(-sigma)`` can reach
+    1/255 (gsplat >= 1.5's opacity-aware extent, with 0.01 of slack on ``sigma``):
+    ``sqrt(2 (ln(255 o) + 0.01) cov2d_ii)``; a Gaussian that cannot reach it has no box."""
     tw, th = -(-width // TILE), -(-height // TILE)
-    r = proj["radii"] / TILE
+    rx = ry = proj["radii"]
+    drawn = proj["visible"]
+    if opacities is not None:
+        level = np.log(np.maximum(np.asarray(opacities, np.float64), 1e-30) * 255.0) + 0.01
+        with np.errstate(invalid="ignore"):
+            rx = np.minimum(rx, np.sqrt(2.0 * np.maximum(level, 0.0) * proj["cov2d"][:, 0, 0]))
+            ry = np.minimum(ry, np.sqrt(2.0 * np.maximum(level, 0.0) * proj["cov2d"][:, 1, 1]))
+        drawn = drawn & (level > 0)
     m = proj["means2d"] / TILE
-    x0 = np.clip(np.floor(m[:, 0] - r), 0, tw).astype(int)
-    x1 = np.clip(np.ceil(m[:, 0] + r), 0, tw).astype(int)
-    y0 = np.clip(np.floor(m[:, 1] - r), 0, th).astype(int)
-    y1 = np.clip(np.ceil(m[:, 1] + r), 0, th).astype(int)
-    vis = proj["visible"]
-    return x0, np.where(vis, x1, x0), y0, np.where(vis, y1, y0)
+    x0 = np.clip(np.floor(m[:, 0] - rx / TILE), 0, tw).astype(int)
+    x1 = np.clip(np.ceil(m[:, 0] + rx / TILE), 0, tw).astype(int)
+    y0 = np.clip(np.floor(m[:, 1] - ry / TILE), 0, th).astype(int)
+    y1 = np.clip(np.ceil(m[:, 1] + ry / TILE), 0, th).astype(int)
+    return x0, np.where(drawn, x1, x0), y0, np.where(drawn, y1, y0)
 
 
-def oracle_tile_lists(proj, height, width, capacity=None):
+def oracle_tile_lists(proj, height, width, capacity=None, opacities=None):
     """Per tile (row-major), the depth-sorted Gaussian ids; with ``capacity``, the entries of
     the farthest Gaussians beyond that many are dropped (emission in depth order, each
-    Gaussian's tiles row-major in its box). Returns (lists, number of entries needed)."""
+    Gaussian's tiles row-major in its box; boxes trimmed by ``opacities`` when given, see
+    :func:`oracle_tile_boxes`). Returns (lists, number of entries needed)."""
     tw, th = -(-width // TILE), -(-height // TILE)
-    x0, x1, y0, y1 = oracle_tile_boxes(proj, height, width)
+    x0, x1, y0, y1 = oracle_tile_boxes(proj, height, width, opacities)
     vis = np.flatnonzero(proj["visible"])
     order = vis[np.lexsort((vis, proj["depths"][vis]))]  # depth, then index
     lists = [[] for _ in range(tw * th)]
@@ -97,14 +109,19 @@ def oracle_render(
 ):
     """Brute force: every pixel against every Gaussian of its tile's list, front to back.
 
+    The lists are gsplat v1.4's (3-sigma boxes) unless ``capacity`` is given: the splatter
+    trims each box to where the Gaussian can be drawn, which changes no pixel (the tests
+    of the full lists check that) but does change which entries an overflowing buffer
+    keeps, so with a capacity the oracle trims its boxes the same way.
+
     Returns (features [H, W, F], transmittance [H, W], depth [H, W]) in float64, and with
     ``with_margin`` also ``margin [H, W]``: the smallest relative distance of any alpha to
     1/255 or of any would-be transmittance to 1e-4 met at that pixel. Where it is tiny,
     rounding (float32 vs float64) may legitimately flip gsplat's discrete decisions.
     """
     proj = oracle_project(means, quats, scales, c2w, intr, height, width)
-    lists, _ = oracle_tile_lists(proj, height, width, capacity)
     opacities = np.asarray(opacities, np.float64)
+    lists, _ = oracle_tile_lists(proj, height, width, capacity, None if capacity is None else opacities)
     feats = np.concatenate([np.asarray(features, np.float64), proj["depths"][:, None]], -1)
     tw = -(-width // TILE)
     out = np.zeros((height, width, feats.shape[1]))
