@@ -622,10 +622,11 @@ def _main_hidden() -> Iterator[None]:
 
 
 def _progress(text: str) -> None:
-    """Print ``text`` in the notebook, and on the kernel's own stderr where it differs (the
-    terminal of ``make notebooks``, which shows cell outputs only at the end)."""
+    """Print ``text`` in the notebook, and, when ``notebooks/_execute.py`` runs it
+    (``LLRMPP_NOTEBOOK_ECHO``), on the kernel's own stderr: the terminal of
+    ``make notebooks``, which shows cell outputs only at the end."""
     print(text, flush=True)
-    if sys.__stderr__ is not None and sys.stderr is not sys.__stderr__:
+    if os.environ.get("LLRMPP_NOTEBOOK_ECHO") and sys.__stderr__ is not None and sys.stderr is not sys.__stderr__:
         print(text, file=sys.__stderr__, flush=True)
 
 

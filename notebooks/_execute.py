@@ -36,8 +36,12 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     os.environ["LLRMPP_NOTEBOOK_SCALE"] = scale  # the kernel inherits this process's environment
     os.environ.setdefault("MPLBACKEND", "module://matplotlib_inline.backend_inline")
+    os.environ["LLRMPP_NOTEBOOK_ECHO"] = "1"  # progress lines also to this terminal (_ablation._progress)
     t0 = time.perf_counter()
+    # Without fd capture the kernel's own stderr stays this terminal's, and the progress
+    # echo does not land in the notebook a second time.
     nbclient.NotebookClient(nb, timeout=timeout_s, kernel_name="python3",
+                            extra_arguments=["--IPKernelApp.capture_fd_output=False"],
                             resources={"metadata": {"path": HERE}}).execute()
     nbformat.write(nb, os.path.join(HERE, name + ".ipynb"))
     return time.perf_counter() - t0

@@ -68,7 +68,9 @@ def screen_extents(
     r = projected.radii.astype(projected.means2d.dtype)
     if opacities is None:
         return r, r
-    a, b, c = projected.conics[:, 0], projected.conics[:, 1], projected.conics[:, 2]
+    # Binning is not differentiated: cut the graph at the inputs (no sqrt(0) tangents).
+    conics, opacities = lax.stop_gradient(projected.conics), lax.stop_gradient(opacities)
+    a, b, c = conics[:, 0], conics[:, 1], conics[:, 2]
     det = a * c - b * b
     ok = (projected.radii > 0) & (det > 0)
     det = jnp.where(ok, det, 1.0)
@@ -76,7 +78,7 @@ def screen_extents(
     two_l = jnp.where(ok, 2.0 * jnp.maximum(level, 0.0), 0.0)
     ex = jnp.minimum(r, jnp.sqrt(two_l * jnp.maximum(c, 0.0) / det))
     ey = jnp.minimum(r, jnp.sqrt(two_l * jnp.maximum(a, 0.0) / det))
-    return lax.stop_gradient(ex), lax.stop_gradient(ey)
+    return ex, ey
 
 
 def tile_rects(
