@@ -271,6 +271,25 @@ def test_bad_rows_are_one_line(ablation, monkeypatch, rows, message):
     assert str(err.value) == message
 
 
+@pytest.mark.parametrize("echo", [False, True])
+def test_progress_is_echoed_to_the_terminal_only_when_asked(ablation, monkeypatch, echo):
+    """In a kernel (sys.stderr is not the process's own), a progress line goes to the notebook
+    once, and to the terminal only under notebooks/_execute.py (LLRMPP_NOTEBOOK_ECHO)."""
+    import io
+
+    notebook, kernel_stderr, terminal = io.StringIO(), io.StringIO(), io.StringIO()
+    monkeypatch.setattr(sys, "stdout", notebook)
+    monkeypatch.setattr(sys, "stderr", kernel_stderr)
+    monkeypatch.setattr(sys, "__stderr__", terminal)
+    if echo:
+        monkeypatch.setenv("LLRMPP_NOTEBOOK_ECHO", "1")
+    else:
+        monkeypatch.delenv("LLRMPP_NOTEBOOK_ECHO", raising=False)
+    ablation._progress("row 0 seed 1: PSNR 19.00")
+    assert notebook.getvalue() == "row 0 seed 1: PSNR 19.00\n" and kernel_stderr.getvalue() == ""
+    assert terminal.getvalue() == ("row 0 seed 1: PSNR 19.00\n" if echo else "")
+
+
 def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     """The cpu scale: the demo model with the paper's chosen head and decoder, 3 seeds, and the
     step budget the pilot recorded in experiments/results/ablations/pilot_cpu.json."""
