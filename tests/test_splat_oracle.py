@@ -65,7 +65,7 @@ def oracle_tile_boxes(proj, height, width, opacities=None):
     """gsplat ``_isect_tiles`` box per Gaussian: half-open [x0, x1) x [y0, y1) tiles.
 
     With ``opacities``, each axis's half-width is capped where ``o exp(-sigma)`` can reach
-    1/255 (gsplat >= 1.5's opacity-aware extent, with 0.01 of slack on ``sigma``):
+    1/255 (gsplat's optional opacity-tightened boxes, PR #597; 0.01 of slack on ``sigma``):
     ``sqrt(2 (ln(255 o) + 0.01) cov2d_ii)``; a Gaussian that cannot reach it has no box."""
     tw, th = -(-width // TILE), -(-height // TILE)
     rx = ry = proj["radii"]

@@ -96,16 +96,15 @@ def tile_rects(
     x1 = jnp.clip(jnp.ceil(tx + ex / ts), 0, tiles_x).astype(jnp.int32)
     y0 = jnp.clip(jnp.floor(ty - ey / ts), 0, tiles_y).astype(jnp.int32)
     y1 = jnp.clip(jnp.ceil(ty + ey / ts), 0, tiles_y).astype(jnp.int32)
-    drawn = (projected.radii > 0) & (ex > 0) & (ey > 0)
+    drawn = (ex > 0) & (ey > 0)  # culled Gaussians have radius 0, so extent 0
     return x0, jnp.where(drawn, x1, x0), y0, jnp.where(drawn, y1, y0)
 
 
 def intersection_counts(
-    projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
-    opacities: Float[Array, "N"] | None = None,
+    projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig
 ) -> Int[Array, "N"]:
-    """Number of tiles each Gaussian intersects (0 when culled; see :func:`tile_rects`)."""
-    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities)
+    """Number of tiles each Gaussian's untrimmed box intersects (0 when culled)."""
+    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg)
     return (x1 - x0) * (y1 - y0)
 
 
