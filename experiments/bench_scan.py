@@ -1,5 +1,6 @@
-"""Benchmark the SSD scans: chunked (associative / sequential inter-chunk step), dense
-inter-chunk form and the sequential reference, forward and forward+backward.
+"""Benchmark the SSD scans: chunked (associative / sequential inter-chunk step), fused
+(one lax.scan over chunks, at its own chunk size ``--fused-chunk``), dense inter-chunk form
+and the sequential reference, forward and forward+backward.
 
 Defaults are the paper's per-block sizes (D=768 -> d_inner 1536, headdim 64 -> 24 heads,
 d_state 256, chunk 256, ngroups 1, batch 1) at L in {4096, 16384, 65536}: the full sweep,
@@ -48,6 +49,7 @@ METHODS = {
     "chunked_scan_states": lambda x, dt, A, B, C, D, Q: ssd_scan(
         x, dt, A, B, C, chunk_size=Q, D=D, inter_chunk="sequential"
     ),
+    "fused": lambda x, dt, A, B, C, D, Q: ssd_scan(x, dt, A, B, C, chunk_size=Q, D=D, inter_chunk="fused"),
     "dense": lambda x, dt, A, B, C, D, Q: ssd_dense(x, dt, A, B, C, chunk_size=Q, D=D),
     "sequential": lambda x, dt, A, B, C, D, Q: ssd_sequential(x, dt, A, B, C, D=D),
 }
@@ -78,6 +80,8 @@ def _activation_bytes(
     if method == "sequential":
         # the backward of lax.scan keeps one [nh, P, n] state per time step
         return 4.0 * b * (L * nh * P * n if backward else 4 * nh * P * n + 4 * L * nh * P)
+    if method == "fused":  # one chunk's blocks at a time; the backward keeps one state per chunk
+        return 4.0 * (b * nh * Q * Q * 4 + b * c * nh * P * n * (1 + backward) + 4 * b * L * nh * P)
     # decay, scores (and their cotangents) [c, nh, Q, Q]; states [c, nh, P, n] (x log c levels
     # in the associative scan's backward)
     quad = b * c * nh * Q * Q
@@ -107,7 +111,9 @@ def main() -> None:
     ap.add_argument("--headdim", type=int, default=64)
     ap.add_argument("--d-state", type=int, default=256)
     ap.add_argument("--ngroups", type=int, default=1)
-    ap.add_argument("--chunk", type=int, default=256)
+    ap.add_argument("--chunk", type=int, default=256, help="chunk size of the chunked and dense forms")
+    ap.add_argument("--fused-chunk", type=int, default=64,
+                    help="chunk size of the fused form (64 measured fastest on CPU; see experiments/README.md)")
     ap.add_argument("--batch", type=int, default=1)
     ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
     ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")
@@ -140,7 +146,8 @@ def main() -> None:
         w = jnp.asarray(np.random.default_rng(1).standard_normal(x.shape), dtype)
         jobs = []  # (row, compiled, args, time scale)
         for method in args.methods:
-            fwd = functools.partial(METHODS[method], Q=Q)
+            q = args.fused_chunk if method == "fused" else Q
+            fwd = functools.partial(METHODS[method], Q=q)
 
             def loss(x, dt, A, B, C, D, w, fwd=fwd):
                 return jnp.sum(fwd(x, dt, A, B, C, D).astype(jnp.float32) * w.astype(jnp.float32))
@@ -150,9 +157,9 @@ def main() -> None:
             if not args.no_backward:
                 passes.append(("fwd+bwd", jax.grad(loss, argnums=(0, 1, 2, 3, 4)), (x, dt, A, B, C, D, w)))
             for name, fn, fn_args in passes:
-                row = {"L": L, "method": method, "pass": name}
+                row = {"L": L, "method": method, "pass": name, "chunk_size": q}
                 results.append(row)
-                need = _activation_bytes(method, name == "fwd+bwd", L, b, nh, P, g, n, Q)
+                need = _activation_bytes(method, name == "fwd+bwd", L, b, nh, P, g, n, q)
                 scale = 1.0
                 if method == "sequential" and name == "fwd" and L > args.sequential_slice:
                     m = args.sequential_slice
@@ -189,7 +196,7 @@ def main() -> None:
         for row, _, _, _ in jobs:
             ts = times[id(row)]
             row.update(seconds_median=statistics.median(ts), seconds_min=min(ts))
-            gflop = _flops(row["method"], L, b, nh, P, g, n, Q) * (3 if row["pass"] == "fwd+bwd" else 1) / 1e9
+            gflop = _flops(row["method"], L, b, nh, P, g, n, row["chunk_size"]) * (3 if row["pass"] == "fwd+bwd" else 1) / 1e9
             row["gflop"] = gflop
             row["gflops_achieved"] = gflop / row["seconds_min"]
             row["fraction_of_matmul"] = row["gflops_achieved"] / matmul["gflops"]
@@ -205,18 +212,20 @@ def main() -> None:
         rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, method, name)]
         return rows[0].get("seconds_min") if rows else None
 
-    def fraction(L, name):
-        rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, "chunked", name)]
+    def fraction(L, method, name):
+        rows = [r for r in results if (r["L"], r["method"], r["pass"]) == (L, method, name)]
         return rows[0].get("fraction_of_matmul") if rows else None
 
     summary = []
     for L in lengths:
-        seq, chk = seconds(L, "sequential", "fwd"), seconds(L, "chunked", "fwd")
-        summary.append({
-            "L": L, "sequential_over_chunked_fwd": seq / chk if seq and chk else None,
-            "chunked_fraction_of_matmul_fwd": fraction(L, "fwd"),
-            "chunked_fraction_of_matmul_fwd_bwd": fraction(L, "fwd+bwd"),
-        })
+        seq = seconds(L, "sequential", "fwd")
+        row = {"L": L}
+        for method in ("chunked", "fused"):
+            t = seconds(L, method, "fwd")
+            row[f"sequential_over_{method}_fwd"] = seq / t if seq and t else None
+            row[f"{method}_fraction_of_matmul_fwd"] = fraction(L, method, "fwd")
+            row[f"{method}_fraction_of_matmul_fwd_bwd"] = fraction(L, method, "fwd+bwd")
+        summary.append(row)
         print(json.dumps(summary[-1]), flush=True)
     report = {
         "benchmark": "ssd_scan",
@@ -230,7 +239,7 @@ def main() -> None:
         "preset": args.preset,
         "sizes": {
             "d_model": args.d_model, "d_inner": d_inner, "nheads": nh, "headdim": P, "d_state": n,
-            "ngroups": g, "chunk_size": Q, "batch": b, "dtype": args.dtype,
+            "ngroups": g, "chunk_size": Q, "fused_chunk_size": args.fused_chunk, "batch": b, "dtype": args.dtype,
         },
         "repeats": repeats,
         "matmul_reference_by_L": matmul_by_L,

@@ -32,13 +32,24 @@ class Mamba2Config:
     chunk_size: int = 256
     bidirectional: bool = True  # "bi": forward + reversed scan, outputs summed
     norm_eps: float = 1e-5
-    # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth) or
-    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens)
+    # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth),
+    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens) or
+    # "fused" (one lax.scan doing each chunk's whole work: the fastest on CPU, with
+    # chunk_size 64; experiments/results/bench_scan.json). All three compute the same
+    # function; they differ in speed and memory.
     inter_chunk: str = "associative"
     # Run the two scan directions as a loop of two, each recomputed in the backward pass
     # (remat): the block's backward then holds one direction's activations, for one more
     # forward pass of the directions
     remat_directions: bool = False
+
+    def __post_init__(self) -> None:
+        if self.inter_chunk not in ("associative", "sequential", "fused"):
+            raise ValueError(
+                f"Mamba2Config.inter_chunk must be 'associative', 'sequential' or 'fused', got {self.inter_chunk!r}"
+            )
+        if self.chunk_size < 1:
+            raise ValueError(f"Mamba2Config.chunk_size must be >= 1, got {self.chunk_size}")
 
     def d_inner(self, d_model: int) -> int:
         return self.expand * d_model

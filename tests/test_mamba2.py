@@ -130,11 +130,13 @@ def test_gated_rms_norm_matches_formula(rng):
     np.testing.assert_allclose(np.asarray(got), want, rtol=2e-6, atol=2e-6)
 
 
-def test_block_matches_golden_fixture():
-    """mamba2_block.npz: d_model 64, d_state 16, headdim 64 (2 heads), chunk 8, L = 37."""
+@pytest.mark.parametrize("inter_chunk", ["associative", "sequential", "fused"])
+def test_block_matches_golden_fixture(inter_chunk):
+    """mamba2_block.npz: d_model 64, d_state 16, headdim 64 (2 heads), chunk 8, L = 37,
+    with each form of the SSD scan."""
     z = np.load(shared_path("golden", "long_lrm_tiny", "mamba2_block.npz"))
     f32_err = _golden_config()["mamba2_block_fixture"]["f32_vs_f64"]
-    cfg = Mamba2Config(d_state=16, headdim=64, chunk_size=8)
+    cfg = Mamba2Config(d_state=16, headdim=64, chunk_size=8, inter_chunk=inter_chunk)
     x = jnp.asarray(z["input"], jnp.float32)
     module, params = _load_block(z, "", 64, cfg, x)
     for name, ours in _run(module, params, x).items():
@@ -274,3 +276,10 @@ def test_bad_inputs_raise(key):
         mamba2_scan_direction(InProj(*(jnp.zeros((5, 2)),) * 5), params["params"]["mamba_scans_0"], cfg)
     with pytest.raises(ValueError, match="kernel"):
         causal_depthwise_conv1d(jnp.zeros((5, 3)), jnp.zeros((4, 2)), jnp.zeros(3))
+
+
+def test_bad_scan_settings_raise_one_line():
+    with pytest.raises(ValueError, match=r"^Mamba2Config.inter_chunk must be .* got 'dense'$"):
+        Mamba2Config(inter_chunk="dense")
+    with pytest.raises(ValueError, match=r"^Mamba2Config.chunk_size must be >= 1, got 0$"):
+        Mamba2Config(chunk_size=0)

@@ -304,6 +304,9 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     assert scale.base.splat.capacity(n, 64, 64) == n * 16
     pilot = json.load(open(os.path.join(ROOT, "experiments", "results", "ablations", "pilot_cpu.json")))
     assert scale.steps in pilot["budgets"]
+    assert ablation.make_scale("cpu", paper_views=8, cpu_seeds=5).seeds == 5
+    with pytest.raises(ValueError, match=r"^make_scale: cpu_seeds must be >= 1, got 0$"):
+        ablation.make_scale("cpu", paper_views=8, cpu_seeds=0)
 
 
 def test_depth_head_starts_at_the_training_depths(ablation):

@@ -82,9 +82,9 @@ def _oracle(x, dt, A, B, C, D=None):
     "chunk_size, methods",
     [
         (1, ("associative",)),
-        (7, ("associative", "sequential", "dense")),
-        (64, ("associative", "dense")),
-        (256, ("associative", "sequential")),
+        (7, ("associative", "sequential", "dense", "fused")),
+        (64, ("associative", "dense", "fused")),
+        (256, ("associative", "sequential", "fused")),
     ],
 )
 def test_chunked_matches_sequential(rng, chunk_size, methods):
@@ -104,12 +104,13 @@ def test_chunked_matches_sequential(rng, chunk_size, methods):
         assert _rel(got, want) <= 1e-5, method
 
 
+@pytest.mark.parametrize("inter_chunk", ["associative", "fused"])
 @pytest.mark.parametrize("batch, chunk_size", [((), 32), ((2, 3), 5)])
-def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size):
+def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size, inter_chunk):
     """ngroups 2 (heads 0-2 read group 0, heads 3-5 group 1), no D, 0 or 2 batch dims;
     chunk 32 > L = 19 is a single padded chunk."""
     x, dt, A, B, C, _ = _inputs(rng, batch, 19, 6, 4, 2, 3)
-    got = jax.jit(functools.partial(ssd_scan, chunk_size=chunk_size))(x, dt, A, B, C)
+    got = jax.jit(functools.partial(ssd_scan, chunk_size=chunk_size, inter_chunk=inter_chunk))(x, dt, A, B, C)
     want = _numpy_recurrence(
         x.reshape(-1, *x.shape[-3:]), dt.reshape(-1, *dt.shape[-2:]), A,
         B.reshape(-1, *B.shape[-3:]), C.reshape(-1, *C.shape[-3:]), np.zeros(6),
@@ -117,10 +118,11 @@ def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size):
     assert _rel(got, want) <= 1e-5
 
 
-def test_ssd_scan_extreme_decays(rng):
+@pytest.mark.parametrize("inter_chunk", ["associative", "fused"])
+def test_ssd_scan_extreme_decays(rng, inter_chunk):
     """dt from 1e-4 (almost no decay) to 4 (exp(dt*A) ~ e^-64): chunk exponents reach ~-1e4."""
     x, dt, A, B, C, D = _inputs(rng, (1,), 600, 3, 4, 1, 5, dt_range=(1e-4, 4.0))
-    got = jax.jit(functools.partial(ssd_scan, chunk_size=256))(x, dt, A, B, C, D=D)
+    got = jax.jit(functools.partial(ssd_scan, chunk_size=256, inter_chunk=inter_chunk))(x, dt, A, B, C, D=D)
     assert np.isfinite(np.asarray(got)).all()
     assert _rel(got, _oracle(x, dt, A, B, C, D)) <= 1e-5
 
@@ -138,22 +140,23 @@ def test_ssd_scan_gradients_match_sequential(rng):
     want = jax.jit(grads, static_argnums=(0, 2))(
         lambda *a: ssd_sequential(*a[:5], D=a[5]), _f64(x, dt, A, B, C, D), jnp.float64
     )
-    for chunk_size in (7, 64):
+    for chunk_size, inter_chunk in ((7, "associative"), (64, "associative"), (7, "fused"), (64, "fused")):
         got = jax.jit(grads, static_argnums=(0, 2))(
-            lambda *a: ssd_scan(*a[:5], chunk_size=chunk_size, D=a[5]),
+            lambda *a: ssd_scan(*a[:5], chunk_size=chunk_size, D=a[5], inter_chunk=inter_chunk),
             tuple(jnp.asarray(a) for a in (x, dt, A, B, C, D)),
             jnp.float32,
         )
         for name, g, w in zip("x dt A B C D".split(), got, want):
             assert g.dtype == jnp.float32
-            assert _rel(g, w) <= 1e-4, (chunk_size, name)
+            assert _rel(g, w) <= 1e-4, (chunk_size, inter_chunk, name)
 
 
-def test_ssd_scan_bf16_accumulates_in_f32(rng):
+@pytest.mark.parametrize("inter_chunk", ["associative", "fused"])
+def test_ssd_scan_bf16_accumulates_in_f32(rng, inter_chunk):
     """bf16 inputs: output in bf16, error at bf16 rounding level (not growing with L)."""
     x, dt, A, B, C, D = _inputs(rng, (1,), 600, 2, 16, 1, 16, dt_range=(1e-3, 1e-1))
     xb, dtb, Bb, Cb = (jnp.asarray(a, jnp.bfloat16) for a in (x, dt, B, C))
-    got = jax.jit(functools.partial(ssd_scan, chunk_size=256))(xb, dtb, A, Bb, Cb, D=D)
+    got = jax.jit(functools.partial(ssd_scan, chunk_size=256, inter_chunk=inter_chunk))(xb, dtb, A, Bb, Cb, D=D)
     assert got.dtype == jnp.bfloat16
     assert _rel(got, _oracle(xb, dtb, A, Bb, Cb, D)) <= 2e-2
 

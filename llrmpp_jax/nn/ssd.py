@@ -13,6 +13,9 @@ All three compute, per head ``h`` (of ``nh``) and per batch element, with
   ``[Q, Q]`` intra-chunk score blocks are computed a bounded group of chunks at a time and
   recomputed in the backward (:func:`_map_chunk_groups`), so the memory the scan keeps or
   holds at once is O(L * (nh * P + n)) plus one group's blocks, not O(L * nh * Q).
+  ``inter_chunk="fused"`` instead runs all four steps chunk by chunk in one ``lax.scan``
+  carrying the state (:func:`_fused_chunks`): the fastest form on CPU (the state stays in
+  cache; experiments/results/bench_scan.json).
 * :func:`ssd_dense` -- the same chunks, but the inter-chunk step is the dense
   O(chunks^2) einsum of ``ssd_minimal_discrete``; a second oracle for the scan.
 * :func:`ssd_sequential` -- the recurrence above as a ``lax.scan`` over time; the test
@@ -36,7 +39,7 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.nn.variance import full_like_varying
 
-InterChunk = Literal["associative", "sequential", "dense"]
+InterChunk = Literal["associative", "sequential", "dense", "fused"]
 
 
 def _acc_dtype(dtype: jnp.dtype) -> jnp.dtype:
@@ -191,6 +194,46 @@ def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
     return out.reshape(out.shape[0], -1, *out.shape[3:])
 
 
+def _fused_chunks(
+    Cc: Float[Array, "b c Q g n"],
+    Bc: Float[Array, "b c Q g n"],
+    hi: Float[Array, "b c g hg Q"],
+    lo: Float[Array, "b c g hg Q"],
+    xdt_bt: Float[Array, "b c g hg Q P"],
+    xdt_end: Float[Array, "b c Q g hg P"],
+    log_decay_from_start: Float[Array, "b c Q g hg"],
+    *,
+    cd: jnp.dtype,
+    acc: jnp.dtype,
+) -> Float[Array, "b c g hg Q P"]:
+    """Steps 1-4 of :func:`_ssd_chunked` chunk by chunk: one ``lax.scan`` over chunks whose
+    carry is the ``[b, g, hg, P, n]`` state entering the chunk. Per chunk: the diagonal
+    block, ``y += decay(start->l) C_l . S``, then ``S <- exp(a_c) S + s_c``.
+
+    Same work as the batched form, but no per-chunk states are materialised ([c, nh, P, n]:
+    400 MB at L = 65,536, Q = 256) and the state stays in cache between the two state
+    matmuls, which on XLA:CPU is what bounds the batched form (bench_scan.json). The step
+    is under ``jax.checkpoint``: the backward keeps only the carried states (one per chunk)
+    and recomputes each chunk's ``[Q, Q]`` blocks, which measured faster than storing them.
+    """
+    from_start = jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]  # [b, c, g, hg, Q, 1]
+    chunk_decay = jnp.exp(log_decay_from_start[:, :, -1])[..., None, None]  # [b, c, g, hg, 1, 1]
+
+    @jax.checkpoint
+    def step(state, chunk):
+        Cq, Bq, hq, lq, xq, xe, fs, decay = chunk
+        y = _intra_chunk(Cq[:, None], Bq[:, None], hq[:, None], lq[:, None], xq[:, None], cd=cd, acc=acc)[:, 0]
+        y = y + fs * jnp.einsum("blgn,bghpn->bghlp", Cq, state.astype(cd), preferred_element_type=acc)
+        state = decay * state + jnp.einsum("blgn,blghp->bghpn", Bq, xe, preferred_element_type=acc)
+        return state, y
+
+    b, _, g, hg, _, P = xdt_bt.shape
+    state = full_like_varying(xdt_bt, (b, g, hg, P, Cc.shape[-1]), 0.0, acc)
+    chunks = (Cc, Bc, hi, lo, xdt_bt, xdt_end, from_start, chunk_decay)
+    _, y = jax.lax.scan(step, state, tuple(jnp.moveaxis(t, 1, 0) for t in chunks))
+    return jnp.moveaxis(y, 0, 1)
+
+
 def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     _check_inputs(x, dt, A, B, C, D)
     if not isinstance(chunk_size, int) or chunk_size < 1:
@@ -203,8 +246,9 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     b = math.prod(batch)
     # Chunks are processed in `groups` equal groups of at most _GROUP_SCORES score entries
     # ([b, chunks, nh, Q, Q]); L is padded to a whole number of groups (< groups extra chunks).
+    # The fused form holds one chunk's blocks at a time: no groups.
     needed = -(-L // Q)
-    groups = -(-needed // max(1, _GROUP_SCORES // (b * nh * Q * Q)))
+    groups = 1 if inter_chunk == "fused" else -(-needed // max(1, _GROUP_SCORES // (b * nh * Q * Q)))
     nc = -(-needed // groups) * groups
 
     # Zero padding at the end is causal-safe: dt = 0 means no input and decay exp(0) = 1.
@@ -220,28 +264,30 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     dA = dtc * A.reshape(g, hg).astype(acc)[None, None, None]  # [b, c, Q, g, hg], <= 0
     xdt = xc.astype(acc) * dtc[..., None]  # [b, c, Q, g, hg, P]
 
-    # 1. Intra-chunk (diagonal blocks), in groups of chunks (see _intra_chunk).
     hi, lo = _compensated_cumsum(jnp.moveaxis(dA, 2, -1))  # [b, c, g, hg, Q]
     # x moved to [b, c, g, hg, s, P] first: with the batch axes leading on both operands
     # XLA:CPU emits one batched matmul instead of a strided loop (5-10x faster at paper sizes).
     xdt_bt = jnp.moveaxis(xdt.astype(cd), 2, 4)
-    y = _map_chunk_groups(lambda *a: _intra_chunk(*a, cd=cd, acc=acc), groups, Cc, Bc, hi, lo, xdt_bt)
-
-    # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T. The exponent
-    #    sum_{k>l} dA_k is a reverse exclusive cumsum (no cancellation).
+    # Chunk states from zero use decay(l->end): the exponent sum_{k>l} dA_k is a reverse
+    # exclusive cumsum (no cancellation).
     rev = jnp.flip(jnp.cumsum(jnp.flip(dA, axis=2), axis=2), axis=2)  # sum_{k>=l}
     to_end = jnp.concatenate([rev[:, :, 1:], jnp.zeros_like(rev[:, :, :1])], axis=2)
     xdt_end = (xdt * jnp.exp(to_end)[..., None]).astype(cd)
-    states = jnp.einsum("bclgn,bclghp->bcghpn", Bc, xdt_end, preferred_element_type=acc)
-
-    # 3. Inter-chunk recurrence over chunk states.
     log_decay_from_start = jnp.cumsum(dA, axis=2)  # sum_{k<=l} dA_k, [b, c, Q, g, hg]
-    s_in = _inter_chunk_states(log_decay_from_start[:, :, -1], states, inter_chunk)
 
-    # 4. State to output: y_l += decay(start->l) C_l . S_in. Everything in the matmuls'
-    #    [b, c, g, hg, Q, P] layout; one transpose back at the end.
-    y_off = jnp.einsum("bclgn,bcghpn->bcghlp", Cc, s_in.astype(cd), preferred_element_type=acc)
-    y = y + y_off * jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]
+    if inter_chunk == "fused":
+        y = _fused_chunks(Cc, Bc, hi, lo, xdt_bt, xdt_end, log_decay_from_start, cd=cd, acc=acc)
+    else:
+        # 1. Intra-chunk (diagonal blocks), in groups of chunks (see _intra_chunk).
+        y = _map_chunk_groups(lambda *a: _intra_chunk(*a, cd=cd, acc=acc), groups, Cc, Bc, hi, lo, xdt_bt)
+        # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T.
+        states = jnp.einsum("bclgn,bclghp->bcghpn", Bc, xdt_end, preferred_element_type=acc)
+        # 3. Inter-chunk recurrence over chunk states.
+        s_in = _inter_chunk_states(log_decay_from_start[:, :, -1], states, inter_chunk)
+        # 4. State to output: y_l += decay(start->l) C_l . S_in. Everything in the matmuls'
+        #    [b, c, g, hg, Q, P] layout; one transpose back at the end.
+        y_off = jnp.einsum("bclgn,bcghpn->bcghlp", Cc, s_in.astype(cd), preferred_element_type=acc)
+        y = y + y_off * jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]
 
     if D is not None:
         y = y + D.reshape(g, hg).astype(acc)[None, None, :, :, None, None] * jnp.moveaxis(xc, 2, 4).astype(acc)
@@ -258,7 +304,7 @@ def ssd_scan(
     *,
     chunk_size: int,
     D: Float[Array, " nh"] | None = None,
-    inter_chunk: Literal["associative", "sequential"] = "associative",
+    inter_chunk: Literal["associative", "sequential", "fused"] = "associative",
 ) -> Float[Array, "... L nh P"]:
     """Chunked SSD scan (Mamba-2 Listing 1 with a linear-time inter-chunk step).
 
@@ -269,14 +315,18 @@ def ssd_scan(
       B, C: ``[..., L, g, n]`` input / output projections per group; ``nh % g == 0``.
       chunk_size: Q, any positive int; L is zero-padded to a multiple of Q internally.
       D: optional ``[nh]`` skip weight (``y += D * x``).
-      inter_chunk: ``"associative"`` (``lax.associative_scan``, log depth) or
-        ``"sequential"`` (``lax.scan`` over chunks).
+      inter_chunk: ``"associative"`` (``lax.associative_scan``, log depth),
+        ``"sequential"`` (``lax.scan`` over stored chunk states) or ``"fused"`` (one
+        ``lax.scan`` over chunks doing all the work of a chunk, the state carried; fastest
+        on CPU, with ``chunk_size`` 64: ``experiments/results/bench_scan.json``).
 
     Returns:
       ``[..., L, nh, P]`` in the dtype of ``x``.
     """
-    if inter_chunk not in ("associative", "sequential"):
-        raise ValueError(f"ssd_scan: inter_chunk must be 'associative' or 'sequential', got {inter_chunk!r}")
+    if inter_chunk not in ("associative", "sequential", "fused"):
+        raise ValueError(
+            f"ssd_scan: inter_chunk must be 'associative', 'sequential' or 'fused', got {inter_chunk!r}"
+        )
     return _ssd_chunked(x, dt, A, B, C, chunk_size, D, inter_chunk)
 
 
