@@ -1,0 +1,94 @@
+"""Probe of why Table 7's depth is not learned at the cpu scale (notebooks/README.md,
+"Depth (Table 7)"): is it that each training window's depth scale varies (~3x, log sd 1.1)?
+
+Trains Table 7's "Ours w/o aux losses" row (the cpu scale's depth model, seed 0) and scores
+it on the held-out scenes, either on the data as they are (``base``) or with every sample,
+training and held out, moved by an oracle similarity that puts its target views' median
+depth at ``exp(PROCEDURAL_DEPTH_BIAS)`` (``fixed``: camera positions and depths scaled by
+one factor per sample, so images and geometry agree; no depth-scale inference is left to
+the model). Also scores three constant depths on the same held-out samples: the head's
+start ``exp(bias)``, each window's median target depth, and each image's median.
+
+Run (one core each, ~4 min; both at once on a 2-core machine)::
+
+    python notebooks/_probe_depth_scale.py base  experiments/results/ablations
+    python notebooks/_probe_depth_scale.py fixed experiments/results/ablations
+
+Writes ``OUT/probe_depth_scale_{mode}.json`` with the commit.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def main() -> None:
+    if len(sys.argv) != 3 or sys.argv[1] not in ("base", "fixed"):
+        raise SystemExit("usage: python notebooks/_probe_depth_scale.py {base,fixed} OUT_DIR")
+    mode, out = sys.argv[1], sys.argv[2]
+    os.environ.update(LLRMPP_NOTEBOOK_SCALE="cpu", LLRMPP_NOTEBOOK_SEEDS="1", LLRMPP_NOTEBOOK_WORKERS="1",
+                      LLRMPP_NOTEBOOK_ROWS="2", LLRMPP_NOTEBOOK_OUT=out)
+    sys.path.insert(0, HERE)
+    import jax.numpy as jnp
+    import numpy as np
+
+    import _ablation as A
+    import llrmpp_jax.data.batching as batching
+    from llrmpp_jax import config as C
+    from llrmpp_jax.metrics import depth_metrics
+
+    if mode == "fixed":
+        plain = A.make_sample
+
+        def fixed_scale(*args, **kwargs):
+            s = plain(*args, **kwargs)
+            depth = s["target_depth"]
+            f = np.float32(np.exp(A.PROCEDURAL_DEPTH_BIAS) / np.median(depth[depth > 0]))
+            for key in ("input_c2w", "target_c2w"):  # the origin is the mean input camera
+                s[key] = s[key].copy()
+                s[key][..., :3, 3] *= f
+            s["target_depth"] = depth * f
+            s["scene_scale"] = s["scene_scale"] * f
+            return s
+
+        # both the training batches (batching's worker threads) and the held-out samples
+        batching.make_sample = fixed_scale
+        A.make_sample = fixed_scale
+
+    scale = A.make_scale(A.scale_name(), paper_views=8, depth=True)
+    variants = [  # Table 7's first three rows; LLRMPP_NOTEBOOK_ROWS=2 runs the last
+        A.Variant({"method": "Long-LRM 2DGS"}, None, {}, note="not run here"),
+        A.Variant({"method": "Long-LRM 3DGS"}, lambda b: C.replace(b, head=C.replace(b.head, mode="color")), {}),
+        A.Variant({"method": "Ours w/o aux losses"}, lambda b: b, {}, grad_weight=0.0, normal_weight=0.0),
+    ]
+    t0 = time.perf_counter()
+    row = next(r for r in A.run_table(variants, scale).results if r["row"] == 2)
+    constants: dict[str, list] = {"head start exp(bias)": [], "window median": [], "image median": []}
+    for s in A.eval_samples(scale, True):
+        t = s["target_depth"][0]
+        preds = {"head start exp(bias)": np.full_like(t, np.exp(A.PROCEDURAL_DEPTH_BIAS)),
+                 "window median": np.full_like(t, np.median(t[t > 0])),
+                 "image median": np.stack([np.full_like(ti, np.median(ti[ti > 0])) for ti in t])}
+        for k, p in preds.items():
+            constants[k].append(np.asarray(depth_metrics(jnp.asarray(p), jnp.asarray(t))["delta_1_25"]))
+    record = {
+        "probe": "depth_scale", "mode": mode, "commit": A.commit(), "machine": A.machine(), "scale": str(scale),
+        "row": "Ours w/o aux losses", "seed": 0, "wall_s": time.perf_counter() - t0,
+        "model": {k: row.get(k) for k in ("psnr", "ssim", "lpips", "abs_diff", "delta_1_25", "final_loss")},
+        "constant_depth_delta_1_25": {k: float(np.nanmean(np.concatenate(v))) for k, v in constants.items()},
+    }
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, f"probe_depth_scale_{mode}.json")
+    with open(path, "w") as f:
+        json.dump(record, f, indent=2)
+    print(json.dumps(record, indent=2))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
