@@ -34,9 +34,10 @@ def get_config():
     stage = replace(
         demo.stages[0], name="small", steps=6_000, num_inputs=8, warmup_steps=200, min_span=12, max_span=20,
     )
+    sharpen = replace(stage, name="sharpen", steps=4_000, lr=1e-3, warmup_steps=100, perceptual_weight=0.5)
     data = replace(
         demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
     )
     return replace(
-        demo, name="small", stages=(stage,), data=data, log_every=20, eval_every=2000, checkpoint_every=1000, max_minutes=None,
+        demo, name="small", stages=(stage, sharpen), data=data, log_every=20, eval_every=2000, checkpoint_every=1000, max_minutes=None,
     )

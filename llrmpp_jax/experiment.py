@@ -71,7 +71,9 @@ class StageConfig:
     (Long-LRM, reference facts §3.3-3.4): ``zoom_min`` is ``random_crop`` (zoom by
     ``1/r``, ``r ~ U(zoom_min, 1)``, one ``r`` per sample; 1.0 = off);
     ``reverse_prob`` / ``shuffle_prob`` reverse / shuffle the input order;
-    ``input_weight`` is the target-draw weight of input frames.
+    ``input_weight`` is the target-draw weight of input frames; ``perceptual_weight``
+    overrides the experiment's for this stage (None: the experiment's), e.g. a last stage
+    that adds the perceptual term to a model trained with MSE only.
     """
 
     name: str
@@ -90,8 +92,11 @@ class StageConfig:
     input_weight: float = 0.1  # Long-LRM++: input frames are drawn as targets with weight 0.1
     reverse_prob: float = 0.0
     shuffle_prob: float = 0.0
+    perceptual_weight: float | None = None
 
     def __post_init__(self) -> None:
+        if self.perceptual_weight is not None and self.perceptual_weight < 0:
+            raise ValueError(f"stage {self.name!r}: perceptual_weight must be >= 0, got {self.perceptual_weight}")
         if self.steps < 1 or self.global_batch < 1 or self.num_inputs < 1 or self.num_targets < 1:
             raise ValueError(f"stage {self.name!r}: steps, global_batch, num_inputs, num_targets must be >= 1")
 
@@ -134,6 +139,10 @@ class ExperimentConfig:
         if self.perceptual_net not in ("vgg16", "vgg19"):
             raise ValueError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
                              f"got {self.perceptual_net!r}")
+
+    def perceptual_weight_of(self, stage: StageConfig) -> float:
+        """The perceptual term's weight in ``stage``: its own, else the experiment's."""
+        return self.perceptual_weight if stage.perceptual_weight is None else stage.perceptual_weight
 
     def check_devices(self, num_devices: int) -> None:
         """Every stage's global batch must split evenly over the devices (checked before

@@ -132,12 +132,15 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
     return samples, names
 
 
-def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossFn:
-    """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard.
+def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None, stage: StageConfig | None = None) -> T.step.LossFn:
+    """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard, with
+    ``stage``'s perceptual weight (:meth:`ExperimentConfig.perceptual_weight_of`; the
+    experiment's when ``stage`` is None).
 
     ``key`` draws the random share of Long-LRM's Gaussian pruning (colour mode with
     ``prune_ratio > 0``); ``gaussian_usage`` is logged before pruning."""
     cfg = exp.model
+    perceptual_weight = exp.perceptual_weight if stage is None else exp.perceptual_weight_of(stage)
 
     def loss_fn(params, batch, key):
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
@@ -147,7 +150,7 @@ def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None) -> T.step.LossF
         out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, cfg.outputs)
         loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3),
                              batch["target_images"].reshape(-1, h, w, 3), vgg_params,
-                             perceptual_weight=exp.perceptual_weight)
+                             perceptual_weight=perceptual_weight)
         if "depth" in cfg.outputs:
             d, daux = depth_loss(out.images["depth"][..., 0].reshape(-1, h, w),
                                  batch["target_depth"].reshape(-1, h, w),
@@ -175,9 +178,10 @@ def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
 
 
 def load_perceptual(exp: ExperimentConfig) -> dict | None:
-    """The perceptual network's params (None without a perceptual term). ``ValueError``
-    (one line saying how to get and pass the weights) for VGG19 without ``vgg19_path``."""
-    if not exp.perceptual_weight:
+    """The perceptual network's params (None when no stage has a perceptual term).
+    ``ValueError`` (one line saying how to get and pass the weights) for VGG19 without
+    ``vgg19_path``."""
+    if not any(exp.perceptual_weight_of(s) for s in exp.stages):
         return None
     from llrmpp_jax.perceptual import VGG19_HELP, load_vgg16_lpips, load_vgg19
 
@@ -214,7 +218,6 @@ def train(
     from tensorboardX import SummaryWriter
 
     writer = SummaryWriter(os.path.join(workdir, "tb")) if jax.process_index() == 0 else None
-    loss_fn = make_loss_fn(exp, vgg)
     mesh = T.make_data_mesh()
     n_local = jax.local_device_count()
     params = None
@@ -242,7 +245,7 @@ def train(
             params = state.params
             result["stages"].append({"stage": stage.name, "steps": start, "resumed_complete": True})
             continue
-        step_fn = T.make_train_step(loss_fn, optimizer, schedule,
+        step_fn = T.make_train_step(make_loss_fn(exp, vgg, stage), optimizer, schedule,
                                     compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
                                     skip_grad_norm_above=exp.skip_grad_norm_above)
         if use_pmap:
