@@ -3,6 +3,7 @@
 Run:  python experiments/bench_overfit.py --name feat_base --steps 1500
       python experiments/bench_overfit.py --name colour --mode color --steps 600
       python experiments/bench_overfit.py --name depth_aux --decoder-depth-weight 1 --steps 300
+      python experiments/bench_overfit.py --name from_small --init pretrained:small --random-inputs
 
 One seeded scene of ``--frames`` frames; ``--inputs`` evenly spaced frames are the fixed
 inputs, the frames half-way between consecutive inputs are held out (never a target), and
@@ -11,7 +12,9 @@ also draws its inputs from those frames; evaluation keeps the fixed inputs). The
 kept in memory, so a step costs only the model. Each step renders ``--targets`` training
 frames drawn at random; MSE, plus with ``--decoder-depth-weight`` the paper's depth loss
 on the decoder's depth head (log smooth-L1 + ``--depth-aux-weight`` x (gradient + normal));
-AdamW with warmup + cosine (the trainer's optimizer).
+AdamW with warmup + cosine (the trainer's optimizer). ``--init`` starts from trained weights
+(a workdir, a params folder or ``pretrained:NAME``) and their model config: per-scene
+fine-tuning of a model that has already learned across scenes.
 
 Writes ``experiments/results/learning/<name>.json`` (config, steps, wall time, PSNR on the
 input views and on the held-out views, Gaussian statistics; with depth, depth metrics of
@@ -45,6 +48,7 @@ from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.metrics import depth_metrics, psnr
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.initializers import parse_init_std
+from llrmpp_jax.params_io import load_params
 from llrmpp_jax.trainer import optimizer_config
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "learning")
@@ -136,7 +140,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=16, help="frames of the scene's camera path")
     p.add_argument("--inputs", type=int, default=4, help="fixed input views")
     p.add_argument("--targets", type=int, default=2, help="training target views per step")
-    p.add_argument("--steps", type=int, default=1000, help="training steps")
+    p.add_argument("--steps", type=int, default=1000, help="training steps (0: score the --init weights as they are)")
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate")
     p.add_argument("--warmup", type=int, default=50, help="linear warmup steps")
     p.add_argument("--mode", default="feature", choices=("feature", "color"), help="Gaussian head mode")
@@ -167,6 +171,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-aux-weight", type=float, default=0.1,
                    help="lambda_grad = lambda_normal of that depth loss (the paper's 0.1)")
     p.add_argument("--minutes", type=float, default=8.0, help="wall-clock budget of the training loop")
+    p.add_argument("--init", default=None,
+                   help="start from these weights (workdir, params folder or pretrained:NAME) and their model "
+                        "config; the model flags above are then ignored")
     return p
 
 
@@ -179,7 +186,10 @@ def main() -> None:
     if not args.name:
         p.error("--name is required to train")
 
-    cfg = model_config(args)
+    init = load_params(args.init) if args.init else None
+    cfg = model_config(args) if init is None else init[1]
+    if init is not None and args.decoder_depth_weight and "depth" not in cfg.outputs:
+        p.error(f"--decoder-depth-weight: the model of --init {args.init} has no depth head")
     scene = procedural_scene(args.seed, ProceduralConfig(height=args.res, width=args.res, num_frames=args.frames))
     inputs, held, train = split_frames(args.frames, args.inputs)
     geom = ViewGeometry(resize_h=args.res, multiple=cfg.size_multiple, square_crop=True)
@@ -218,7 +228,7 @@ def main() -> None:
 
     mesh = T.make_data_mesh()
     key = jax.random.key(0)
-    params = init_params(jax.random.fold_in(key, 1), cfg, args.inputs, args.res, args.res)
+    params = init_params(jax.random.fold_in(key, 1), cfg, args.inputs, args.res, args.res) if init is None else init[0]
     state = T.replicate_on_mesh(T.init_train_state(params, optimizer, key), mesh)
     run = T.sharded_train_step(T.make_train_step(loss_fn, optimizer, schedule), mesh, donate=True)
     rng = np.random.default_rng(args.seed)
@@ -241,7 +251,7 @@ def main() -> None:
             log.append({"step": step, "psnr": float(metrics["psnr"]), "wall_s": time.time() - t_start})
             print(f"step {step:5d}  train psnr {log[-1]['psnr']:.2f}  {log[-1]['wall_s']:.0f} s", flush=True)
     wall = time.time() - t_start
-    step_s = (time.time() - t_first) / max(step - 1, 1)
+    step_s = (time.time() - t_first) / (step - 1) if step > 1 else float("nan")  # --steps 0: score --init as is
     params = jax.device_get(state.params)
 
     @jax.jit

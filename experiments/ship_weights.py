@@ -53,8 +53,10 @@ def main() -> None:
     log_path = os.path.join(args.workdir, "train_log.json")
     if os.path.isfile(log_path):
         shutil.copy(log_path, os.path.join(out, "train_log.json"))
-    # The step of the checkpoint load_params took: the newest one of the last stage.
-    steps = max(int(d) for d in os.listdir(os.path.join(args.workdir, "checkpoints", stage.name)) if d.isdigit())
+    # Training steps behind the shipped params: the newest checkpoint of every stage (load_params
+    # took the last stage's), summed over the curriculum.
+    steps = sum(max(int(d) for d in os.listdir(os.path.join(args.workdir, "checkpoints", s.name)) if d.isdigit())
+                for s in exp.stages)
     if os.path.isfile(os.path.join(args.workdir, "train.log")):
         with open(os.path.join(args.workdir, "train.log"), errors="replace") as f:
             lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if "held-out PSNR" in ln]

@@ -293,7 +293,7 @@ def train(
                     tqdm.write(f"[{stage.name} step {step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
                                f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
                     result["eval"] = summary
-                    result.setdefault("evals", []).append({"step": step, **summary["model"]})
+                    result.setdefault("evals", []).append({"stage": stage.name, "step": step, **summary["model"]})
                 if out_of_time:
                     tqdm.write(f"time budget of {budget} min reached at step {step}; checkpoint saved")
                     break

@@ -78,6 +78,43 @@ def test_rgb_loss_errors(rng):
         rgb_loss(x, np.zeros((2, 32, 48, 4), np.float32), None, perceptual_weight=0.0)
 
 
+def test_stage_perceptual_weight_overrides_the_experiments(rng, vgg19):
+    """A stage's ``perceptual_weight`` sets the training loss's perceptual term (the torch
+    oracle above) on the rendered targets; None keeps the experiment's (here 0: plain MSE)."""
+    from llrmpp_jax import config as C
+    from llrmpp_jax.experiment import ExperimentConfig, StageConfig
+    from llrmpp_jax.model import init_params, reconstruct, render
+    from llrmpp_jax.trainer import load_perceptual, make_loss_fn
+    from test_model import _scene
+
+    sd, params = vgg19
+    cfg = C.tiny()
+    images, c2w, intr = _scene(jax.random.key(int(rng.integers(1 << 30))), 1, 3, 16, 16)
+    model = init_params(jax.random.key(1), cfg, 2, 16, 16)
+    batch = {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
+             "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:]}
+    g = reconstruct(model, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
+    pred = np.asarray(render(model, cfg, g, c2w[:, 2:], intr[:, 2:], 16, 16).images["rgb"], np.float64)
+    tp = torch.tensor(pred.reshape(1, 16, 16, 3)).permute(0, 3, 1, 2)
+    tt = torch.tensor(np.asarray(images[:, 2:], np.float64).reshape(1, 16, 16, 3)).permute(0, 3, 1, 2)
+    mse, perc = ((tp - tt) ** 2).mean().item(), torch_perceptual(sd, tp, tt).item()
+
+    plain, sharpen = StageConfig("plain", 1, 1, 2, 1, 16), StageConfig("sharpen", 1, 1, 2, 1, 16, perceptual_weight=0.7)
+    exp = ExperimentConfig("t", cfg, (plain, sharpen), perceptual_weight=0.0)
+    assert [exp.perceptual_weight_of(s) for s in exp.stages] == [0.0, 0.7]
+    key = jax.random.key(0)
+    loss_plain, _ = jax.jit(make_loss_fn(exp, params, plain))(model, batch, key)
+    loss_sharpen, aux = jax.jit(make_loss_fn(exp, params, sharpen))(model, batch, key)
+    np.testing.assert_allclose(float(loss_plain), mse, rtol=1e-4)
+    np.testing.assert_allclose(float(aux["perceptual"]), perc, rtol=1e-4)
+    np.testing.assert_allclose(float(loss_sharpen), mse + 0.7 * perc, rtol=1e-4)
+    # VGG weights are loaded when any stage needs them, and not when none does.
+    assert load_perceptual(exp) is not None
+    assert load_perceptual(ExperimentConfig("t", cfg, (plain,), perceptual_weight=0.0)) is None
+    with pytest.raises(ValueError, match=r"stage 'x': perceptual_weight must be >= 0, got -0.5"):
+        StageConfig("x", 1, 1, 2, 1, 16, perceptual_weight=-0.5)
+
+
 # ---------------------------------------------------------------- Sobel / normals
 
 
