@@ -17,7 +17,8 @@ AdamW with warmup + cosine (the trainer's optimizer). ``--init`` starts from tra
 fine-tuning of a model that has already learned across scenes.
 
 Writes ``experiments/results/learning/<name>.json`` (config, steps, wall time, PSNR on the
-input views and on the held-out views, Gaussian statistics; with depth, depth metrics of
+input views and on the held-out views, the held-out views' PSNR of the two baselines of
+``evaluate``: mean input colour and nearest input view, Gaussian statistics; with depth, depth metrics of
 the model and of the best constant) and ``<name>.png``: the first row the inputs, then per
 shown view: target, prediction, |error| x4, nearest input; with depth also
 ``<name>_depth.png`` (target and predicted depth of the shown views on one colour scale).
@@ -41,7 +42,7 @@ from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.synthetic import procedural_scene
-from llrmpp_jax.evaluate import gaussian_statistics, picture_grid
+from llrmpp_jax.evaluate import baseline_predictions, gaussian_statistics, picture_grid
 from llrmpp_jax.experiment import StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import depth_loss, rgb_loss
@@ -110,9 +111,9 @@ def write_depth_figure(path: str, target: np.ndarray, pred: np.ndarray) -> None:
 def table() -> str:
     """Markdown table of every run in ``RESULTS``, in name order; ``change`` lists the
     arguments that differ from the defaults."""
-    lines = ["| run | change | steps | wall (min) | s/step | input PSNR | held-out PSNR | held-out delta<1.25 "
-             "(constant) | mean scale | mean opacity |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| run | change | steps | wall (min) | s/step | input PSNR | held-out PSNR | held-out nearest view / mean "
+             "colour | held-out delta<1.25 (constant) | mean scale | mean opacity |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     skip, defaults = {"name", "steps", "minutes", "table"}, vars(parser().parse_args([]))
     for path in sorted(glob.glob(os.path.join(RESULTS, "*.json"))):
         with open(path) as f:
@@ -122,8 +123,10 @@ def table() -> str:
         change = ", ".join(f"{k}={v}" for k, v in r["args"].items() if k not in skip and v != defaults.get(k))
         g, d = r["gaussians"], r.get("depth", {}).get("held_out")
         delta = f"{d['model']['delta_1_25']:.3f} ({d['constant']['delta_1_25']:.3f})" if d else "-"
+        b = r.get("held_out_baselines_psnr")
+        base = f"{b['nearest_view']:.2f} / {b['mean_colour']:.2f}" if b else "-"
         lines.append(f"| {r['name']} | {change or 'defaults'} | {r['steps']} | {r['wall_min']:.1f} | {r['step_s']:.2f} "
-                     f"| {r['input_psnr']:.2f} | {r['held_out_psnr']:.2f} | {delta} | {g['mean_scale']:.3f} "
+                     f"| {r['input_psnr']:.2f} | {r['held_out_psnr']:.2f} | {base} | {delta} | {g['mean_scale']:.3f} "
                      f"| {g['mean_opacity']:.2f} |")
     return "\n".join(lines)
 
@@ -200,7 +203,7 @@ def main() -> None:
     frames = {k[len("target_"):]: v for k, v in everything.items() if k.startswith("target_")}
     fixed = {k: v[None] for k, v in everything.items() if k.startswith("input_")}
 
-    stage = StageConfig(name="overfit", steps=args.steps, global_batch=1, num_inputs=args.inputs,
+    stage = StageConfig(name="overfit", steps=max(args.steps, 1), global_batch=1, num_inputs=args.inputs,
                         num_targets=args.targets, resize_h=args.res, lr=args.lr, warmup_steps=args.warmup)
     opt_cfg = optimizer_config(stage)
     optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
@@ -268,11 +271,15 @@ def main() -> None:
 
     pred_in, psnr_in = score(inputs)
     pred_held, psnr_held = score(held)
+    held_sample = {"input_images": fixed["input_images"][0], "input_c2w": fixed["input_c2w"][0],
+                   "target_images": frames["images"][held], "target_c2w": frames["c2w"][held]}
+    baselines = {name: float(np.mean(psnr(jnp.asarray(b), jnp.asarray(frames["images"][held]))))
+                 for name, b in baseline_predictions(held_sample).items()}
     _, g = view(params, frames["c2w"][held], frames["intrinsics"][held])
     result = {
         "name": args.name, "args": vars(args), "steps": step, "wall_min": wall / 60, "scene_s": data_s,
         "step_s": step_s, "input_psnr": float(np.mean(psnr_in)), "held_out_psnr": float(np.mean(psnr_held)),
-        "input_psnr_per_view": psnr_in, "held_out_psnr_per_view": psnr_held,
+        "input_psnr_per_view": psnr_in, "held_out_psnr_per_view": psnr_held, "held_out_baselines_psnr": baselines,
         "gaussians": {k: float(v) for k, v in gaussian_statistics(g).items()},
         "frames": {"inputs": inputs.tolist(), "held_out": held.tolist()}, "log": log,
     }
@@ -290,7 +297,7 @@ def main() -> None:
     grid = picture_grid(shown, np.concatenate([pred_held["rgb"][:2], pred_in["rgb"][:1]]))
     write_image(os.path.join(RESULTS, f"{args.name}.png"), grid)
     print(json.dumps({k: result[k] for k in ("name", "steps", "wall_min", "step_s", "input_psnr",
-                                             "held_out_psnr", "gaussians")}))
+                                             "held_out_psnr", "held_out_baselines_psnr", "gaussians")}))
 
 
 if __name__ == "__main__":

@@ -212,7 +212,8 @@ def opencv_to_opengl(c2w: Float[ArrayLike, "... 4 4"]) -> Float[ArrayLike, "... 
 
 
 def normalize_scene(
-    input_c2w: Float[ArrayLike, "V 4 4"], *others: Float[ArrayLike, "T 4 4"], scene_scale: float = 1.0
+    input_c2w: Float[ArrayLike, "V 4 4"], *others: Float[ArrayLike, "T 4 4"], scene_scale: float = 1.0,
+    rescale: bool = True,
 ) -> tuple[ArrayLike, ...]:
     """Long-LRM §3.4 pose normalisation, computed from the input views only.
 
@@ -226,6 +227,9 @@ def normalize_scene(
       input_c2w: ``[V, 4, 4]`` OpenCV camera-to-world of the input views.
       *others: any number of ``[T, 4, 4]`` stacks (e.g. targets) moved by the same transform.
       scene_scale: Long-LRM's ``data.scene_scale`` (LVSM uses 1.35).
+      rescale: False skips step 3 (``s = 1``: a rigid motion, world units kept). For
+        metric data with depth targets: with step 3 each window's depths are in its own
+        units (x ``1 / max |t|`` of its inputs), which varies ~3x between short windows.
 
     Returns:
       ``(input_c2w', *others', transform [4, 4], scale [])``. ``transform`` is the
@@ -251,6 +255,8 @@ def normalize_scene(
     t_rel = xp.einsum("ij,vj->vi", rot_t, input_c2w[:, :3, 3] - centre[None, :])
     extent = xp.max(xp.abs(t_rel)) * scene_scale
     scale = xp.where(extent > 1e-12, 1.0 / xp.where(extent > 1e-12, extent, 1.0), 1.0).astype(dtype)
+    if not rescale:
+        scale = xp.ones_like(scale)
     top = xp.concatenate([scale * rot_t, (-scale * (rot_t @ centre))[:, None]], axis=1)
     transform = xp.concatenate([top, xp.asarray([[0.0, 0.0, 0.0, 1.0]], dtype=dtype)], axis=0)
     outs = tuple(_apply_similarity(transform, scale, xp.asarray(c, dtype=dtype), xp) for c in (input_c2w, *others))

@@ -86,11 +86,14 @@ EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
 SCALES = ("smoke", "cpu", "paper")
 CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
 CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu scale (memory)
-# Where the depth head starts at the smoke and cpu scales (DecoderConfig.depth_bias): the mean
-# log target depth of the cpu scale's procedural training windows, 1.60 / 1.50 / 1.64 over
-# three draws of 128 samples (about 5 scene units). A sample's own mean log depth has a
-# standard deviation of 1.1 around it: each window's depth scale differs by ~3x.
-PROCEDURAL_DEPTH_BIAS = 1.6
+# Depth tables at the smoke and cpu scales keep the procedural rooms' world units
+# (Scale.rescale False): Long-LRM's per-window rescaling (input cameras into [-1, 1]^3) gives
+# the cpu scale's short windows depth scales that differ ~3x (a sample's mean log depth: sd
+# 1.1 around 1.6), and at that spread the depth head learned nothing in 1,200 steps; in world
+# units the sd is 0.27 (notebooks/README.md, "Depth (Table 7)"). Where the depth head starts
+# (DecoderConfig.depth_bias): the mean log target depth of those windows in world units,
+# 1.05 / 1.01 / 1.08 over three draws of 128 samples (about 2.9 units).
+PROCEDURAL_DEPTH_BIAS = 1.05
 # Scores a row is compared on, and whether higher is better.
 METRICS = {"psnr": True, "ssim": True, "lpips": False, "abs_diff": False, "delta_1_25": True}
 
@@ -130,13 +133,15 @@ class Scale:
     max_span: int | None = None
     eval_span: int | None = None
     workers: int = 1
+    rescale: bool = True  # Long-LRM's per-window scale normalisation (geometry.normalize_scene)
 
     def __str__(self) -> str:
         m = self.base
         return (f"{self.name}: {self.size}x{self.size}, {self.num_inputs} inputs + {self.num_targets} targets, "
                 f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.seeds} seed(s) per row, "
                 f"{self.eval_scenes} held-out scenes, {self.workers} worker(s); "
-                f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}")
+                f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}"
+                + ("" if self.rescale else "; poses not rescaled (world units)"))
 
     def width(self, paper_width: int) -> int:
         """A paper layer width at this scale."""
@@ -227,8 +232,9 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
         raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
     if depth:
         base = C.replace(scale.base, outputs=("rgb", "depth"))
-        if name != "paper":  # the paper scale keeps its config's own depth_bias
+        if name != "paper":  # the paper scale keeps its data's normalisation and its config's depth_bias
             base = C.replace(base, decoder=C.replace(base.decoder, depth_bias=PROCEDURAL_DEPTH_BIAS))
+            scale = dataclasses.replace(scale, rescale=False)
         scale = dataclasses.replace(scale, base=base)
     steps = _env_int("LLRMPP_NOTEBOOK_STEPS", 0)
     if steps is not None:
@@ -372,7 +378,7 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
     source = ProceduralSource(ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames),
                               size=TRAIN_SCENES)
     batch_cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
-                            with_depth=depth, min_span=scale.min_span, max_span=scale.max_span)
+                            with_depth=depth, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
     losses, dropped, kept = [], 0.0, {}
     host_params = lambda: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's copy)
     with BatchIterator(source, batch_cfg, seed=seed, num_devices=n_dev) as batches:
@@ -406,7 +412,7 @@ def eval_samples(scale: Scale, depth: bool) -> list[dict[str, np.ndarray]]:
         else:
             inputs, targets = training_views(np.random.default_rng([7, i]), len(scene.c2w), scale.num_inputs,
                                              scale.num_targets, scale.eval_span, scale.eval_span, input_weight=0.0)
-        s = make_sample(scene, inputs, targets, geom, with_depth=depth)
+        s = make_sample(scene, inputs, targets, geom, with_depth=depth, rescale=scale.rescale)
         samples.append({k: v[None] for k, v in s.items()})
     return samples
 

@@ -40,6 +40,30 @@ def test_layout_and_values():
     np.testing.assert_array_equal(sharded["input_c2w"][1, 0], b["input_c2w"][2])
 
 
+def test_world_units_batch_is_the_rescaled_batch_undone():
+    """``rescale=False``: same windows and images; poses and depths are the rescaled batch's
+    divided by its per-sample scale (normalisation is a similarity), and against the
+    procedural ray caster's own depth (the scene's world units) directly."""
+    world_cfg = BatchConfig(**{**CFG.__dict__, "rescale": False})
+    with BatchIterator(SRC, CFG, seed=3, num_workers=1) as it:
+        scaled = next(it)
+    with BatchIterator(SRC, world_cfg, seed=3, num_workers=1) as it:
+        world = next(it)
+    assert not np.allclose(scaled["scene_scale"], 1.0)
+    np.testing.assert_array_equal(world["scene_scale"], np.ones(4, np.float32))
+    for k in ("input_images", "target_images", "input_intrinsics", "target_intrinsics"):
+        np.testing.assert_array_equal(world[k], scaled[k])
+    s = scaled["scene_scale"]
+    np.testing.assert_allclose(world["target_depth"], scaled["target_depth"] / s[:, None, None, None], rtol=1e-5)
+    for k in ("input_c2w", "target_c2w"):
+        np.testing.assert_allclose(world[k][..., :3, :3], scaled[k][..., :3, :3], atol=1e-6)
+        np.testing.assert_allclose(world[k][..., :3, 3], scaled[k][..., :3, 3] / s[:, None, None], rtol=1e-5, atol=1e-6)
+    rng = np.random.default_rng([3, 0, 0, 0])  # element 0 of step 0 (test below)
+    scene = SRC.load(int(rng.integers(len(SRC))))
+    depths = np.stack([scene.depth(i) for i in range(len(scene))])
+    assert any(np.allclose(world["target_depth"][0, 0], d, rtol=1e-5) for d in depths)
+
+
 def test_batch_equals_its_elements_built_independently():
     """Element b of step s is build_sample with default_rng([seed, s, b, 0])."""
     with BatchIterator(SRC, CFG, seed=5, num_workers=1) as it:

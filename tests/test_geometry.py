@@ -205,6 +205,23 @@ def test_normalize_scene_matches_long_lrm_and_inverts(rng, scene_scale):
     np.testing.assert_allclose(G.denormalize_poses(n_in, transform), inp, atol=1e-12)
 
 
+def test_normalize_scene_without_rescale_is_the_rigid_part(rng):
+    """``rescale=False``: scale 1, and the poses are Long-LRM's (float64 reference above)
+    with the translations divided by its scale: the same centring and rotation, world units."""
+    inp = random_c2w(rng, (6,))
+    inp[:, :3, 3] += np.array([10.0, -3.0, 2.0])
+    tgt = random_c2w(rng, (4,))
+    n_in, n_tg, transform, scale = G.normalize_scene(inp, tgt, scene_scale=1.35, rescale=False)
+    r_in, r_tg, r_scale = long_lrm_normalize(inp.copy(), tgt.copy(), 1.35)
+    assert float(scale) == 1.0 and abs(float(r_scale) - 1.0) > 0.01
+    for got, ref in ((n_in, r_in), (n_tg, r_tg)):
+        np.testing.assert_allclose(got[:, :3, :3], ref[:, :3, :3], atol=1e-12)
+        np.testing.assert_allclose(got[:, :3, 3], ref[:, :3, 3] / r_scale, atol=1e-12)
+    dist = lambda c: np.linalg.norm(c[:, None, :3, 3] - c[None, :, :3, 3], axis=-1)  # noqa: E731
+    np.testing.assert_allclose(dist(np.concatenate([n_in, n_tg])), dist(np.concatenate([inp, tgt])), atol=1e-12)
+    np.testing.assert_allclose(G.denormalize_poses(n_tg, transform), tgt, atol=1e-12)
+
+
 def test_normalize_scene_jit_and_single_view(rng):
     inp = random_c2w(rng, (5,))
     out = jax.jit(G.normalize_scene)(jnp.asarray(inp, jnp.float32))

@@ -310,30 +310,31 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
 
 
 def test_depth_head_starts_at_the_training_depths(ablation):
-    """The depth tables' head at the smoke and cpu scales starts at PROCEDURAL_DEPTH_BIAS,
-    which is within 0.35 (log units) of the log geometric-mean target depth of freshly drawn
-    cpu-scale training windows (the oracle: ray-cast procedural depth, 64 batches, at 32x32
-    for speed: depth does not depend on the resolution); the paper scale keeps its
-    config's own bias."""
+    """The depth tables at the smoke and cpu scales keep world units (no per-window
+    rescaling) and start the head at PROCEDURAL_DEPTH_BIAS, which is within 0.15 (log units)
+    of the log geometric-mean target depth of freshly drawn cpu-scale training windows (the
+    oracle: ray-cast procedural depth, 64 batches, at 32x32 for speed: depth does not depend
+    on the resolution); the paper scale keeps Long-LRM's rescaling and its config's own bias."""
     import numpy as np
     from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
 
     for name in ("smoke", "cpu"):
-        assert ablation.make_scale(name, paper_views=8, depth=True).base.decoder.depth_bias == \
-            ablation.PROCEDURAL_DEPTH_BIAS
+        scale = ablation.make_scale(name, paper_views=8, depth=True)
+        assert scale.base.decoder.depth_bias == ablation.PROCEDURAL_DEPTH_BIAS and not scale.rescale
+        assert ablation.make_scale(name, paper_views=8).rescale  # colour-only tables: Long-LRM's
     paper = ablation.make_scale("paper", paper_views=8, depth=True)
-    assert paper.base.decoder.depth_bias == paper.base.decoder.__class__().depth_bias
+    assert paper.base.decoder.depth_bias == paper.base.decoder.__class__().depth_bias and paper.rescale
     scale = ablation.make_scale("cpu", paper_views=4, depth=True)
     source = ProceduralSource(ProceduralConfig(height=32, width=32, num_frames=scale.frames),
                               size=ablation.TRAIN_SCENES)
     cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
-                      with_depth=True, min_span=scale.min_span, max_span=scale.max_span)
+                      with_depth=True, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
     logs = []
     with BatchIterator(source, cfg, seed=123, num_devices=1) as batches:
         for _ in range(64):
             depth = next(batches)["target_depth"]
             logs.append(np.log(depth[depth > 0]))
-    assert abs(float(np.mean(np.concatenate(logs))) - ablation.PROCEDURAL_DEPTH_BIAS) < 0.35
+    assert abs(float(np.mean(np.concatenate(logs))) - ablation.PROCEDURAL_DEPTH_BIAS) < 0.15
 
 
 def test_summary_lists_every_table_and_ordering(ablation, tmp_path, monkeypatch):

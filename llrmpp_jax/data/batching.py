@@ -92,7 +92,8 @@ class BatchConfig:
     Long-LRM stages 1-2 use 64-128). ``input_weight``: target-draw weight of input frames
     (Long-LRM++: 0.1). ``reverse_prob`` / ``shuffle_prob``: Long-LRM's input-order
     augmentations (0.5 each in its configs; 0 = keep the sorted order).
-    ``scene_scale``: Long-LRM's ``data.scene_scale``.
+    ``scene_scale``: Long-LRM's ``data.scene_scale``; ``rescale`` False keeps world units
+    (:func:`~llrmpp_jax.geometry.normalize_scene`: one depth scale across windows).
     """
 
     global_batch: int
@@ -106,6 +107,7 @@ class BatchConfig:
     shuffle_prob: float = 0.0
     with_depth: bool = False
     scene_scale: float = 1.0
+    rescale: bool = True
     max_attempts: int = 16
 
 
@@ -120,7 +122,8 @@ def build_sample(source: SceneSource, cfg: BatchConfig, rng: np.random.Generator
         inputs = inputs[::-1]
     if cfg.shuffle_prob > 0 and rng.random() < cfg.shuffle_prob:
         inputs = rng.permutation(inputs)
-    return make_sample(scene, inputs, targets, cfg.geometry, rng=rng, with_depth=cfg.with_depth, scene_scale=cfg.scene_scale)
+    return make_sample(scene, inputs, targets, cfg.geometry, rng=rng, with_depth=cfg.with_depth,
+                       scene_scale=cfg.scene_scale, rescale=cfg.rescale)
 
 
 def shard(batch: dict[str, np.ndarray], num_devices: int) -> dict[str, np.ndarray]:

@@ -161,9 +161,11 @@ def make_sample(
     rng: np.random.Generator | None = None,
     with_depth: bool = False,
     scene_scale: float = 1.0,
+    rescale: bool = True,
 ) -> dict[str, np.ndarray]:
     """One model-ready sample (the batch layout of :mod:`llrmpp_jax.data.batching`,
-    without the batch axis), normalised from the input cameras."""
+    without the batch axis), normalised from the input cameras
+    (:func:`~llrmpp_jax.geometry.normalize_scene` with ``scene_scale`` and ``rescale``)."""
     if with_depth and not scene.has_depth:
         raise ValueError(f"scene {scene.name!r}: depth requested but the scene has no depth maps")
     resized = resized_size(tuple(scene.hw[inputs[0]]), geom)
@@ -171,7 +173,8 @@ def make_sample(
     zoom = draw_zoom(geom, rng)
     in_img, in_k, _ = load_views(scene, inputs, resized, box, zoom, False)
     tg_img, tg_k, tg_depth = load_views(scene, targets, resized, box, zoom, with_depth)
-    in_c2w, tg_c2w, _, scale = normalize_scene(scene.c2w[inputs], scene.c2w[targets], scene_scale=scene_scale)
+    in_c2w, tg_c2w, _, scale = normalize_scene(scene.c2w[inputs], scene.c2w[targets], scene_scale=scene_scale,
+                                              rescale=rescale)
     sample = {
         "input_images": in_img,
         "input_c2w": in_c2w.astype(np.float32),
