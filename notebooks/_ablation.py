@@ -206,19 +206,23 @@ def scale_name() -> str:
 
 
 def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps: int = 10_000,
-               cpu_seeds: int = 3) -> Scale:
+               cpu_seeds: int = 3, cpu_steps: int = CPU_STEPS) -> Scale:
     """The ``"smoke"``, ``"cpu"`` or ``"paper"`` scale of a table whose paper setting has
     ``paper_views`` input views at 256x256 (``depth``: ScanNet-style colour + depth).
     ``cpu_seeds``: seeds per row at the cpu scale (3; a table whose rows are cheap enough
-    runs more within the hour, for narrower intervals)."""
+    runs more within the hour, for narrower intervals). ``cpu_steps``: training steps at
+    the cpu scale (:data:`CPU_STEPS`; a table whose chosen row needs longer to clear the
+    baselines, as depth does, sets its own)."""
     if cpu_seeds < 1:
         raise ValueError(f"make_scale: cpu_seeds must be >= 1, got {cpu_seeds}")
+    if cpu_steps < 1:
+        raise ValueError(f"make_scale: cpu_steps must be >= 1, got {cpu_steps}")
     if name == "smoke":
         scale = Scale(name="smoke", base=smoke_base(), size=32, num_inputs=2, num_targets=2, batch=2, steps=40,
                       lr=2e-3, warmup=10, perceptual_weight=0.0, eval_scenes=4, frames=16, lpips=False,
                       timing_repeats=3, width_divisor=4)
     elif name == "cpu":
-        scale = Scale(name="cpu", base=cpu_base(), size=64, num_inputs=4, num_targets=2, batch=2, steps=CPU_STEPS,
+        scale = Scale(name="cpu", base=cpu_base(), size=64, num_inputs=4, num_targets=2, batch=2, steps=cpu_steps,
                       lr=2e-3, warmup=50, perceptual_weight=0.0, eval_scenes=16, frames=16, lpips=True,
                       timing_repeats=3, width_divisor=4, seeds=cpu_seeds, min_span=6, max_span=10, eval_span=8,
                       workers=min(CPU_WORKERS, len(os.sched_getaffinity(0))))

@@ -307,6 +307,11 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
     assert ablation.make_scale("cpu", paper_views=8, cpu_seeds=5).seeds == 5
     with pytest.raises(ValueError, match=r"^make_scale: cpu_seeds must be >= 1, got 0$"):
         ablation.make_scale("cpu", paper_views=8, cpu_seeds=0)
+    assert ablation.make_scale("cpu", paper_views=8, cpu_steps=1000).steps == 1000
+    assert ablation.make_scale("cpu", paper_views=8).steps == ablation.CPU_STEPS
+    assert ablation.make_scale("smoke", paper_views=8, cpu_steps=1000).steps == 40  # the cpu scale's only
+    with pytest.raises(ValueError, match=r"^make_scale: cpu_steps must be >= 1, got 0$"):
+        ablation.make_scale("cpu", paper_views=8, cpu_steps=0)
 
 
 def test_depth_head_starts_at_the_training_depths(ablation):
