@@ -13,7 +13,7 @@
 # Every other row is trained on procedural scenes (exact ray-cast depth) once per seed and
 # scored on held-out ones; the paper's orderings are checked with paired differences over
 # seeds. The scale is `LLRMPP_NOTEBOOK_SCALE`: `smoke` (CI: shows the pipeline runs,
-# numbers mean nothing), `cpu` (this 2-core machine, 3 seeds of 1,000 steps, under an hour;
+# numbers mean nothing), `cpu` (this 2-core machine, 3 seeds of 1,000 steps, ~70 minutes;
 # the other tables' 400 steps, chosen by the pilot in `notebooks/README.md`, are too few for
 # depth; 4 input views where the paper has 8) or `paper` (the
 # paper's ScanNet model, accelerators). `LLRMPP_NOTEBOOK_ROWS=1,3` (row indices) runs a
@@ -24,7 +24,8 @@ import _ablation as A
 from llrmpp_jax import config as C
 
 # 1,000 steps at the cpu scale: at 400 the depth rows stayed below the mean colour (README,
-# "Depth (Table 7)"); 3 seeds of 1,000 steps fill the hour on 2 cores.
+# "Depth (Table 7)"). 3 seeds of 1,000 steps take ~70 min on 2 cores, over the hour: a
+# colour-row training alone takes ~20 min on one core.
 scale = A.make_scale(A.scale_name(), paper_views=8, depth=True, cpu_steps=1000)
 print(scale)
 print(f"commit {A.commit()} | {A.machine()}")
@@ -39,7 +40,9 @@ print(f"commit {A.commit()} | {A.machine()}")
 # depth head starts at exp(1.05) ~ 2.9 units (`depth_bias`, the training windows'
 # geometric-mean depth) rather than at 1: starting far from the data's depths cost the
 # shared decoder most of its RGB (`notebooks/README.md`, "Depth (Table 7)"). The paper's
-# numbers are copied from the .tex.
+# numbers are copied from the .tex. **The outputs saved below are from commit 9254a6f: 5 seeds
+# of 400 steps on Long-LRM's rescaled poses, head at exp(1.6). This configuration has not
+# been run to the end yet.**
 
 
 # %%
