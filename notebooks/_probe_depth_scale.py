@@ -28,6 +28,7 @@ Writes ``OUT/probe_depth_scale_{mode}.json`` with the commit.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -48,8 +49,6 @@ def main() -> None:
     sys.path.insert(0, HERE)
     import jax.numpy as jnp
     import numpy as np
-
-    import dataclasses
 
     import _ablation as A
     import llrmpp_jax.data.batching as batching

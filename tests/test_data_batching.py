@@ -2,7 +2,7 @@
 count, resuming, per-process slices of the global batch, and skipping bad scenes."""
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -44,7 +44,7 @@ def test_world_units_batch_is_the_rescaled_batch_undone():
     """``rescale=False``: same windows and images; poses and depths are the rescaled batch's
     divided by its per-sample scale (normalisation is a similarity), and against the
     procedural ray caster's own depth (the scene's world units) directly."""
-    world_cfg = BatchConfig(**{**CFG.__dict__, "rescale": False})
+    world_cfg = replace(CFG, rescale=False)
     with BatchIterator(SRC, CFG, seed=3, num_workers=1) as it:
         scaled = next(it)
     with BatchIterator(SRC, world_cfg, seed=3, num_workers=1) as it:

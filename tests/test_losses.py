@@ -93,8 +93,12 @@ def test_stage_perceptual_weight_overrides_the_experiments(rng, vgg19):
     model = init_params(jax.random.key(1), cfg, 2, 16, 16)
     batch = {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
              "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:]}
-    g = reconstruct(model, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
-    pred = np.asarray(render(model, cfg, g, c2w[:, 2:], intr[:, 2:], 16, 16).images["rgb"], np.float64)
+
+    def rendered(m):
+        g = reconstruct(m, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
+        return render(m, cfg, g, c2w[:, 2:], intr[:, 2:], 16, 16).images["rgb"]
+
+    pred = np.asarray(jax.jit(rendered)(model), np.float64)
     tp = torch.tensor(pred.reshape(1, 16, 16, 3)).permute(0, 3, 1, 2)
     tt = torch.tensor(np.asarray(images[:, 2:], np.float64).reshape(1, 16, 16, 3)).permute(0, 3, 1, 2)
     mse, perc = ((tp - tt) ** 2).mean().item(), torch_perceptual(sd, tp, tt).item()
