@@ -13,7 +13,7 @@
 # Every other row is trained on procedural scenes (exact ray-cast depth) once per seed and
 # scored on held-out ones; the paper's orderings are checked with paired differences over
 # seeds. The scale is `LLRMPP_NOTEBOOK_SCALE`: `smoke` (CI: shows the pipeline runs,
-# numbers mean nothing), `cpu` (this 2-core machine, 3 seeds of 1,000 steps, ~70 minutes;
+# numbers mean nothing), `cpu` (this 2-core machine, 3 seeds of 800 steps, ~50 minutes;
 # the other tables' 400 steps, chosen by the pilot in `notebooks/README.md`, are too few for
 # depth; 4 input views where the paper has 8) or `paper` (the
 # paper's ScanNet model, accelerators). `LLRMPP_NOTEBOOK_ROWS=1,3` (row indices) runs a
@@ -23,10 +23,10 @@
 import _ablation as A
 from llrmpp_jax import config as C
 
-# 1,000 steps at the cpu scale: at 400 the depth rows stayed below the mean colour (README,
-# "Depth (Table 7)"). 3 seeds of 1,000 steps take ~70 min on 2 cores, over the hour: a
-# colour-row training alone takes ~20 min on one core.
-scale = A.make_scale(A.scale_name(), paper_views=8, depth=True, cpu_steps=1000)
+# 800 steps at the cpu scale: at 400 the depth rows stayed below the mean colour (README,
+# "Depth (Table 7)"), and 3 seeds of 1,000 steps take ~70 min on 2 cores, over the hour (a
+# colour-row training alone: ~19.5 min on one core, the others ~9 min). 800 steps: ~50 min.
+scale = A.make_scale(A.scale_name(), paper_views=8, depth=True, cpu_steps=800)
 print(scale)
 print(f"commit {A.commit()} | {A.machine()}")
 
