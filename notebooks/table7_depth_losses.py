@@ -40,9 +40,10 @@ print(f"commit {A.commit()} | {A.machine()}")
 # depth head starts at exp(1.05) ~ 2.9 units (`depth_bias`, the training windows'
 # geometric-mean depth) rather than at 1: starting far from the data's depths cost the
 # shared decoder most of its RGB (`notebooks/README.md`, "Depth (Table 7)"). The paper's
-# numbers are copied from the .tex. **The outputs saved below are from commit 9254a6f: 5 seeds
-# of 400 steps on Long-LRM's rescaled poses, head at exp(1.6). This configuration has not
-# been run to the end yet.**
+# numbers are copied from the .tex. Both kinds of Gaussians reach 10 units along their rays
+# (`max_dist`, `PROCEDURAL_MAX_DIST`: 99% of these rooms' pixels; the cpu base's 3 left half
+# of the held-out depths out of the colour Gaussians' reach). `notebooks/README.md`, "Depth
+# (Table 7)", reads the outputs saved below.
 
 
 # %%

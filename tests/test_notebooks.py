@@ -319,27 +319,37 @@ def test_depth_head_starts_at_the_training_depths(ablation):
     rescaling) and start the head at PROCEDURAL_DEPTH_BIAS, which is within 0.15 (log units)
     of the log geometric-mean target depth of freshly drawn cpu-scale training windows (the
     oracle: ray-cast procedural depth, 64 batches, at 32x32 for speed: depth does not depend
-    on the resolution); the paper scale keeps Long-LRM's rescaling and its config's own bias."""
+    on the resolution), and their Gaussians reach PROCEDURAL_MAX_DIST along a ray, beyond
+    99% of those pixels' ray distances; the paper scale keeps Long-LRM's rescaling and its
+    config's own bias and range."""
     import numpy as np
     from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
 
     for name in ("smoke", "cpu"):
         scale = ablation.make_scale(name, paper_views=8, depth=True)
         assert scale.base.decoder.depth_bias == ablation.PROCEDURAL_DEPTH_BIAS and not scale.rescale
+        assert scale.base.head.max_dist == ablation.PROCEDURAL_MAX_DIST
         assert ablation.make_scale(name, paper_views=8).rescale  # colour-only tables: Long-LRM's
     paper = ablation.make_scale("paper", paper_views=8, depth=True)
     assert paper.base.decoder.depth_bias == paper.base.decoder.__class__().depth_bias and paper.rescale
+    assert paper.base.head.max_dist == paper.base.head.__class__().max_dist
     scale = ablation.make_scale("cpu", paper_views=4, depth=True)
     source = ProceduralSource(ProceduralConfig(height=32, width=32, num_frames=scale.frames),
                               size=ablation.TRAIN_SCENES)
     cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
                       with_depth=True, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
-    logs = []
+    logs, ray_distances = [], []
+    v, u = np.mgrid[0:32, 0:32] + 0.5  # pixel centres
     with BatchIterator(source, cfg, seed=123, num_devices=1) as batches:
         for _ in range(64):
-            depth = next(batches)["target_depth"]
+            batch = next(batches)
+            depth = batch["target_depth"]
+            fx, fy, cx, cy = (k[..., None, None] for k in np.moveaxis(batch["target_intrinsics"], -1, 0))
+            norm = np.sqrt(((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2 + 1.0)  # z-depth -> ray distance
             logs.append(np.log(depth[depth > 0]))
+            ray_distances.append((depth * norm)[depth > 0])
     assert abs(float(np.mean(np.concatenate(logs))) - ablation.PROCEDURAL_DEPTH_BIAS) < 0.15
+    assert np.percentile(np.concatenate(ray_distances), 99) < ablation.PROCEDURAL_MAX_DIST
 
 
 def test_summary_lists_every_table_and_ordering(ablation, tmp_path, monkeypatch):
