@@ -20,7 +20,7 @@ Three scales (:func:`make_scale`):
   head and decoder init) with each table's K, F, canvas, decoder blocks and S, at 64x64 with
   4 input and 2 target views from windows of 6-10 frames of 16-frame paths (held out:
   8-frame windows), as ``experiments/demo.py`` trains and evaluates, batch 2,
-  :data:`CPU_STEPS` steps (Table 7: 1,000, in world units), 3 seeds (5 for Table 6), 16
+  :data:`CPU_STEPS` steps (Table 7: 800, in world units), 3 seeds (5 for Table 6), 16
   held-out scenes with LPIPS. The budget is the pilot's (``notebooks/_pilot.py``, figures in
   ``notebooks/README.md``). The trainings run
   on one single-core worker process per core (:attr:`Scale.workers`, :func:`run_table`).

@@ -42,8 +42,8 @@ print(f"commit {A.commit()} | {A.machine()}")
 # shared decoder most of its RGB (`notebooks/README.md`, "Depth (Table 7)"). The paper's
 # numbers are copied from the .tex. Both kinds of Gaussians reach 10 units along their rays
 # (`max_dist`, `PROCEDURAL_MAX_DIST`: 99% of these rooms' pixels; the cpu base's 3 left half
-# of the held-out depths out of the colour Gaussians' reach). `notebooks/README.md`, "Depth
-# (Table 7)", reads the outputs saved below.
+# of the held-out depths out of the colour Gaussians' reach). `notebooks/README.md`,
+# "Verdicts", reads the outputs saved below.
 
 
 # %%

@@ -324,6 +324,7 @@ def test_depth_head_starts_at_the_training_depths(ablation):
     config's own bias and range."""
     import numpy as np
     from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
+    from llrmpp_jax.geometry import unproject_depth
 
     for name in ("smoke", "cpu"):
         scale = ablation.make_scale(name, paper_views=8, depth=True)
@@ -339,15 +340,14 @@ def test_depth_head_starts_at_the_training_depths(ablation):
     cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
                       with_depth=True, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
     logs, ray_distances = [], []
-    v, u = np.mgrid[0:32, 0:32] + 0.5  # pixel centres
     with BatchIterator(source, cfg, seed=123, num_devices=1) as batches:
         for _ in range(64):
             batch = next(batches)
-            depth = batch["target_depth"]
-            fx, fy, cx, cy = (k[..., None, None] for k in np.moveaxis(batch["target_intrinsics"], -1, 0))
-            norm = np.sqrt(((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2 + 1.0)  # z-depth -> ray distance
+            depth, c2w = batch["target_depth"], batch["target_c2w"]
+            points = unproject_depth(depth, c2w, batch["target_intrinsics"])
+            distance = np.linalg.norm(points - c2w[..., None, None, :3, 3], axis=-1)  # along the ray
             logs.append(np.log(depth[depth > 0]))
-            ray_distances.append((depth * norm)[depth > 0])
+            ray_distances.append(distance[depth > 0])
     assert abs(float(np.mean(np.concatenate(logs))) - ablation.PROCEDURAL_DEPTH_BIAS) < 0.15
     assert np.percentile(np.concatenate(ray_distances), 99) < ablation.PROCEDURAL_MAX_DIST
 
