@@ -242,13 +242,14 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
                       seeds=3)
     else:
         raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
+    if name != "paper":  # the paper scale keeps its data's normalisation, range and depth_bias
+        base = scale.base
+        base = C.replace(base, head=C.replace(base.head, max_dist=PROCEDURAL_MAX_DIST))
+        if depth:
+            base = C.replace(base, decoder=C.replace(base.decoder, depth_bias=PROCEDURAL_DEPTH_BIAS))
+        scale = dataclasses.replace(scale, base=base, rescale=False)
     if depth:
-        base = C.replace(scale.base, outputs=("rgb", "depth"))
-        if name != "paper":  # the paper scale keeps its data's normalisation and its config's depth_bias
-            base = C.replace(base, decoder=C.replace(base.decoder, depth_bias=PROCEDURAL_DEPTH_BIAS),
-                             head=C.replace(base.head, max_dist=PROCEDURAL_MAX_DIST))
-            scale = dataclasses.replace(scale, rescale=False)
-        scale = dataclasses.replace(scale, base=base)
+        scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
     steps = _env_int("LLRMPP_NOTEBOOK_STEPS", 0)
     if steps is not None:
         scale = dataclasses.replace(scale, steps=steps, warmup=min(scale.warmup, steps))

@@ -48,8 +48,9 @@ def rng(request) -> np.random.Generator:
 
 
 def shared_path(*parts: str) -> str:
-    """Path inside ``../shared``; skips the test if the folder is absent."""
+    """Path inside ``../shared``; skips the test (or, called at import, the module) if the
+    folder is absent."""
     p = os.path.join(SHARED, *parts)
     if not os.path.exists(p):
-        pytest.skip(f"shared data not found: {p}")
+        pytest.skip(f"shared data not found: {p}", allow_module_level=True)
     return p

@@ -314,26 +314,29 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
         ablation.make_scale("cpu", paper_views=8, cpu_steps=0)
 
 
-def test_depth_head_starts_at_the_training_depths(ablation):
-    """The depth tables at the smoke and cpu scales keep world units (no per-window
-    rescaling) and start the head at PROCEDURAL_DEPTH_BIAS, which is within 0.15 (log units)
-    of the log geometric-mean target depth of freshly drawn cpu-scale training windows (the
-    oracle: ray-cast procedural depth, 64 batches, at 32x32 for speed: depth does not depend
-    on the resolution), and their Gaussians reach PROCEDURAL_MAX_DIST along a ray, beyond
-    99% of those pixels' ray distances; the paper scale keeps Long-LRM's rescaling and its
-    config's own bias and range."""
+def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
+    """Every table at the smoke and cpu scales keeps world units (no per-window rescaling)
+    and its Gaussians reach PROCEDURAL_MAX_DIST along a ray, beyond 99% of the target pixels'
+    ray distances in freshly drawn cpu-scale training windows (the oracle: ray-cast
+    procedural depth, 64 batches, at 32x32 for speed: depth does not depend on the
+    resolution); the depth tables start the head at PROCEDURAL_DEPTH_BIAS, within 0.15 (log
+    units) of those windows' log geometric-mean depth. The paper scale keeps Long-LRM's
+    rescaling and its config's own bias and range."""
     import numpy as np
     from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
+    from llrmpp_jax import config as C
     from llrmpp_jax.geometry import unproject_depth
 
     for name in ("smoke", "cpu"):
-        scale = ablation.make_scale(name, paper_views=8, depth=True)
-        assert scale.base.decoder.depth_bias == ablation.PROCEDURAL_DEPTH_BIAS and not scale.rescale
-        assert scale.base.head.max_dist == ablation.PROCEDURAL_MAX_DIST
-        assert ablation.make_scale(name, paper_views=8).rescale  # colour-only tables: Long-LRM's
-    paper = ablation.make_scale("paper", paper_views=8, depth=True)
-    assert paper.base.decoder.depth_bias == paper.base.decoder.__class__().depth_bias and paper.rescale
-    assert paper.base.head.max_dist == paper.base.head.__class__().max_dist
+        for depth in (False, True):
+            scale = ablation.make_scale(name, paper_views=8, depth=depth)
+            assert scale.base.head.max_dist == ablation.PROCEDURAL_MAX_DIST and not scale.rescale
+        assert scale.base.decoder.depth_bias == ablation.PROCEDURAL_DEPTH_BIAS
+        assert ablation.make_scale(name, paper_views=8).base.decoder.depth_bias == C.DecoderConfig().depth_bias
+    for depth in (False, True):
+        paper = ablation.make_scale("paper", paper_views=8, depth=depth)
+        assert paper.base.decoder.depth_bias == C.DecoderConfig().depth_bias and paper.rescale
+        assert paper.base.head.max_dist == C.GaussianHeadConfig().max_dist
     scale = ablation.make_scale("cpu", paper_views=4, depth=True)
     source = ProceduralSource(ProceduralConfig(height=32, width=32, num_frames=scale.frames),
                               size=ablation.TRAIN_SCENES)
