@@ -16,11 +16,13 @@ Three scales (:func:`make_scale`):
 * ``"smoke"``: a tiny model (:func:`llrmpp_jax.config.tiny` with a Gaussian head sized for
   procedural rooms) at 32x32, 2 input views, 40 steps, 1 seed, MSE loss only, no LPIPS.
   The numbers only show that the pipeline runs. CI runs this scale.
+  Both small scales keep the procedural rooms' world units (no per-window rescaling) with
+  Gaussians that reach :data:`PROCEDURAL_MAX_DIST` along their rays.
 * ``"cpu"``: the demo model (``experiments/demo.py``: a 64-wide ``{4T}`` backbone, LeCun
   head and decoder init) with each table's K, F, canvas, decoder blocks and S, at 64x64 with
   4 input and 2 target views from windows of 6-10 frames of 16-frame paths (held out:
   8-frame windows), as ``experiments/demo.py`` trains and evaluates, batch 2,
-  :data:`CPU_STEPS` steps (Table 7: 800, in world units), 3 seeds (5 for Table 6), 16
+  :data:`CPU_STEPS` steps (Table 7: 800), 3 seeds (5 for Table 6), 16
   held-out scenes with LPIPS. The budget is the pilot's (``notebooks/_pilot.py``, figures in
   ``notebooks/README.md``). The trainings run
   on one single-core worker process per core (:attr:`Scale.workers`, :func:`run_table`).
@@ -87,20 +89,20 @@ EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
 SCALES = ("smoke", "cpu", "paper")
 CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
 CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu scale (memory)
-# Depth tables at the smoke and cpu scales keep the procedural rooms' world units
-# (Scale.rescale False): Long-LRM's per-window rescaling (input cameras into [-1, 1]^3) gives
+# Every table at the smoke and cpu scales keeps the procedural rooms' world units
+# (Scale.rescale False). Long-LRM's per-window rescaling (input cameras into [-1, 1]^3) gives
 # the cpu scale's short windows depth scales that differ ~3x (a sample's mean log depth: sd
 # 1.1 around 1.6), and at that spread the depth head learned nothing in 1,200 steps; in world
 # units the sd is 0.27 (notebooks/README.md, "Depth (Table 7)"). Where the depth head starts
-# (DecoderConfig.depth_bias): the mean log target depth of those windows in world units,
-# 1.05 / 1.01 / 1.08 over three draws of 128 samples (about 2.9 units).
+# (DecoderConfig.depth_bias, depth tables): the mean log target depth of those windows in
+# world units, 1.05 / 1.01 / 1.08 over three draws of 128 samples (about 2.9 units).
 PROCEDURAL_DEPTH_BIAS = 1.05
 # The Gaussian head's distance range in those world units (GaussianHeadConfig.max_dist; the
-# cpu base's 3 was chosen on rescaled rooms): 99% of the training windows' target pixels lie
-# within 10 units along their rays (z-depth 99th percentile 7.2, corner rays 1.41x longer at
-# this field of view). With 3, 54% of the held-out depths were out of the colour Gaussians'
-# reach, and Table 7's colour row could not place them (commit fa33438: Abs Diff 1.04, the same
-# to +-0.003 over seeds).
+# cpu base's 3 was chosen on rescaled rooms, where 57% of the target depths lie beyond it):
+# 99% of the training windows' target pixels lie within 10 units along their rays (z-depth
+# 99th percentile 7.2, corner rays 1.41x longer at this field of view). With 3, 54% of the
+# held-out depths were out of the colour Gaussians' reach, and Table 7's colour row could not
+# place them (commit fa33438: Abs Diff 1.04, the same to +-0.003 over seeds).
 PROCEDURAL_MAX_DIST = 10.0
 # Scores a row is compared on, and whether higher is better.
 METRICS = {"psnr": True, "ssim": True, "lpips": False, "abs_diff": False, "delta_1_25": True}
@@ -157,14 +159,12 @@ class Scale:
 
 
 def smoke_base() -> C.ModelConfig:
-    """:func:`~llrmpp_jax.config.tiny` with a Gaussian head for procedural rooms.
-
-    Normalised procedural scenes span a few units (input cameras in ``[-1, 1]^3``), so the
-    distance range is 16 units rather than Long-LRM's 500, and Gaussians start at
-    ``exp(-3)`` ~ 0.05 units rather than ``exp(-6.9)`` (visible at 32x32 from the start).
-    """
+    """:func:`~llrmpp_jax.config.tiny` with a Gaussian head for procedural rooms, which
+    span a few units: Gaussians start at ``exp(-3)`` ~ 0.05 units rather than
+    ``exp(-6.9)`` (visible at 32x32 from the start); :func:`make_scale` sets their distance
+    range (:data:`PROCEDURAL_MAX_DIST`)."""
     base = C.tiny()
-    return C.replace(base, head=C.replace(base.head, max_dist=16.0, scale_bias=-3.0))
+    return C.replace(base, head=C.replace(base.head, scale_bias=-3.0))
 
 
 def cpu_base() -> C.ModelConfig:
