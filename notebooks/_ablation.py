@@ -243,8 +243,7 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     else:
         raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
     if name != "paper":  # the paper scale keeps its data's normalisation, range and depth_bias
-        base = scale.base
-        base = C.replace(base, head=C.replace(base.head, max_dist=PROCEDURAL_MAX_DIST))
+        base = C.replace(scale.base, head=C.replace(scale.base.head, max_dist=PROCEDURAL_MAX_DIST))
         if depth:
             base = C.replace(base, decoder=C.replace(base.decoder, depth_bias=PROCEDURAL_DEPTH_BIAS))
         scale = dataclasses.replace(scale, base=base, rescale=False)

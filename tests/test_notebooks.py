@@ -323,16 +323,16 @@ def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
     units) of those windows' log geometric-mean depth. The paper scale keeps Long-LRM's
     rescaling and its config's own bias and range."""
     import numpy as np
-    from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
     from llrmpp_jax import config as C
+    from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
     from llrmpp_jax.geometry import unproject_depth
 
     for name in ("smoke", "cpu"):
-        for depth in (False, True):
-            scale = ablation.make_scale(name, paper_views=8, depth=depth)
+        rgb, depth = (ablation.make_scale(name, paper_views=8, depth=d) for d in (False, True))
+        for scale in (rgb, depth):
             assert scale.base.head.max_dist == ablation.PROCEDURAL_MAX_DIST and not scale.rescale
-        assert scale.base.decoder.depth_bias == ablation.PROCEDURAL_DEPTH_BIAS
-        assert ablation.make_scale(name, paper_views=8).base.decoder.depth_bias == C.DecoderConfig().depth_bias
+        assert depth.base.decoder.depth_bias == ablation.PROCEDURAL_DEPTH_BIAS
+        assert rgb.base.decoder.depth_bias == C.DecoderConfig().depth_bias
     for depth in (False, True):
         paper = ablation.make_scale("paper", paper_views=8, depth=depth)
         assert paper.base.decoder.depth_bias == C.DecoderConfig().depth_bias and paper.rescale
