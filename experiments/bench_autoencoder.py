@@ -44,7 +44,9 @@ SIZE, FRAMES, BATCH = 64, 16, 2
 def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
     m = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py")).model
-    head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std)
+    head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
+                     gaussians_per_token=args.k or m.head.gaussians_per_token,
+                     feature_dim=args.feature_dim or m.head.feature_dim)
     return C.replace(m, backbone=C.replace(m.backbone, pattern=args.pattern), head=head,
                      decoder=C.replace(m.decoder, init_std=args.init_std))
 
@@ -57,9 +59,12 @@ def main() -> None:
     p.add_argument("--mode", default="feature", choices=("feature", "color"), help="Gaussian head mode")
     p.add_argument("--pattern", default="{4T}x1", help="backbone block pattern")
     p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
+    p.add_argument("--k", type=int, default=None, help="Gaussians per token (default: the demo model's)")
+    p.add_argument("--feature-dim", type=int, default=None, help="feature width F (default: the demo model's)")
     p.add_argument("--seed", type=int, default=0, help="data and init seed")
     args = p.parse_args()
-    name = args.name or f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
+    name = args.name or (f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
+                         + (f"_k{args.k}" if args.k else "") + (f"_f{args.feature_dim}" if args.feature_dim else ""))
     cfg = model_config(args)
     pc = ProceduralConfig(height=SIZE, width=SIZE, num_frames=FRAMES)
     geom = ViewGeometry(resize_h=SIZE, multiple=cfg.size_multiple, square_crop=True)
