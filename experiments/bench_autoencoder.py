@@ -3,6 +3,7 @@
 Run:  PYTHONPATH=. python experiments/bench_autoencoder.py --steps 1000
       PYTHONPATH=. python experiments/bench_autoencoder.py --steps 1000 --init-std lecun
       PYTHONPATH=. python experiments/bench_autoencoder.py --steps 600 --mode color
+      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 4000 --init-std lecun --k 16 --feature-dim 32
 
 With one input view every Gaussian projects back onto the pixels it came from, whatever its
 depth, so geometry plays no part: the score measures only the path that carries a patch's
