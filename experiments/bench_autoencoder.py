@@ -46,8 +46,8 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
     m = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py")).model
     head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
-                     gaussians_per_token=args.k or m.head.gaussians_per_token,
-                     feature_dim=args.feature_dim or m.head.feature_dim)
+                     gaussians_per_token=m.head.gaussians_per_token if args.k is None else args.k,
+                     feature_dim=m.head.feature_dim if args.feature_dim is None else args.feature_dim)
     return C.replace(m, backbone=C.replace(m.backbone, pattern=args.pattern), head=head,
                      decoder=C.replace(m.decoder, init_std=args.init_std))
 
@@ -65,7 +65,8 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0, help="data and init seed")
     args = p.parse_args()
     name = args.name or (f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
-                         + (f"_k{args.k}" if args.k else "") + (f"_f{args.feature_dim}" if args.feature_dim else ""))
+                         + (f"_k{args.k}" if args.k is not None else "")
+                         + (f"_f{args.feature_dim}" if args.feature_dim is not None else ""))
     cfg = model_config(args)
     pc = ProceduralConfig(height=SIZE, width=SIZE, num_frames=FRAMES)
     geom = ViewGeometry(resize_h=SIZE, multiple=cfg.size_multiple, square_crop=True)
