@@ -46,6 +46,8 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
     m = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py")).model
     head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
+                     scale_bias=m.head.scale_bias if args.scale_bias is None else args.scale_bias,
+                     anchors=args.anchors,
                      gaussians_per_token=m.head.gaussians_per_token if args.k is None else args.k,
                      feature_dim=m.head.feature_dim if args.feature_dim is None else args.feature_dim)
     return C.replace(m, backbone=C.replace(m.backbone, pattern=args.pattern), head=head,
@@ -62,11 +64,17 @@ def main() -> None:
     p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
     p.add_argument("--k", type=int, default=None, help="Gaussians per token (default: the demo model's)")
     p.add_argument("--feature-dim", type=int, default=None, help="feature width F (default: the demo model's)")
+    p.add_argument("--scale-bias", type=float, default=None,
+                   help="log-scale bias of the Gaussians (default: the demo model's, -2.5; Long-LRM: -6.9)")
+    p.add_argument("--anchors", default="centre", choices=("centre", "grid"),
+                   help="where a token's Gaussians start: all at the patch centre, or on a sub-grid")
     p.add_argument("--seed", type=int, default=0, help="data and init seed")
     args = p.parse_args()
     name = args.name or (f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
                          + (f"_k{args.k}" if args.k is not None else "")
-                         + (f"_f{args.feature_dim}" if args.feature_dim is not None else ""))
+                         + (f"_f{args.feature_dim}" if args.feature_dim is not None else "")
+                         + (f"_s{args.scale_bias:g}" if args.scale_bias is not None else "")
+                         + ("_grid" if args.anchors == "grid" else ""))
     cfg = model_config(args)
     pc = ProceduralConfig(height=SIZE, width=SIZE, num_frames=FRAMES)
     geom = ViewGeometry(resize_h=SIZE, multiple=cfg.size_multiple, square_crop=True)

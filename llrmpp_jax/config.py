@@ -166,6 +166,14 @@ class GaussianHeadConfig:
     # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
     # paper's "move freely"). Measured on the demo: 19.15 vs 19.18 dB, no difference (gaussians.py).
     offset_scale: float | None = 1.0
+    # Where a token's K Gaussians sit before their offsets: "centre" (all at the patch
+    # centre, offsets drawn like every other channel) or "grid" (K = m*m on an m x m sub-grid
+    # of the patch, Gaussian k at cell (k // m, k % m), with the offset rows of the head
+    # starting at zero, so at initialisation the canvas is a grid of the tokens' features,
+    # one Gaussian per cell, as the paper's K=16, q/r=4 lays one per canvas pixel). The paper
+    # says only that the Gaussians "move freely"; measured (experiments/README.md, "Fourth
+    # round"): "centre" smears a patch's Gaussians over each other.
+    anchors: str = "centre"
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2
@@ -184,6 +192,11 @@ class GaussianHeadConfig:
     def __post_init__(self) -> None:
         if self.mode not in ("feature", "color"):
             raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+        if self.anchors not in ("centre", "grid"):
+            raise ValueError(f"GaussianHeadConfig.anchors must be 'centre' or 'grid', got {self.anchors!r}")
+        if self.anchors == "grid" and math.isqrt(self.gaussians_per_token) ** 2 != self.gaussians_per_token:
+            raise ValueError("GaussianHeadConfig: anchors='grid' needs a square gaussians_per_token (4, 9, 16, ...), "
+                             f"got {self.gaussians_per_token}")
         if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
             raise ValueError(
                 f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "

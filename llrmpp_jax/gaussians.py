@@ -29,6 +29,7 @@ to the identity rotation).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import flax.linen as nn
@@ -69,6 +70,37 @@ def _channels(cfg: GaussianHeadConfig) -> int:
 def gaussians_per_token(cfg: GaussianHeadConfig, token_stride: int) -> int:
     """K: Gaussians per token (one per pixel of the token's patch in colour mode)."""
     return token_stride**2 if cfg.mode == "color" else cfg.gaussians_per_token
+
+
+def anchor_offsets(cfg: GaussianHeadConfig, token_stride: int) -> Float[Array, "K 2"]:
+    """Feature mode: where each of a token's K Gaussians sits before its learned offset,
+    ``(u, v)`` pixels from the patch's top-left corner: the patch centre for every k
+    (``anchors="centre"``), or the centre of cell ``(k // m, k % m)`` of an ``m x m``
+    sub-grid (``"grid"``, K = m*m)."""
+    k, s = cfg.gaussians_per_token, token_stride
+    if cfg.anchors == "centre":
+        return jnp.full((k, 2), s / 2, jnp.float32)
+    m = math.isqrt(k)
+    cell = (jnp.arange(m, dtype=jnp.float32) + 0.5) * (s / m)
+    return jnp.stack([jnp.tile(cell, m), jnp.repeat(cell, m)], axis=-1)
+
+
+def head_kernel_init(cfg: GaussianHeadConfig, k: int) -> nn.initializers.Initializer:
+    """The head's kernel ``[D, K * C]``: :func:`linear_init` of ``cfg.init_std``; with
+    ``anchors="grid"`` the geometry columns (offset, distance, quaternion, log-scale) start at
+    zero, so every Gaussian starts on its anchor, at ``max_dist / 2``, isotropic, of scale
+    ``exp(scale_bias)``: the splatted canvas starts as a grid of the tokens' features."""
+    base = linear_init(cfg.init_std)
+    if cfg.mode == "color" or cfg.anchors == "centre":
+        return base
+    f = cfg.feature_dim  # channels [feature F | offset 2 | distance 1 | quaternion 4 | opacity 1 | log-scale 3]
+    keep = jnp.ones((k, _channels(cfg)), jnp.float32).at[:, f:f + 7].set(0.0).at[:, f + 8:].set(0.0)
+    keep = keep.reshape(-1)
+
+    def init(key, shape, dtype=jnp.float32):
+        return base(key, shape, dtype) * keep.astype(dtype)[None, :]
+
+    return init
 
 
 def _unit_quat(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
@@ -112,8 +144,9 @@ def decode_gaussians(
         )
         dist_raw = dist_raw[..., 0]
         off = s * off if cfg.offset_scale is None else cfg.offset_scale * s * jnp.tanh(off)
-        u = cols + s / 2 + off[..., 0]
-        vv = rows + s / 2 + off[..., 1]
+        anchor = anchor_offsets(cfg, s).astype(raw.dtype).reshape(1, 1, 1, 1, k, 2)  # pixels from the corner
+        u = cols + anchor[..., 0] + off[..., 0]
+        vv = rows + anchor[..., 1] + off[..., 1]
     uv = jnp.stack([u, vv], axis=-1)  # [B, V, h, w, K, 2]
     cam = lambda a: a[:, :, None, None, None]  # noqa: E731  broadcast cameras over h, w, K
     origins, dirs = rays_through_pixels(cam(c2w), cam(intrinsics), uv)
@@ -161,7 +194,7 @@ class GaussianHead(nn.Module):
         k = gaussians_per_token(self.cfg, self.token_stride)
         x = LayerNorm(name="norm")(tokens)
         raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj",
-                       kernel_init=linear_init(self.cfg.init_std))(x)
+                       kernel_init=head_kernel_init(self.cfg, k))(x)
         # Geometry in float32 at least: bf16 tokens (bf16 compute) would put pixel
         # coordinates on a grid of 4 above 512 and ray depths to 3 digits.
         raw = raw.astype(jnp.float64 if raw.dtype == jnp.float64 else jnp.float32)
