@@ -23,5 +23,7 @@ def get_config():
     """``small.py`` with backbone and decoder width 128."""
     small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small.py"))
     m = small.model
+    # Measured against small.py's head as it was then (Gaussians started at the patch centre).
+    m = C.replace(m, head=C.replace(m.head, anchors="centre", scale_bias=-2.5))
     model = C.replace(m, backbone=C.replace(m.backbone, dims=(128,)), decoder=C.replace(m.decoder, dim=128))
     return replace(small, name="small_wide", model=model)
