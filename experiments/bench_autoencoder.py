@@ -5,6 +5,7 @@ Run:  PYTHONPATH=. python experiments/bench_autoencoder.py --steps 1000
       PYTHONPATH=. python experiments/bench_autoencoder.py --steps 600 --mode color
       PYTHONPATH=. python experiments/bench_autoencoder.py --steps 4000 --init-std lecun --k 16 --feature-dim 32
       PYTHONPATH=. python experiments/bench_autoencoder.py --steps 2000 --init-std lecun --anchors grid --scale-bias -3.0
+      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 2000 --init-std lecun --k 16 --feature-dim 32 --canvas ideal
 
 With one input view every Gaussian projects back onto the pixels it came from, whatever its
 depth, so geometry plays no part: the score measures only the path that carries a patch's
@@ -27,6 +28,7 @@ import os
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax import config as C
@@ -36,7 +38,9 @@ from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.experiment import EXPERIMENTS_DIR, StageConfig, load_experiment
 from llrmpp_jax.losses import rgb_loss
-from llrmpp_jax.model import init_params, reconstruct, render
+from llrmpp_jax.gaussians import Gaussians
+from llrmpp_jax.geometry import pixel_rays, plucker
+from llrmpp_jax.model import LongLRMPP, init_params, partition_logits, reconstruct, render
 from llrmpp_jax.nn.initializers import parse_init_std
 from llrmpp_jax.trainer import optimizer_config
 
@@ -56,6 +60,26 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
                      decoder=C.replace(m.decoder, init_std=args.init_std))
 
 
+def ideal_canvas_render(params: dict, cfg: C.ModelConfig, g: Gaussians, c2w: jax.Array,
+                        intrinsics: jax.Array) -> jax.Array:
+    """RGB ``[B, 1, H, W, 3]`` of the one input view with the splat replaced by an ideal canvas:
+    Gaussian k of each token paints only canvas pixel ``(k // m, k % m)`` of its token's
+    ``m x m`` canvas patch (m = q / r, K = m*m), with ``opacity * partition weight * feature``
+    (what compositing gives where one Gaussian covers a pixel alone), then the model's decoder.
+    Where the Gaussians are, how big and how they overlap play no part."""
+    m = cfg.decoder.token_stride // cfg.decoder.canvas_ratio
+    b, n, f = g.features.shape
+    s = cfg.decoder.partitions
+    h = w = SIZE // cfg.decoder.token_stride
+    weights = jax.nn.softmax(partition_logits(params, cfg, g), axis=-1)  # [B, N, S]
+    paint = (g.opacities[..., None, None] * weights[..., None] * g.features[:, :, None, :])  # [B, N, S, F]
+    canvas = paint.reshape(b, h, w, m, m, s, f).transpose(0, 5, 1, 3, 2, 4, 6).reshape(b, s, h * m, w * m, f)
+    rays = plucker(*pixel_rays(c2w, intrinsics / cfg.decoder.canvas_ratio, h * m, w * m))[:, 0]  # [B, hc, wc, 6]
+    canvas = jnp.concatenate([canvas, jnp.broadcast_to(rays[:, None], (b, s, h * m, w * m, 6))], axis=-1)
+    out = LongLRMPP(cfg).apply({"params": params}, canvas, method=lambda mod, c: mod.decoder(c, ("rgb",)))
+    return out["rgb"][:, None]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--name", default=None, help="result name (default: from the options)")
@@ -72,14 +96,22 @@ def main() -> None:
                    help="log-scale bias of the Gaussians (default -2.5; the demo now -3.0; Long-LRM -6.9)")
     p.add_argument("--anchors", default="centre", choices=("centre", "grid"),
                    help="where a token's Gaussians start: all at the patch centre (default), or on a sub-grid")
+    p.add_argument("--canvas", default="splat", choices=("splat", "ideal"),
+                   help="the decoder's canvas: the splat (default), or an ideal one, each Gaussian on its own "
+                        "canvas pixel (feature mode, K = (q/r)^2; see ideal_canvas_render)")
     p.add_argument("--seed", type=int, default=0, help="data and init seed")
     args = p.parse_args()
     name = args.name or (f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
                          + (f"_k{args.k}" if args.k is not None else "")
                          + (f"_f{args.feature_dim}" if args.feature_dim is not None else "")
                          + (f"_s{args.scale_bias:g}" if args.scale_bias != -2.5 else "")
-                         + ("_grid" if args.anchors == "grid" else ""))
+                         + ("_grid" if args.anchors == "grid" else "")
+                         + ("_ideal_canvas" if args.canvas == "ideal" else ""))
     cfg = model_config(args)
+    cells = (cfg.decoder.token_stride // cfg.decoder.canvas_ratio) ** 2
+    if args.canvas == "ideal" and (args.mode != "feature" or cfg.head.gaussians_per_token != cells
+                                   or cfg.token_stride != cfg.decoder.token_stride):
+        p.error(f"--canvas ideal needs feature mode with --k {cells} (one Gaussian per canvas pixel of a token)")
     pc = ProceduralConfig(height=SIZE, width=SIZE, num_frames=FRAMES)
     geom = ViewGeometry(resize_h=SIZE, multiple=cfg.size_multiple, square_crop=True)
     stage = StageConfig(name="ae", steps=args.steps, global_batch=BATCH, num_inputs=1, num_targets=1,
@@ -90,8 +122,11 @@ def main() -> None:
     def loss_fn(params, batch, key):
         del key
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
-        out = render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"], SIZE, SIZE)
-        return rgb_loss(out.images["rgb"].reshape(-1, SIZE, SIZE, 3),
+        if args.canvas == "ideal":
+            rgb = ideal_canvas_render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"])
+        else:
+            rgb = render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"], SIZE, SIZE).images["rgb"]
+        return rgb_loss(rgb.reshape(-1, SIZE, SIZE, 3),
                         batch["input_images"].reshape(-1, SIZE, SIZE, 3), None, perceptual_weight=0.0)
 
     mesh = T.make_data_mesh()

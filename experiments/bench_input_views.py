@@ -1,7 +1,7 @@
 """What a model's input-view re-render is made of: all views' Gaussians, the view's own, or one view alone.
 
 Run:  PYTHONPATH=. python experiments/bench_input_views.py --checkpoint pretrained:small
-      PYTHONPATH=. python experiments/bench_input_views.py --checkpoint ~/runs/small_grid --config experiments/small_grid.py
+      PYTHONPATH=. python experiments/bench_input_views.py --checkpoint ~/runs/small --config experiments/small.py --name small_6000
 
 On the experiment's held-out procedural scenes (``--config``, default the checkpoint's own
 ``small.py``), each input view is re-rendered three ways and scored (PSNR against the input):
