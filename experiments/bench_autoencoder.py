@@ -28,7 +28,6 @@ import os
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax import config as C
@@ -39,8 +38,7 @@ from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.experiment import EXPERIMENTS_DIR, StageConfig, load_experiment
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.gaussians import Gaussians
-from llrmpp_jax.geometry import pixel_rays, plucker
-from llrmpp_jax.model import LongLRMPP, init_params, partition_logits, reconstruct, render
+from llrmpp_jax.model import LongLRMPP, append_target_rays, init_params, partition_logits, reconstruct, render
 from llrmpp_jax.nn.initializers import parse_init_std
 from llrmpp_jax.trainer import optimizer_config
 
@@ -73,9 +71,8 @@ def ideal_canvas_render(params: dict, cfg: C.ModelConfig, g: Gaussians, c2w: jax
     h = w = SIZE // cfg.decoder.token_stride
     weights = jax.nn.softmax(partition_logits(params, cfg, g), axis=-1)  # [B, N, S]
     paint = (g.opacities[..., None, None] * weights[..., None] * g.features[:, :, None, :])  # [B, N, S, F]
-    canvas = paint.reshape(b, h, w, m, m, s, f).transpose(0, 5, 1, 3, 2, 4, 6).reshape(b, s, h * m, w * m, f)
-    rays = plucker(*pixel_rays(c2w, intrinsics / cfg.decoder.canvas_ratio, h * m, w * m))[:, 0]  # [B, hc, wc, 6]
-    canvas = jnp.concatenate([canvas, jnp.broadcast_to(rays[:, None], (b, s, h * m, w * m, 6))], axis=-1)
+    canvas = paint.reshape(b, 1, h, w, m, m, s, f).transpose(0, 1, 6, 2, 4, 3, 5, 7).reshape(b, 1, s, h * m, w * m, f)
+    canvas = append_target_rays(canvas, c2w, intrinsics, cfg.decoder.canvas_ratio)[:, 0]  # one target: the input view
     out = LongLRMPP(cfg).apply({"params": params}, canvas, method=lambda mod, c: mod.decoder(c, ("rgb",)))
     return out["rgb"][:, None]
 

@@ -67,6 +67,12 @@ def _channels(cfg: GaussianHeadConfig) -> int:
     return cfg.feature_dim + 2 + 1 + 4 + 1 + 3
 
 
+def _feature_splits(f: int) -> list[int]:
+    """Where a feature-mode Gaussian's channels split:
+    ``[feature f | offset 2 | distance 1 | quaternion 4 | opacity 1 | log-scale 3]``."""
+    return [f, f + 2, f + 3, f + 7, f + 8]
+
+
 def gaussians_per_token(cfg: GaussianHeadConfig, token_stride: int) -> int:
     """K: Gaussians per token (one per pixel of the token's patch in colour mode)."""
     return token_stride**2 if cfg.mode == "color" else cfg.gaussians_per_token
@@ -93,8 +99,8 @@ def head_kernel_init(cfg: GaussianHeadConfig, k: int) -> nn.initializers.Initial
     base = linear_init(cfg.init_std)
     if cfg.mode == "color" or cfg.anchors == "centre":
         return base
-    f = cfg.feature_dim  # channels [feature F | offset 2 | distance 1 | quaternion 4 | opacity 1 | log-scale 3]
-    keep = jnp.ones((k, _channels(cfg)), jnp.float32).at[:, f:f + 7].set(0.0).at[:, f + 8:].set(0.0)
+    f, _, _, opacity, log_scale = _feature_splits(cfg.feature_dim)
+    keep = jnp.ones((k, _channels(cfg)), jnp.float32).at[:, f:opacity].set(0.0).at[:, log_scale:].set(0.0)
     keep = keep.reshape(-1)
 
     def init(key, shape, dtype=jnp.float32):
@@ -138,10 +144,7 @@ def decode_gaussians(
         u = jnp.broadcast_to(cols + sub % s + 0.5, (b, v, h, w, k))  # pixel centres
         vv = jnp.broadcast_to(rows + sub // s + 0.5, (b, v, h, w, k))
     else:
-        f = cfg.feature_dim
-        feat, off, dist_raw, quat, opac, logs = jnp.split(
-            raw, [f, f + 2, f + 3, f + 7, f + 8], axis=-1
-        )
+        feat, off, dist_raw, quat, opac, logs = jnp.split(raw, _feature_splits(cfg.feature_dim), axis=-1)
         dist_raw = dist_raw[..., 0]
         off = s * off if cfg.offset_scale is None else cfg.offset_scale * s * jnp.tanh(off)
         anchor = anchor_offsets(cfg, s).astype(raw.dtype).reshape(1, 1, 1, 1, k, 2)  # pixels from the corner

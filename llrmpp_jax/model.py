@@ -57,6 +57,18 @@ def input_features(
     return jnp.concatenate([images * 2.0 - 1.0, plucker(o, d)], axis=-1)
 
 
+def append_target_rays(
+    canvas: Float[Array, "B T S hc wc F"], c2w: Float[Array, "B T 4 4"], intrinsics: Float[Array, "B T 4"],
+    canvas_ratio: int,
+) -> Float[Array, "B T S hc wc F+6"]:
+    """The decoder's input: each canvas with its target's Plücker rays ``[o x d, d]`` through
+    the canvas pixel centres (image intrinsics scaled down by ``canvas_ratio``), paper §3.2."""
+    b, t, s, hc, wc, _ = canvas.shape
+    rays = plucker(*pixel_rays(c2w, intrinsics / canvas_ratio, hc, wc))  # [B, T, hc, wc, 6]
+    rays = jnp.broadcast_to(rays[:, :, None], (b, t, s, hc, wc, 6)).astype(canvas.dtype)
+    return jnp.concatenate([canvas, rays], axis=-1)
+
+
 def _check_views(images, c2w, intrinsics) -> None:
     if images.ndim != 5 or images.shape[-1] != 3:
         raise ValueError(f"images must be [B, V, H, W, 3], got shape {images.shape}")
@@ -119,9 +131,7 @@ class LongLRMPP(nn.Module):
         canvas, dropped = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, 0, 0))(
             gaussians, copies, c2w, intrinsics)  # [B, T, S, hc, wc, F]
         b, t, s = canvas.shape[:3]
-        rays = plucker(*pixel_rays(c2w, intrinsics / r, hc, wc))  # [B, T, hc, wc, 6]
-        rays = jnp.broadcast_to(rays[:, :, None], (b, t, s, hc, wc, 6)).astype(canvas.dtype)
-        canvas = jnp.concatenate([canvas, rays], axis=-1)
+        canvas = append_target_rays(canvas, c2w, intrinsics, r)
         images = self.decoder(canvas.reshape(b * t, s, hc, wc, -1), outputs)
         images = {k: v.reshape(b, t, height, width, -1) for k, v in images.items()}
         return RenderOutput(images, jnp.sum(dropped, axis=1))

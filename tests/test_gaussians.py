@@ -26,25 +26,23 @@ def oracle_means(raw, c2w, intr, s, f, offset_scale, max_dist, grid=False):
     return out.reshape(b, -1, 3)
 
 
+def _cameras(rng, b, v):
+    """Random rigid c2w [b, v, 4, 4] and fixed pinhole intrinsics [b, v, 4], float64."""
+    q, _ = np.linalg.qr(rng.normal(size=(b, v, 3, 3)))
+    c2w = np.zeros((b, v, 4, 4))
+    c2w[..., :3, :3], c2w[..., :3, 3], c2w[..., 3, 3] = q, rng.normal(size=(b, v, 3)), 1.0
+    return c2w, np.broadcast_to(np.array([30.0, 28.0, 11.0, 9.0]), (b, v, 4))
+
+
 @pytest.mark.parametrize("offset_scale", [1.0, 2.5, None])
 def test_feature_means_bounded_and_free_offsets(rng, offset_scale):
     cfg = C.GaussianHeadConfig(gaussians_per_token=3, feature_dim=4, offset_scale=offset_scale, max_dist=6.0)
     b, v, h, w, k, s = 1, 2, 2, 3, 3, 8
     raw = rng.normal(size=(b, v, h, w, k, 4 + 2 + 1 + 4 + 1 + 3)) * 2.0  # offsets up to ~6 patches raw
-    q, _ = np.linalg.qr(rng.normal(size=(b, v, 3, 3)))
-    c2w = np.zeros((b, v, 4, 4))
-    c2w[..., :3, :3], c2w[..., :3, 3], c2w[..., 3, 3] = q, rng.normal(size=(b, v, 3)), 1.0
-    intr = np.broadcast_to(np.array([30.0, 28.0, 11.0, 9.0]), (b, v, 4))
+    c2w, intr = _cameras(rng, b, v)
     g = decode_gaussians(raw, c2w, intr, s, cfg)
     np.testing.assert_allclose(np.asarray(g.means), oracle_means(raw, c2w, intr, s, 4, offset_scale, 6.0),
                                rtol=1e-10, atol=1e-10)
-
-
-def _cameras(rng, b, v):
-    q, _ = np.linalg.qr(rng.normal(size=(b, v, 3, 3)))
-    c2w = np.zeros((b, v, 4, 4))
-    c2w[..., :3, :3], c2w[..., :3, 3], c2w[..., 3, 3] = q, rng.normal(size=(b, v, 3)), 1.0
-    return c2w, np.broadcast_to(np.array([30.0, 28.0, 11.0, 9.0]), (b, v, 4))
 
 
 @pytest.mark.parametrize("offset_scale", [1.0, None])
