@@ -4,11 +4,11 @@ One attention forward+backward of ``[1, L, 12, 64]`` (the paper backbone's heads
 XLA's ``memory_analysis()`` temp bytes of the compiled program for both implementations
 (compile only, so the plain path at 131k tokens -- 0.8 TB of logits -- is analysed, not
 run), and the blockwise kernel's compile and run times (``block_until_ready``) at
-``--run-lengths``. See :func:`llrmpp_jax.bench.attention_benchmark`; ``llrmpp bench``
+``--run-lengths``; on a GPU the cuDNN kernel is analysed and timed beside them. See :func:`llrmpp_jax.bench.attention_benchmark`; ``llrmpp bench``
 runs this with its scale's arguments.
 
 Usage: ``python experiments/bench_attention.py [--lengths 8192 32768 131072]
-[--run-lengths 4096 8192] [--block 512] [--heads 12] [--head-dim 64] [--out PATH]``.
+[--run-lengths 4096 8192] [--block 512] [--heads 12] [--head-dim 64] [--dtype float32] [--out PATH]``.
 The decoder's global blocks (paper: E = 256, 4 heads of 64, 8,160 tokens per target at
 960x544): ``--heads 4 --lengths 8160 --run-lengths --out
 experiments/results/bench_attention_decoder.json``.
@@ -32,17 +32,19 @@ def main() -> None:
     ap.add_argument("--block", type=int, default=512, help="blockwise query and key block size")
     ap.add_argument("--heads", type=int, default=12, help="attention heads (paper backbone 12, decoder 4)")
     ap.add_argument("--head-dim", type=int, default=64, help="channels per head")
+    ap.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="q, k, v dtype")
     ap.add_argument("--repeats", type=int, default=2, help="timed runs after one warm-up")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_attention.json"))
     args = ap.parse_args()
     env = environment()
     result = attention_benchmark(args.lengths, args.run_lengths, heads=args.heads, head_dim=args.head_dim,
-                                 block=args.block, repeats=args.repeats)
+                                 block=args.block, dtype=args.dtype, repeats=args.repeats)
     result["environment"] = env
     result["load_average_at_end"] = list(os.getloadavg())
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
-    print(json.dumps({r["L"]: {i: r[i]["temp_bytes"] for i in ("xla", "blockwise")} for r in result["memory"]}))
+    print(json.dumps({r["L"]: {i: r[i].get("temp_bytes", r[i].get("failed")) for i in r if isinstance(r[i], dict)}
+                      for r in result["memory"]}))
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ stage-4 step, written as JSON.
 2. **Paper stage 4** (``experiments/dl3dv.py`` stage 4: 32 inputs + 8 targets at 544x960,
    the paper's global batch 64 on 64 GPUs, so 1 scene per device; bf16 compute and
    backbone remat as the experiment file sets; the perceptual term as the file sets it,
-   Long-LRM's VGG19, with zero weights of its shapes unless the file names weights): the per-device step is lowered from
+   Long-LRM's VGG19, with random weights of its shapes unless the file names weights): the per-device step is lowered from
    ``jax.ShapeDtypeStruct``s (nothing allocated) and compiled for CPU in a subprocess
    with a time limit (``--paper-timeout``, default 600 s: lowering + compiling took 2-5
    min on the busy 2-core box) and an RSS guard
@@ -250,12 +250,19 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
 
 
 def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
-    """The perceptual net's params for an AOT compile: the real ones where the experiment
-    names them, else (VGG19 without ``vgg19_path``) zeros of VGG19's conv1_1..conv5_2 shapes:
-    XLA's memory analysis depends on shapes only."""
+    """The perceptual net's params for a benchmark step: the real ones where the experiment
+    names them, else (VGG19 without ``vgg19_path``) He-normal random weights (seed 0) of
+    VGG19's conv1_1..conv5_2 shapes: a step's memory and time depend on shapes only.
+
+    Not zeros: with all-zero VGG weights the stage-4 step's perceptual term came back NaN
+    on some runs and finite on others (jax 0.10.2, CPU; 2 inputs of 32x64), so every step
+    was skipped as non-finite; random weights gave finite losses every time.
+    """
     if exp.perceptual_net != "vgg19" or exp.vgg19_path or not exp.perceptual_weight:
         return load_perceptual(exp)
-    return {name: {"kernel": jnp.zeros((3, 3, cin, cout), jnp.float32), "bias": jnp.zeros((cout,), jnp.float32)}
+    rng = np.random.default_rng(0)
+    return {name: {"kernel": jnp.asarray(rng.normal(0.0, np.sqrt(2.0 / (9 * cin)), (3, 3, cin, cout)), jnp.float32),
+                   "bias": jnp.zeros((cout,), jnp.float32)}
             for name, _, cin, cout in vgg_layers("vgg19")[:14]}
 
 

@@ -40,7 +40,8 @@ SCALES: dict[str, dict[str, list[str]]] = {
     },
     # One accelerator: the paper's sequence lengths run.
     "paper": {
-        "attention": ["--lengths", "8192", "32768", "131072", "261122", "--run-lengths", "8192", "32768", "131072"],
+        "attention": ["--lengths", "8192", "32768", "131072", "261122", "--run-lengths", "8192", "32768", "131072",
+                      "--dtype", "bfloat16"],
         "scan": ["--preset", "full"],
         "splat": [],
         "model": [],
@@ -106,25 +107,36 @@ def attention_fwd_bwd(implementation: str, block: int = 512):
     return step
 
 
+def _one_line(e: Exception) -> str:
+    return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0][:300]}"
+
+
 def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192), heads: int = 12,
                         head_dim: int = 64, block: int = 512, dtype: str = "float32", repeats: int = 2) -> dict:
     """Memory of one attention fwd+bwd ``[1, L, heads, head_dim]`` (the paper backbone's
-    12 x 64 heads), plain vs blockwise, from XLA's ``memory_analysis()`` of the compiled
-    program (compile only: nothing is allocated); then compile and run times of the
-    blockwise kernel at ``run_lengths``. ``temp_bytes`` is XLA's scratch on top of the
-    arguments (q, k, v, cotangent) and outputs (dq, dk, dv)."""
+    12 x 64 heads), plain vs blockwise (and cuDNN on a GPU), from XLA's ``memory_analysis()``
+    of the compiled program (compile only: nothing is allocated); then compile and run times
+    of the memory-efficient kernels (blockwise; cuDNN on a GPU) at ``run_lengths``.
+    ``temp_bytes`` is XLA's scratch on top of the arguments (q, k, v, cotangent) and outputs
+    (dq, dk, dv). A kernel that cannot be compiled or run at a length gets ``{"failed": ...}``
+    in its row (on a GPU, XLA's compile of the plain kernel allocates its [L, L] buffers to
+    autotune: 768 GiB at L = 131k on an H200) and the other rows go on."""
     import jax
     import jax.numpy as jnp
 
     dt = jnp.dtype(dtype)
+    impls = ("xla", "blockwise", "cudnn") if jax.default_backend() == "gpu" else ("xla", "blockwise")
     rows = []
     for length in lengths:
         x = jax.ShapeDtypeStruct((1, length, heads, head_dim), dt)
         row = {"L": length, "logits_bytes_per_copy": heads * length * length * 4}
-        for impl in ("xla", "blockwise"):
+        for impl in impls:
             t0 = time.perf_counter()
-            compiled = jax.jit(attention_fwd_bwd(impl, block)).lower(x, x, x, x).compile()
-            ma = compiled.memory_analysis()
+            try:
+                ma = jax.jit(attention_fwd_bwd(impl, block)).lower(x, x, x, x).compile().memory_analysis()
+            except Exception as e:  # noqa: BLE001 -- recorded, the next row goes on
+                row[impl] = {"failed": _one_line(e), "compile_s": time.perf_counter() - t0}
+                continue
             row[impl] = {"temp_bytes": int(ma.temp_size_in_bytes),
                          "argument_bytes": int(ma.argument_size_in_bytes),
                          "output_bytes": int(ma.output_size_in_bytes),
@@ -134,11 +146,17 @@ def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192),
     key = jax.random.key(0)
     for length in run_lengths:
         q, k, v, cot = (jax.random.normal(kk, (1, length, heads, head_dim), dt) for kk in jax.random.split(key, 4))
-        runs.append({"L": length, **timed(attention_fwd_bwd("blockwise", block), q, k, v, cot, repeats=repeats)})
-    temps = [r["blockwise"]["temp_bytes"] for r in rows]
-    per_token = [t / r["L"] for t, r in zip(temps, rows)]
+        run = {"L": length}
+        for impl in impls[1:]:
+            try:
+                run[impl] = timed(attention_fwd_bwd(impl, block), q, k, v, cot, repeats=repeats)
+            except Exception as e:  # noqa: BLE001
+                run[impl] = {"failed": _one_line(e)}
+        runs.append(run)
+    ok = [r for r in rows if "temp_bytes" in r["blockwise"]]
     return {"heads": heads, "head_dim": head_dim, "block": block, "dtype": dtype, "memory": rows,
-            "blockwise_temp_bytes_per_token": per_token, "blockwise_runs": runs}
+            "blockwise_temp_bytes_per_token": {r["L"]: r["blockwise"]["temp_bytes"] / r["L"] for r in ok},
+            "runs": runs}
 
 
 def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS) -> dict:

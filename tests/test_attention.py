@@ -112,6 +112,29 @@ def test_multi_head_attention_float64_inputs(rng):
     assert rel_err(got, dense_attention(q, k, v)) < 1e-6
 
 
+def test_cudnn_gets_bfloat16_from_float32_inputs(rng, monkeypatch):
+    """cuDNN's kernel takes only 16-bit inputs (an H200 refused the bf16 training step's
+    float32 QK-normed q): float32 q, k, v and bias reach it as bfloat16 and the output comes
+    back float32. The kernel itself needs a GPU, so the library call is replaced by its XLA
+    path on the same (bf16) arguments; the result is compared with the float64 oracle at
+    bf16's accuracy."""
+    seen = {}
+    library = jax.nn.dot_product_attention
+
+    def fake_cudnn(q, k, v, bias=None, mask=None, implementation=None):
+        seen.update(q=q.dtype, k=k.dtype, v=v.dtype, bias=bias.dtype, implementation=implementation)
+        return library(q, k, v, bias=bias, mask=mask, implementation="xla")
+
+    monkeypatch.setattr(jax.nn, "dot_product_attention", fake_cudnn)
+    q, k, v = (rng.normal(size=(2, 9, 2, 8)).astype(np.float32) for _ in range(3))
+    bias = rng.normal(size=(2, 9, 9)).astype(np.float32)
+    got = multi_head_attention(q, k, v, bias=bias, implementation="cudnn")
+    assert seen == dict(q=jnp.bfloat16, k=jnp.bfloat16, v=jnp.bfloat16, bias=jnp.bfloat16, implementation="cudnn")
+    assert got.dtype == jnp.float32
+    f = lambda a: a.astype(np.float64)  # noqa: E731
+    assert rel_err(got, dense_attention(f(q), f(k), f(v), f(bias)[None])) < 3e-2
+
+
 def test_multi_head_attention_errors():
     q = np.zeros((2, 5, 2, 4), np.float32)
     with pytest.raises(ValueError, match=r"share batch dims, nh and hd"):

@@ -50,7 +50,9 @@ def multi_head_attention(
       of ``block_q`` queries x ``block_k`` keys.
     * ``"xla"`` -- ``jax.nn.dot_product_attention``'s XLA path; materialises
       ``[B, nh, Lq, Lk]`` logits (quadratic memory).
-    * ``"cudnn"`` -- the library's cuDNN flash kernel (NVIDIA GPU, bf16/fp16 inputs).
+    * ``"cudnn"`` -- the library's cuDNN flash kernel (NVIDIA GPU). The kernel takes only
+      bf16/fp16/fp8: wider inputs (float32 q and k after the float32 QK-norm, as in a bf16
+      training step) are cast to bfloat16 for the kernel and its output back to q's dtype.
 
     Precision: logits and softmax in ``promote(dtype, float32)`` (blockwise) or softmax
     always in float32 (library), so float64 inputs are accurate to ~1e-7 with the latter.
@@ -90,13 +92,15 @@ def multi_head_attention(
     if implementation == "blockwise":
         out = blockwise_attention(q4, k4, v4, bias=bias4, mask=mask4, block_q=block_q, block_k=block_k)
     else:
+        if implementation == "cudnn" and jnp.dtype(q.dtype).itemsize > 2:  # the kernel's 16-bit inputs
+            q4, k4, v4, bias4 = (None if a is None else a.astype(jnp.bfloat16) for a in (q4, k4, v4, bias4))
         # The library promotes logits to >= float32 internally, which strict dtype promotion
         # (our test configuration) rejects for float64/bfloat16 inputs; that promotion is the
         # intended behaviour, so allow it for this call only.
         with jax.numpy_dtype_promotion("standard"):
             out = jax.nn.dot_product_attention(
                 q4, k4, v4, bias=bias4, mask=mask4, implementation=implementation
-            )
+            ).astype(q.dtype)
     return out.reshape(*batch, lq, nh, hd)
 
 
