@@ -74,8 +74,8 @@ class TransformerConfig:
     norm_eps: float = 1e-5
     # Global-attention kernel (nn.attention.multi_head_attention): "blockwise" is
     # FlashAttention-2 in pure JAX (any backend and dtype, memory linear in L, the default);
-    # "cudnn" the cuDNN flash kernel (NVIDIA GPU, bf16/fp16 only; for_accelerators picks it
-    # there); "xla" materialises [nh, L, L] logits (quadratic memory: short L only).
+    # "cudnn" the cuDNN flash kernel (NVIDIA GPU; computes in bf16, wider inputs are cast;
+    # for_accelerators picks it there); "xla" materialises [nh, L, L] logits (quadratic memory: short L only).
     attention_impl: str = "blockwise"
     attention_block_q: int = 512  # blockwise: queries per block
     attention_block_k: int = 512  # blockwise: keys per block (logits block [nh, bq, bk])
@@ -286,7 +286,8 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
     ~9 full-size copies at stage 4, bench_train.json).
 
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
-    (``attention_impl="cudnn"``; the run's compute dtype must be bf16/fp16), anywhere else
+    (``attention_impl="cudnn"``, meant for bf16 runs: it computes in bf16, casting float32
+    q, k, v; ~10x the blockwise kernel's speed on an H200, experiments/README.md), anywhere else
     (TPU, CPU) the pure-JAX blockwise kernel, which needs no vendor library and works in
     any dtype. XLA's plain attention would hold [heads, L, L] scores (L = 261K backbone
     tokens at stage 4, ~1.5 TiB per block), see experiments/results/bench_train.json.

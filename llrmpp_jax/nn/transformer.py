@@ -40,7 +40,7 @@ class TransformerBlock(nn.Module):
     ``attention="global"`` attends over all L tokens; ``attention="local"`` needs
     ``grid=(h, w)`` with ``L = h*w`` (row-major) and attends to ``num_neighbours``
     nearest grid tokens (:class:`LocalAttention`). ``cfg.attention_impl`` selects the
-    global-attention kernel (``"blockwise"``, ``"xla"``, or ``"cudnn"`` on GPU with bf16/fp16).
+    global-attention kernel (``"blockwise"``, ``"xla"``, or ``"cudnn"`` on GPU, in bf16).
     ``dtype`` is the compute dtype of the Dense layers (None: from input and params);
     the residual stream keeps the dtype of ``x``.
 
