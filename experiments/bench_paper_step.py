@@ -46,7 +46,9 @@ from llrmpp_jax.nn.attention import ATTENTION_IMPLEMENTATIONS
 from llrmpp_jax.nn.backbone import count_params
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_train import PAPER_STAGE4_DEVICES, _memory, _paper_stage4, make_step, perceptual_for_compile  # noqa: E402
+from bench_train import (  # noqa: E402
+    PAPER_STAGE4_DEVICES, make_step, memory_analysis_bytes, paper_stage4_experiment, perceptual_for_compile,
+)
 
 GIB = 2.0**30
 
@@ -83,7 +85,7 @@ def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: t
     """Compile and run stage 4 with ``impl`` in every global-attention block (own process);
     ``views`` (inputs, targets), ``size`` (h, w) and ``block`` (the blockwise kernel's query
     and key block) replace the stage's (32, 8), 544x960 and the config's (512, 512)."""
-    exp, stage = _paper_stage4()
+    exp, stage = paper_stage4_experiment()
     model = exp.model
 
     def kernel(t: C.TransformerConfig) -> C.TransformerConfig:
@@ -118,7 +120,7 @@ def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: t
     first_s, times = times[0], times[1:]
     stats = jax.local_devices()[0].memory_stats() or {}
     t0 = time.perf_counter()
-    memory = _memory(step.lower(state, batches[0]).compile())
+    memory = memory_analysis_bytes(step.lower(state, batches[0]).compile())
     aot_compile_s = time.perf_counter() - t0
     return {
         "attention_impl": impl, "attention_block": [model.backbone.transformer.attention_block_q,

@@ -146,7 +146,9 @@ def make_step(exp: ExperimentConfig, stage: StageConfig,
 CPU_MEMORY_SCHEDULER = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
 
-def _memory(compiled) -> dict[str, int]:
+def memory_analysis_bytes(compiled) -> dict[str, int]:
+    """XLA's ``memory_analysis()`` of a compiled step: argument, output, alias and temp bytes,
+    ``xla_total_bytes`` (their sum without alias) and ``xla_peak_bytes`` (total - alias)."""
     ma = compiled.memory_analysis()
     out = {k: int(getattr(ma, f"{k}_size_in_bytes")) for k in ("argument", "output", "alias", "temp")}
     out["xla_total_bytes"] = out["argument"] + out["output"] + out["temp"]
@@ -189,7 +191,7 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     t0 = time.perf_counter()
     compiled = T.pmap_train_step(step_fn, donate=True).lower(state, batches[0]).compile()
     compile_s = time.perf_counter() - t0
-    memory = _memory(compiled)
+    memory = memory_analysis_bytes(compiled)
     times, metrics = [], None
     if memory["xla_peak_bytes"] > max_step_bytes:
         batches = []  # too large for this machine: compile-time analysis only
@@ -222,7 +224,8 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     }
 
 
-def _paper_stage4() -> tuple[ExperimentConfig, StageConfig]:
+def paper_stage4_experiment() -> tuple[ExperimentConfig, StageConfig]:
+    """``experiments/dl3dv.py`` and its stage 4 (32 inputs + 8 targets at 960x540)."""
     exp = load_experiment(os.path.join(HERE, "dl3dv.py"))
     return exp, exp.stages[3]
 
@@ -268,7 +271,7 @@ def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
 
 def compile_paper() -> dict:
     """Lower and compile the stage-4 per-device step for CPU (run inside its own process)."""
-    exp, stage = _paper_stage4()
+    exp, stage = paper_stage4_experiment()
     step_fn, state, batch, _ = paper_abstract_args(exp, stage, perceptual_for_compile(exp))
     t0 = time.perf_counter()
     lowered = T.pmap_train_step(step_fn, donate=True).lower(state, batch)
@@ -276,7 +279,7 @@ def compile_paper() -> dict:
     t0 = time.perf_counter()
     compiled = lowered.compile()
     return {"source": "xla_compiled_cpu", "lower_s": lower_s, "compile_s": time.perf_counter() - t0,
-            "memory_analysis": _memory(compiled), "max_rss_bytes": _max_rss_bytes()}
+            "memory_analysis": memory_analysis_bytes(compiled), "max_rss_bytes": _max_rss_bytes()}
 
 
 _BREAKDOWN = re.compile(r"^(?P<indent>[\s│]*)[├└]── (?P<name>\S+) \([\d.]+%, total: (?P<total>[\d ]+) bytes")
@@ -317,7 +320,7 @@ def _nbytes(tree) -> int:
 
 def paper_estimate() -> dict:
     """``jax.eval_shape``-based sizes of the stage-4 per-device step (an estimate, not XLA's)."""
-    exp, stage = _paper_stage4()
+    exp, stage = paper_stage4_experiment()
     cfg = exp.model
     _, state, batch, (b, v, t, h, w) = paper_abstract_args(exp, stage, None)
     cdt = jnp.dtype(jnp.bfloat16 if exp.bf16 else jnp.float32).itemsize
