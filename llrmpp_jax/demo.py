@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 
 import jax
@@ -68,7 +69,10 @@ def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, r
 def train_from_scratch(out: str, steps: int | None = None, minutes: float | None = None) -> dict:
     """Part 2 (module docstring): ``experiments/demo.py`` (``steps`` / ``minutes`` override its
     budget). Returns ``{"summary", "evals", "loss_curve", "train_seconds"}``; writes
-    ``out/grid_*.png``, ``out/metrics.json`` and the training workdir's files under ``out``."""
+    ``out/grid_*.png``, ``out/metrics.json`` and the training workdir's files under ``out``.
+    ``out`` is emptied first: the trainer resumes a workdir's checkpoints, so a second
+    ``make demo`` would otherwise "train" no step and show no loss curve."""
+    shutil.rmtree(out, ignore_errors=True)
     exp = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py"))
     if steps:
         exp = replace(exp, stages=tuple(replace(s, steps=steps) for s in exp.stages))
