@@ -86,14 +86,7 @@ def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: t
     ``views`` (inputs, targets), ``size`` (h, w) and ``block`` (the blockwise kernel's query
     and key block) replace the stage's (32, 8), 544x960 and the config's (512, 512)."""
     exp, stage = paper_stage4_experiment()
-    model = exp.model
-
-    def kernel(t: C.TransformerConfig) -> C.TransformerConfig:
-        t = C.replace(t, attention_impl=impl)
-        return C.replace(t, attention_block_q=block[0], attention_block_k=block[1]) if block else t
-
-    model = C.replace(model, backbone=C.replace(model.backbone, transformer=kernel(model.backbone.transformer)),
-                      decoder=C.replace(model.decoder, transformer=kernel(model.decoder.transformer)))
+    model = C.with_attention(exp.model, impl, block)
     exp = C.replace(exp, model=model)
     b = stage.global_batch // PAPER_STAGE4_DEVICES
     h, w = size or (-(-stage.resize_h // model.size_multiple) * model.size_multiple, 960)  # 540 -> 544

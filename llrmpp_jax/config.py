@@ -296,15 +296,24 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
         import jax
 
         backend = jax.default_backend()
-    impl = "cudnn" if backend == "gpu" else "blockwise"
+    model = with_attention(model, "cudnn" if backend == "gpu" else "blockwise")
     return replace(
         model,
-        backbone=replace(model.backbone, transformer=replace(model.backbone.transformer, attention_impl=impl),
-                         mamba=replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True),
+        backbone=replace(model.backbone, mamba=replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True),
                          remat=True),
-        decoder=replace(model.decoder, transformer=replace(model.decoder.transformer, attention_impl=impl),
-                        remat=True),
+        decoder=replace(model.decoder, remat=True),
     )
+
+
+def with_attention(model: ModelConfig, impl: str, block: tuple[int, int] | None = None) -> ModelConfig:
+    """``model`` with ``impl`` as the global-attention kernel of the backbone's and the
+    decoder's transformers and, given ``block`` (queries, keys), the blockwise kernel's blocks."""
+    def kernel(t: TransformerConfig) -> TransformerConfig:
+        t = replace(t, attention_impl=impl)
+        return replace(t, attention_block_q=block[0], attention_block_k=block[1]) if block else t
+
+    return replace(model, backbone=replace(model.backbone, transformer=kernel(model.backbone.transformer)),
+                   decoder=replace(model.decoder, transformer=kernel(model.decoder.transformer)))
 
 
 def paper_dl3dv() -> ModelConfig:
