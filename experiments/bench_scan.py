@@ -112,8 +112,8 @@ def main() -> None:
     ap.add_argument("--d-state", type=int, default=256)
     ap.add_argument("--ngroups", type=int, default=1)
     ap.add_argument("--chunk", type=int, default=256, help="chunk size of the chunked and dense forms")
-    ap.add_argument("--fused-chunk", type=int, default=64,
-                    help="chunk size of the fused form (64 measured fastest on CPU; see experiments/README.md)")
+    ap.add_argument("--fused-chunk", type=int, default=128,
+                    help="chunk size of the fused form (128 measured fastest on CPU; see experiments/README.md)")
     ap.add_argument("--batch", type=int, default=1)
     ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
     ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")

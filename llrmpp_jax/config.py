@@ -35,7 +35,7 @@ class Mamba2Config:
     # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth),
     # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens) or
     # "fused" (one lax.scan doing each chunk's whole work: the fastest on CPU, with
-    # chunk_size 64; experiments/results/bench_scan.json). All three compute the same
+    # chunk_size 128; experiments/results/bench_scan.json). All three compute the same
     # function; they differ in speed and memory.
     inter_chunk: str = "associative"
     # Run the two scan directions as a loop of two, each recomputed in the backward pass

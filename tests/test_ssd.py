@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from llrmpp_jax.nn import ssd as ssd_module
 from llrmpp_jax.nn.ssd import segment_sum, ssd_dense, ssd_scan, ssd_sequential
 
 
@@ -149,6 +150,30 @@ def test_ssd_scan_gradients_match_sequential(rng):
         for name, g, w in zip("x dt A B C D".split(), got, want):
             assert g.dtype == jnp.float32
             assert _rel(g, w) <= 1e-4, (chunk_size, inter_chunk, name)
+
+
+@pytest.mark.parametrize("span_limit", [-1.0, np.inf])
+def test_fused_scan_both_diagonal_forms(rng, monkeypatch, span_limit):
+    """The fused scan's two forms of a chunk's diagonal block, each forced on every chunk:
+    per head (limit -1) and shared by the heads with the decay factorised (limit inf; decays
+    here span <= 16 * 0.1 * 32 = 51 nats per chunk, so the factors cannot overflow). Values
+    <= 1e-5 and VJPs <= 1e-4 relative to the float64 recurrence, 2 groups, L = 100, chunk 32."""
+    monkeypatch.setattr(ssd_module, "_FACTOR_SPAN", span_limit)
+    x, dt, A, B, C, D = _inputs(rng, (2,), 100, 4, 8, 2, 6, dt_range=(1e-3, 1e-1))
+    cot = jnp.asarray(rng.standard_normal(x.shape))
+
+    def value_and_vjp(fn, args):
+        y, vjp = jax.vjp(fn, *args)
+        return y, vjp(cot.astype(y.dtype))
+
+    fused = functools.partial(ssd_scan, chunk_size=32, inter_chunk="fused")
+    got_y, got = jax.jit(value_and_vjp, static_argnums=0)(lambda *a: fused(*a[:5], D=a[5]),
+                                                          tuple(jnp.asarray(a) for a in (x, dt, A, B, C, D)))
+    want_y, want = jax.jit(value_and_vjp, static_argnums=0)(lambda *a: ssd_sequential(*a[:5], D=a[5]),
+                                                            _f64(x, dt, A, B, C, D))
+    assert _rel(got_y, want_y) <= 1e-5
+    for name, g, w in zip("x dt A B C D".split(), got, want):
+        assert _rel(g, w) <= 1e-4, name
 
 
 @pytest.mark.parametrize("inter_chunk", ["associative", "fused"])

@@ -14,7 +14,7 @@ All three compute, per head ``h`` (of ``nh``) and per batch element, with
   recomputed in the backward (:func:`_map_chunk_groups`), so the memory the scan keeps or
   holds at once is O(L * (nh * P + n)) plus one group's blocks, not O(L * nh * Q).
   ``inter_chunk="fused"`` instead runs all four steps chunk by chunk in one ``lax.scan``
-  carrying the state (:func:`_fused_chunks`): the fastest form on CPU (the state stays in
+  carrying the state (:func:`_ssd_fused`): the fastest form on CPU (the state stays in
   cache; experiments/results/bench_scan.json).
 * :func:`ssd_dense` -- the same chunks, but the inter-chunk step is the dense
   O(chunks^2) einsum of ``ssd_minimal_discrete``; a second oracle for the scan.
@@ -30,6 +30,7 @@ bf16 matmuls with float32 accumulation). The output has the dtype of ``x``.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal
 
@@ -47,8 +48,10 @@ def _acc_dtype(dtype: jnp.dtype) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if dtype == jnp.float64 else jnp.dtype(jnp.float32)
 
 
-def _check_inputs(x, dt, A, B, C, D) -> None:
+def _check_inputs(x, dt, A, B, C, D, chunk_size: int | None = None) -> None:
     """Raise ``ValueError`` naming the offending argument and the expected shape."""
+    if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
+        raise ValueError(f"ssd: chunk_size must be a positive int, got {chunk_size!r}")
     if x.ndim < 3:
         raise ValueError(f"ssd: x must be [..., L, nh, P], got shape {x.shape}")
     *batch, L, nh, P = x.shape
@@ -194,50 +197,137 @@ def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
     return out.reshape(out.shape[0], -1, *out.shape[3:])
 
 
-def _fused_chunks(
-    Cc: Float[Array, "b c Q g n"],
-    Bc: Float[Array, "b c Q g n"],
-    hi: Float[Array, "b c g hg Q"],
-    lo: Float[Array, "b c g hg Q"],
-    xdt_bt: Float[Array, "b c g hg Q P"],
-    xdt_end: Float[Array, "b c Q g hg P"],
-    log_decay_from_start: Float[Array, "b c Q g hg"],
-    *,
-    cd: jnp.dtype,
-    acc: jnp.dtype,
-) -> Float[Array, "b c g hg Q P"]:
-    """Steps 1-4 of :func:`_ssd_chunked` chunk by chunk: one ``lax.scan`` over chunks whose
-    carry is the ``[b, g, hg, P, n]`` state entering the chunk. Per chunk: the diagonal
-    block, ``y += decay(start->l) C_l . S``, then ``S <- exp(a_c) S + s_c``.
+# The fused scan's two state matmuls, with hand-written VJPs. XLA:CPU's dot wants each operand
+# row-major along the contraction; with autodiff's own VJPs of these einsums it transposed the
+# [n, K] state (1.5 MB per chunk at the paper's sizes) twice per chunk in the backward. With
+# these (the products that contract over K written as (S R^T)^T) it transposes it once, and
+# the scan's fwd+bwd at L = 16,384 took 1.33 s against 1.42 s (same run; experiments/README.md).
 
-    Same work as the batched form, but no per-chunk states are materialised ([c, nh, P, n]:
-    400 MB at L = 65,536, Q = 256) and the state stays in cache between the two state
-    matmuls, which on XLA:CPU is what bounds the batched form (bench_scan.json). The step
-    is under ``jax.checkpoint``: the backward keeps only the carried states (one per chunk)
-    and recomputes each chunk's ``[Q, Q]`` blocks, which measured faster than storing them.
+
+def _state_dot_nt(S: Float[Array, "b g n k"], R: Float[Array, "b l g k"], acc) -> Float[Array, "b l g n"]:
+    """``sum_k R[b, l, g, k] S[b, g, n, k]``, as ``(S R^T)^T``."""
+    return jnp.einsum("bgnk,blgk->bgnl", S, R, preferred_element_type=acc).transpose(0, 3, 1, 2)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _state_read(C: Float[Array, "b l g n"], S: Float[Array, "b g n k"], acc) -> Float[Array, "b l g k"]:
+    """State -> output: ``C S`` per group."""
+    return jnp.einsum("blgn,bgnk->blgk", C, S, preferred_element_type=acc)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _state_write(B: Float[Array, "b l g n"], E: Float[Array, "b l g k"], acc) -> Float[Array, "b g n k"]:
+    """Tokens -> state: ``B^T E`` per group."""
+    return jnp.einsum("blgn,blgk->bgnk", B, E, preferred_element_type=acc)
+
+
+def _read_bwd(acc, res, dR):
+    C, S = res
+    dR = dR.astype(C.dtype)
+    return _state_dot_nt(S, dR, acc).astype(C.dtype), _state_write(C, dR, acc).astype(S.dtype)
+
+
+def _write_bwd(acc, res, G):
+    B, E = res
+    G = G.astype(B.dtype)
+    return _state_dot_nt(G, E, acc).astype(B.dtype), _state_read(B, G, acc).astype(E.dtype)
+
+
+_state_read.defvjp(lambda C, S, acc: (_state_read(C, S, acc), (C, S)), _read_bwd)
+_state_write.defvjp(lambda B, E, acc: (_state_write(B, E, acc), (B, E)), _write_bwd)
+
+
+# A chunk's diagonal block is factorised (see _ssd_fused) only where every head's decay
+# across the chunk spans at most this many nats: the factors then stay within e^{+-30}, far
+# from float32/bfloat16 over- and underflow, and each costs at most ~30 ulp of relative error.
+_FACTOR_SPAN = 60.0
+
+
+def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
+    """``ssd_scan(..., inter_chunk="fused")``: one ``lax.scan`` over chunks whose carry is the
+    ``[b, g, n, hg, P]`` state entering the chunk, everything token-major.
+
+    Per chunk of Q tokens, with ``cs`` the running sum of ``dt * A`` and ``d = cs - m`` about
+    the chunk's middle value ``m``:
+
+    * diagonal block ``y_l = sum_{s<=l} (C_l . B_s) exp(cs_l - cs_s) dt_s x_s``, computed as
+      ``exp(d_l) * sum_s [C B^T]_{ls} (exp(-d_s) dt_s x_s)``: one ``[Q, Q] @ [Q, hg * P]``
+      matmul shared by a group's heads, where the per-head form needs an ``[nh, Q, Q]``
+      block of exponentials and ``nh`` thin matmuls. Exact in real arithmetic; used where
+      every head's decay spans at most ``_FACTOR_SPAN`` nats across the chunk, else the
+      chunk takes the per-head form (:func:`_intra_chunk`'s algebra, ``lax.cond``);
+    * ``y_l += exp(cs_l) C_l . S`` (state -> output), ``y_l += D x_l``;
+    * ``S <- exp(cs_Q) S + sum_l B_l (exp(cs_Q - cs_l) dt_l x_l)^T``.
+
+    Every ``x``-sized operand is read inside the loop in its stored ``[L, nh, P]`` layout and
+    ``y`` is written in it, so nothing of that size is transposed or scaled outside the loop
+    (outside it only ``[L, nh]`` decay factors are computed). The step is remat'd
+    (``jax.checkpoint``): the backward keeps one state per chunk and recomputes the rest.
+    At the paper's block sizes and L = 16,384 the ops outside the loop took half the time of
+    the head-major form this replaced (profiled fwd+bwd: 314 against 630 ms; experiments/README.md,
+    "SSD scan speed").
     """
-    from_start = jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]  # [b, c, g, hg, Q, 1]
-    chunk_decay = jnp.exp(log_decay_from_start[:, :, -1])[..., None, None]  # [b, c, g, hg, 1, 1]
+    _check_inputs(x, dt, A, B, C, D, chunk_size)
+    *batch, L, nh, P = x.shape
+    g, n = B.shape[-2:]
+    hg = nh // g
+    acc, cd = _acc_dtype(x.dtype), x.dtype
+    Q, b = chunk_size, math.prod(batch)
+    nc = -(-L // Q)
+
+    def chunks(t: Array, tail: tuple[int, ...]) -> Array:  # [nc, b, Q, *tail]; zero padding is causal-safe
+        t = jnp.pad(t.reshape(b, L, *tail), [(0, 0), (0, nc * Q - L)] + [(0, 0)] * len(tail))
+        return jnp.moveaxis(t.reshape(b, nc, Q, *tail), 1, 0)
+
+    xc, Bc, Cc = chunks(x, (g, hg, P)), chunks(B, (g, n)).astype(cd), chunks(C, (g, n)).astype(cd)
+    dtc = chunks(dt, (g, hg)).astype(acc)
+    dA = dtc * A.reshape(1, 1, 1, g, hg).astype(acc)  # [nc, b, Q, g, hg], <= 0
+    hi, lo = (jnp.moveaxis(t, -1, 2) for t in _compensated_cumsum(jnp.moveaxis(dA, 2, -1)))
+    mid = jax.lax.stop_gradient(0.5 * (hi[:, :, :1] + hi[:, :, -1:]))  # cancels exactly: no gradient
+    d = (hi - mid) + lo
+    factor = jnp.max(hi[:, :, 0] - hi[:, :, -1], axis=(1, 2, 3)) <= _FACTOR_SPAN  # [nc]
+    log_from_start = jnp.cumsum(dA, axis=2)  # sum_{k<=l} dA_k
+    rev = jnp.flip(jnp.cumsum(jnp.flip(dA, axis=2), axis=2), axis=2)  # sum_{k>=l}: no cancellation
+    to_end = jnp.concatenate([rev[:, :, 1:], jnp.zeros_like(rev[:, :, :1])], axis=2)
+    scales = (dtc * jnp.exp(-d), jnp.exp(d), jnp.exp(log_from_start), dtc * jnp.exp(to_end))
+    chunk_decay = jnp.exp(log_from_start[:, :, -1])  # [nc, b, g, hg]
+    causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, Q, Q)  # [b, g, l, s]: s <= l
+    skip = None if D is None else D.reshape(1, 1, g, hg, 1).astype(acc)
 
     @jax.checkpoint
     def step(state, chunk):
-        Cq, Bq, hq, lq, xq, xe, fs, decay = chunk
-        y = _intra_chunk(Cq[:, None], Bq[:, None], hq[:, None], lq[:, None], xq[:, None], cd=cd, acc=acc)[:, 0]
-        y = y + fs * jnp.einsum("blgn,bghpn->bghlp", Cq, state.astype(cd), preferred_element_type=acc)
-        state = decay * state + jnp.einsum("blgn,blghp->bghpn", Bq, xe, preferred_element_type=acc)
-        return state, y
+        xq, Bq, Cq, dtq, hq, lq, factored, (s_in, s_out, s_start, s_end), decay = chunk
+        xa = xq.astype(acc)
+        CB = jnp.where(causal, jnp.einsum("blgn,bsgn->bgls", Cq, Bq, preferred_element_type=acc), 0.0)
 
-    b, _, g, hg, _, P = xdt_bt.shape
-    state = full_like_varying(xdt_bt, (b, g, hg, P, Cc.shape[-1]), 0.0, acc)
-    chunks = (Cc, Bc, hi, lo, xdt_bt, xdt_end, from_start, chunk_decay)
-    _, y = jax.lax.scan(step, state, tuple(jnp.moveaxis(t, 1, 0) for t in chunks))
-    return jnp.moveaxis(y, 0, 1)
+        def shared(_):
+            xs = (xa * s_in[..., None]).astype(cd)
+            return jnp.einsum("bgls,bsghp->blghp", CB.astype(cd), xs, preferred_element_type=acc) * s_out[..., None]
+
+        def per_head(_):
+            seg = (hq[:, :, None] - hq[:, None]) + (lq[:, :, None] - lq[:, None])  # [b, l, s, g, hg]
+            scores = CB.transpose(0, 2, 3, 1)[..., None] * jnp.exp(jnp.minimum(seg, 0.0))
+            scores = jnp.where(causal.reshape(1, Q, Q, 1, 1), scores, 0.0).astype(cd)
+            xdt = (xa * dtq[..., None]).astype(cd)
+            return jnp.einsum("blsgh,bsghp->blghp", scores, xdt, preferred_element_type=acc)
+
+        y = jax.lax.cond(factored, shared, per_head, None)
+        read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc)
+        y = y + s_start[..., None] * read.reshape(b, Q, g, hg, P)
+        if skip is not None:
+            y = y + skip * xa
+        xe = (xa * s_end[..., None]).astype(cd).reshape(b, Q, g, hg * P)
+        state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)
+        return state, y.astype(x.dtype)
+
+    state = full_like_varying(x, (b, g, n, hg, P), 0.0, acc)
+    _, y = jax.lax.scan(step, state, (xc, Bc, Cc, dtc, hi, lo, factor, scales, chunk_decay))
+    y = jnp.moveaxis(y, 0, 1).reshape(b, nc * Q, nh, P)[:, :L]
+    return y.reshape(*batch, L, nh, P)
 
 
 def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
-    _check_inputs(x, dt, A, B, C, D)
-    if not isinstance(chunk_size, int) or chunk_size < 1:
-        raise ValueError(f"ssd: chunk_size must be a positive int, got {chunk_size!r}")
+    _check_inputs(x, dt, A, B, C, D, chunk_size)
     *batch, L, nh, P = x.shape
     g, n = B.shape[-2:]
     hg = nh // g  # heads per group; head h reads group h // hg (mamba_ssm's repeat order)
@@ -246,9 +336,8 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     b = math.prod(batch)
     # Chunks are processed in `groups` equal groups of at most _GROUP_SCORES score entries
     # ([b, chunks, nh, Q, Q]); L is padded to a whole number of groups (< groups extra chunks).
-    # The fused form holds one chunk's blocks at a time: no groups.
     needed = -(-L // Q)
-    groups = 1 if inter_chunk == "fused" else -(-needed // max(1, _GROUP_SCORES // (b * nh * Q * Q)))
+    groups = -(-needed // max(1, _GROUP_SCORES // (b * nh * Q * Q)))
     nc = -(-needed // groups) * groups
 
     # Zero padding at the end is causal-safe: dt = 0 means no input and decay exp(0) = 1.
@@ -275,19 +364,16 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
     xdt_end = (xdt * jnp.exp(to_end)[..., None]).astype(cd)
     log_decay_from_start = jnp.cumsum(dA, axis=2)  # sum_{k<=l} dA_k, [b, c, Q, g, hg]
 
-    if inter_chunk == "fused":
-        y = _fused_chunks(Cc, Bc, hi, lo, xdt_bt, xdt_end, log_decay_from_start, cd=cd, acc=acc)
-    else:
-        # 1. Intra-chunk (diagonal blocks), in groups of chunks (see _intra_chunk).
-        y = _map_chunk_groups(lambda *a: _intra_chunk(*a, cd=cd, acc=acc), groups, Cc, Bc, hi, lo, xdt_bt)
-        # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T.
-        states = jnp.einsum("bclgn,bclghp->bcghpn", Bc, xdt_end, preferred_element_type=acc)
-        # 3. Inter-chunk recurrence over chunk states.
-        s_in = _inter_chunk_states(log_decay_from_start[:, :, -1], states, inter_chunk)
-        # 4. State to output: y_l += decay(start->l) C_l . S_in. Everything in the matmuls'
-        #    [b, c, g, hg, Q, P] layout; one transpose back at the end.
-        y_off = jnp.einsum("bclgn,bcghpn->bcghlp", Cc, s_in.astype(cd), preferred_element_type=acc)
-        y = y + y_off * jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]
+    # 1. Intra-chunk (diagonal blocks), in groups of chunks (see _intra_chunk).
+    y = _map_chunk_groups(lambda *a: _intra_chunk(*a, cd=cd, acc=acc), groups, Cc, Bc, hi, lo, xdt_bt)
+    # 2. Chunk states from zero: s = sum_l decay(l->end) dt_l x_l B_l^T.
+    states = jnp.einsum("bclgn,bclghp->bcghpn", Bc, xdt_end, preferred_element_type=acc)
+    # 3. Inter-chunk recurrence over chunk states.
+    s_in = _inter_chunk_states(log_decay_from_start[:, :, -1], states, inter_chunk)
+    # 4. State to output: y_l += decay(start->l) C_l . S_in. Everything in the matmuls'
+    #    [b, c, g, hg, Q, P] layout; one transpose back at the end.
+    y_off = jnp.einsum("bclgn,bcghpn->bcghlp", Cc, s_in.astype(cd), preferred_element_type=acc)
+    y = y + y_off * jnp.exp(jnp.moveaxis(log_decay_from_start, 2, -1))[..., None]
 
     if D is not None:
         y = y + D.reshape(g, hg).astype(acc)[None, None, :, :, None, None] * jnp.moveaxis(xc, 2, 4).astype(acc)
@@ -318,7 +404,7 @@ def ssd_scan(
       inter_chunk: ``"associative"`` (``lax.associative_scan``, log depth),
         ``"sequential"`` (``lax.scan`` over stored chunk states) or ``"fused"`` (one
         ``lax.scan`` over chunks doing all the work of a chunk, the state carried; fastest
-        on CPU, with ``chunk_size`` 64: ``experiments/results/bench_scan.json``).
+        on CPU, with ``chunk_size`` 128: ``experiments/results/bench_scan.json``).
 
     Returns:
       ``[..., L, nh, P]`` in the dtype of ``x``.
@@ -327,6 +413,8 @@ def ssd_scan(
         raise ValueError(
             f"ssd_scan: inter_chunk must be 'associative', 'sequential' or 'fused', got {inter_chunk!r}"
         )
+    if inter_chunk == "fused":
+        return _ssd_fused(x, dt, A, B, C, chunk_size, D)
     return _ssd_chunked(x, dt, A, B, C, chunk_size, D, inter_chunk)
 
 
