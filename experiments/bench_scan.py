@@ -236,6 +236,7 @@ def main() -> None:
         "cpu_count": os.cpu_count(),
         "load_average_1min_at_end": os.getloadavg()[0],  # shared boxes make timings noisy
         "jax_version": jax.__version__,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "preset": args.preset,
         "sizes": {
             "d_model": args.d_model, "d_inner": d_inner, "nheads": nh, "headdim": P, "d_state": n,
