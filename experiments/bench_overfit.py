@@ -9,7 +9,10 @@ One seeded scene of ``--frames`` frames; ``--inputs`` evenly spaced frames are t
 inputs, the frames half-way between consecutive inputs are held out (never a target), and
 every other frame (inputs included) is a training target (``--random-inputs``: each step
 also draws its inputs from those frames; evaluation keeps the fixed inputs). The scene is ray-cast once and
-kept in memory, so a step costs only the model. Each step renders ``--targets`` training
+kept in memory, so a step costs only the model. ``--dense D`` adds ``D - 1`` views between
+consecutive frames (a spline through the path) as training targets, except within ``--hole``
+frames of a held-out frame: the decoder then sees a continuum of target cameras and cannot
+memorise a few. Each step renders ``--targets`` training
 frames drawn at random; MSE, plus with ``--decoder-depth-weight`` the paper's depth loss
 on the decoder's depth head (log smooth-L1 + ``--depth-aux-weight`` x (gradient + normal));
 AdamW with warmup + cosine (the trainer's optimizer). ``--init`` starts from trained weights
@@ -27,6 +30,7 @@ shown view: target, prediction, |error| x4, nearest input; with depth also
 from __future__ import annotations
 
 import argparse
+import functools
 import glob
 import json
 import os
@@ -38,10 +42,12 @@ import numpy as np
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
+from llrmpp_jax.capture.render import spline_path
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
-from llrmpp_jax.data.synthetic import procedural_scene
+from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.data.synthetic import procedural_layout, procedural_scene, render_views
 from llrmpp_jax.evaluate import baseline_predictions, gaussian_statistics, picture_grid
 from llrmpp_jax.experiment import StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
@@ -61,7 +67,7 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
     head = C.GaussianHeadConfig(
         mode=args.mode, gaussians_per_token=args.k, feature_dim=args.f, sh_degree=0,
         max_dist=args.max_dist, scale_bias=args.scale_bias, scale_max=args.scale_max,
-        opacity_bias=args.opacity_bias, init_std=args.init_std,
+        opacity_bias=args.opacity_bias, init_std=args.init_std, anchors=args.anchors,
     )
     decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim,
                         init_std=head.init_std, depth_bias=args.depth_bias)
@@ -70,14 +76,43 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
     return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch, outputs=outputs)
 
 
-def split_frames(num_frames: int, num_inputs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(inputs, held_out, train_targets)`` frame indices: inputs evenly spaced, held-out
-    frames half-way between consecutive inputs, training targets all the rest plus the inputs."""
+def split_frames(num_frames: int, num_inputs: int, dense: int = 1,
+                 hole: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(inputs, held_out, train_targets)`` indices into the path of ``(num_frames - 1) * dense
+    + 1`` views (:func:`path_scene`; view ``i * dense`` is frame ``i``): inputs evenly spaced
+    frames, held-out frames half-way between consecutive inputs, training targets every view at
+    least ``hole`` frames from a held-out frame, inputs included (``dense=1, hole=1``: every
+    frame but the held-out ones)."""
     gap = num_frames // num_inputs
     inputs = np.arange(num_inputs) * gap + gap // 2
     held = (inputs[:-1] + inputs[1:]) // 2
-    train = np.setdiff1d(np.arange(num_frames), held)
-    return inputs, held, train
+    t = np.arange((num_frames - 1) * dense + 1) / dense
+    far = np.abs(t[:, None] - held[None, :]).min(axis=1) >= hole - 1e-9
+    return inputs * dense, held * dense, np.flatnonzero(far)
+
+
+def path_scene(seed: int, cfg: ProceduralConfig, dense: int) -> Scene:
+    """The procedural scene of ``seed`` seen from its camera path with ``dense - 1`` more views
+    between consecutive frames, on :func:`~llrmpp_jax.capture.render.spline_path` through the
+    frames (view ``i * dense`` is frame ``i`` exactly). ``dense=1``: the scene as drawn."""
+    if dense == 1:
+        return procedural_scene(seed, cfg)
+    lay, c2w, intrinsics, _ = procedural_layout(seed, cfg)
+    if not np.allclose(intrinsics, intrinsics[:1]):
+        raise ValueError(f"--dense: scene {seed} has per-frame intrinsics; the dense path needs one camera")
+    n = (cfg.num_frames - 1) * dense + 1
+    path = spline_path(c2w, n)
+    path[::dense] = c2w
+    intrinsics = np.repeat(intrinsics[:1], n, axis=0)
+
+    @functools.lru_cache(maxsize=None)
+    def frame(i: int):
+        return render_views(lay, path[i : i + 1], intrinsics[i : i + 1], cfg.height, cfg.width)
+
+    return Scene(name=f"procedural-{seed}-dense{dense}", c2w=path, intrinsics=intrinsics,
+                 hw=np.tile(np.array([[cfg.height, cfg.width]], dtype=np.int64), (n, 1)),
+                 frame_names=tuple(f"procedural-{seed}/{i / dense:g}" for i in range(n)),
+                 image_fn=lambda i: frame(i).rgb[0], depth_fn=lambda i: frame(i).depth[0])
 
 
 def depth_scores(pred: np.ndarray, target: np.ndarray) -> dict[str, dict[str, float]]:
@@ -142,6 +177,11 @@ def parser() -> argparse.ArgumentParser:
                         "(0.1: depths ~15 units, as in the notebooks' 8-frame windows)")
     p.add_argument("--frames", type=int, default=16, help="frames of the scene's camera path")
     p.add_argument("--inputs", type=int, default=4, help="fixed input views")
+    p.add_argument("--dense", type=int, default=1,
+                   help="views per frame step of the camera path: dense-1 extra training views between "
+                        "consecutive frames (1: the frames only)")
+    p.add_argument("--hole", type=float, default=1.0,
+                   help="training targets keep at least this many frames from every held-out frame")
     p.add_argument("--targets", type=int, default=2, help="training target views per step")
     p.add_argument("--steps", type=int, default=1000, help="training steps (0: score the --init weights as they are)")
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate")
@@ -158,6 +198,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--dec-dim", type=int, default=64, help="decoder width E")
     p.add_argument("--max-dist", type=float, default=8.0, help="distance = sigmoid(raw) * max_dist")
     p.add_argument("--scale-bias", type=float, default=-2.5, help="log-scale bias")
+    p.add_argument("--anchors", default="centre", choices=("centre", "grid"),
+                   help="where a token's Gaussians start (GaussianHeadConfig.anchors)")
     p.add_argument("--scale-max", type=float, default=-1.2, help="log-scale clamp")
     p.add_argument("--opacity-bias", type=float, default=-2.0, help="opacity logit bias")
     p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
@@ -193,11 +235,12 @@ def main() -> None:
     cfg = model_config(args) if init is None else init[1]
     if init is not None and args.decoder_depth_weight and "depth" not in cfg.outputs:
         p.error(f"--decoder-depth-weight: the model of --init {args.init} has no depth head")
-    scene = procedural_scene(args.seed, ProceduralConfig(height=args.res, width=args.res, num_frames=args.frames))
-    inputs, held, train = split_frames(args.frames, args.inputs)
+    scene = path_scene(args.seed, ProceduralConfig(height=args.res, width=args.res, num_frames=args.frames),
+                       args.dense)
+    inputs, held, train = split_frames(args.frames, args.inputs, args.dense, args.hole)
     geom = ViewGeometry(resize_h=args.res, multiple=cfg.size_multiple, square_crop=True)
     t0 = time.time()
-    everything = make_sample(scene, inputs, np.arange(args.frames), geom, with_depth=True,
+    everything = make_sample(scene, inputs, np.arange(len(scene.c2w)), geom, with_depth=True,
                              scene_scale=args.scene_scale)  # targets = every frame
     data_s = time.time() - t0
     frames = {k[len("target_"):]: v for k, v in everything.items() if k.startswith("target_")}
@@ -281,7 +324,8 @@ def main() -> None:
         "step_s": step_s, "input_psnr": float(np.mean(psnr_in)), "held_out_psnr": float(np.mean(psnr_held)),
         "input_psnr_per_view": psnr_in, "held_out_psnr_per_view": psnr_held, "held_out_baselines_psnr": baselines,
         "gaussians": {k: float(v) for k, v in gaussian_statistics(g).items()},
-        "frames": {"inputs": inputs.tolist(), "held_out": held.tolist()}, "log": log,
+        "frames": {"inputs": (inputs // args.dense).tolist(), "held_out": (held // args.dense).tolist(),
+                   "training_views": len(train)}, "log": log,
     }
     if args.decoder_depth_weight:
         result["depth"] = {"inputs": depth_scores(pred_in["depth"][..., 0], frames["depth"][inputs]),
