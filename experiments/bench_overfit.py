@@ -30,7 +30,6 @@ shown view: target, prediction, |error| x4, nearest input; with depth also
 from __future__ import annotations
 
 import argparse
-import functools
 import glob
 import json
 import os
@@ -47,7 +46,7 @@ from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.scene import Scene
-from llrmpp_jax.data.synthetic import procedural_layout, procedural_scene, render_views
+from llrmpp_jax.data.synthetic import procedural_layout, procedural_scene
 from llrmpp_jax.evaluate import baseline_predictions, gaussian_statistics, picture_grid
 from llrmpp_jax.experiment import StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
@@ -97,22 +96,13 @@ def path_scene(seed: int, cfg: ProceduralConfig, dense: int) -> Scene:
     frames (view ``i * dense`` is frame ``i`` exactly). ``dense=1``: the scene as drawn."""
     if dense == 1:
         return procedural_scene(seed, cfg)
-    lay, c2w, intrinsics, _ = procedural_layout(seed, cfg)
+    _, c2w, intrinsics, _ = procedural_layout(seed, cfg)
     if not np.allclose(intrinsics, intrinsics[:1]):
         raise ValueError(f"--dense: scene {seed} has per-frame intrinsics; the dense path needs one camera")
     n = (cfg.num_frames - 1) * dense + 1
     path = spline_path(c2w, n)
     path[::dense] = c2w
-    intrinsics = np.repeat(intrinsics[:1], n, axis=0)
-
-    @functools.lru_cache(maxsize=None)
-    def frame(i: int):
-        return render_views(lay, path[i : i + 1], intrinsics[i : i + 1], cfg.height, cfg.width)
-
-    return Scene(name=f"procedural-{seed}-dense{dense}", c2w=path, intrinsics=intrinsics,
-                 hw=np.tile(np.array([[cfg.height, cfg.width]], dtype=np.int64), (n, 1)),
-                 frame_names=tuple(f"procedural-{seed}/{i / dense:g}" for i in range(n)),
-                 image_fn=lambda i: frame(i).rgb[0], depth_fn=lambda i: frame(i).depth[0])
+    return procedural_scene(seed, cfg, cameras=(path, np.repeat(intrinsics[:1], n, axis=0)))
 
 
 def depth_scores(pred: np.ndarray, target: np.ndarray) -> dict[str, dict[str, float]]:

@@ -370,16 +370,23 @@ def procedural_layout(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> 
     return lay, c2w, intrinsics, kind
 
 
-def procedural_scene(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> Scene:
+def procedural_scene(
+    seed: int,
+    cfg: ProceduralConfig = ProceduralConfig(),
+    cameras: tuple[Float[np.ndarray, "N 4 4"], Float[np.ndarray, "N 4"]] | None = None,
+) -> Scene:
     """A lazily rendered :class:`Scene` (RGB + exact depth) for ``seed``; each frame is
-    ray-cast on first access and kept for the scene's lifetime."""
+    ray-cast on first access and kept for the scene's lifetime. ``cameras`` (``c2w``,
+    ``intrinsics``) replaces the drawn camera path: the same layout seen from other views."""
     lay, c2w, intrinsics, kind = procedural_layout(seed, cfg)
+    if cameras is not None:
+        c2w, intrinsics = (np.asarray(a, dtype=np.float64) for a in cameras)
 
     @functools.lru_cache(maxsize=None)
     def frame(i: int) -> Rendered:
         return render_views(lay, c2w[i : i + 1], intrinsics[i : i + 1], cfg.height, cfg.width)
 
-    n = cfg.num_frames
+    n = len(c2w)
     return Scene(
         name=f"procedural-{kind}-{seed}",
         c2w=c2w,
