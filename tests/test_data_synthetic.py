@@ -149,3 +149,17 @@ def test_cameras_stay_inside_the_room_and_clear_of_objects():
             local = (eyes - c) @ rot
             assert (np.abs(local) > half).any(axis=1).all()
         G.validate_cameras(c2w, k)
+
+
+def test_procedural_scene_from_other_cameras_renders_the_same_layout():
+    """``cameras=`` replaces the drawn path only: given frames 5 and 2 of the drawn path (in
+    that order) it renders exactly those frames' images and depths, under new frame indices."""
+    cfg = ProceduralConfig(height=24, width=32, num_frames=6)
+    drawn = procedural_scene(11, cfg)
+    picked = [5, 2]
+    moved = procedural_scene(11, cfg, cameras=(drawn.c2w[picked], drawn.intrinsics[picked]))
+    assert len(moved.c2w) == 2 and moved.hw.shape == (2, 2)
+    for i, f in enumerate(picked):
+        np.testing.assert_array_equal(moved.image(i), drawn.image(f))
+        np.testing.assert_array_equal(moved.depth(i), drawn.depth(f))
+    assert np.abs(moved.image(0) - moved.image(1)).mean() > 1e-3  # two different views
