@@ -13,13 +13,16 @@
 # PYTHON overrides the interpreter; BLOCKWISE_BLOCK the blockwise kernel's "Q,K" blocks for
 # the stage-4 step (default 2048,2048: the config's 512 makes 510 x 510 sequential blocks
 # per attention call at 261k tokens). PAPER_STEP_TIMEOUT: seconds per kernel (default 480; on
-# an H200 neither kernel got through compile + first step in 165 s, experiments/README.md).
+# an H200 each kernel took ~205 s from launch to its second step's end, experiments/README.md).
+# A persistent compilation cache makes the bench's memory_analysis() compile a cache hit.
 set -u
 out=${1:?usage: bash experiments/accelerator_check.sh OUT_DIR}
 py=${PYTHON:-python3}
 mkdir -p "$out"
 log="$out/log.txt"
-export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.95}
+export PYTHONUNBUFFERED=1 XLA_PYTHON_CLIENT_MEM_FRACTION=${XLA_PYTHON_CLIENT_MEM_FRACTION:-0.95} \
+  JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$out/jax_cache} \
+  JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES=0
 part() {  # part SECONDS NAME COMMAND...: run with a time limit, log its output and exit status
   local limit=$1 name=$2; shift 2
   echo "=== $name ($(date -u +%T), limit ${limit}s)" >>"$log"

@@ -24,6 +24,8 @@ process, so its peak memory is its own. Reported per kernel: the first call's se
 from a separate ahead-of-time compile, ``aot_compile_s``), the device's ``peak_bytes_in_use``, the median
 of ``--steps`` synced step times after the first call, the last step's loss and splat
 overflow (``splat_dropped``), and how many steps the trainer's guard skipped (``skipped_total``).
+Set ``JAX_COMPILATION_CACHE_DIR`` (with ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``) and
+the AOT compile loads the step's executable from the cache (0.4 s on an H200, not 80 s).
 """
 
 from __future__ import annotations
@@ -109,9 +111,12 @@ def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: t
         state, metrics = step(state, batches[i % 2])
         jax.block_until_ready((state, metrics))
         times.append(time.perf_counter() - t0)
-        progress(f"{impl}: call {i + 1}/{steps + 1} took {times[-1]:.1f} s")
+        peak_now = (jax.local_devices()[0].memory_stats() or {}).get("peak_bytes_in_use")
+        progress(f"{impl}: call {i + 1}/{steps + 1} took {times[-1]:.1f} s"
+                 + (f", device peak so far {peak_now / GIB:.2f} GiB" if peak_now is not None else ""))
     first_s, times = times[0], times[1:]
     stats = jax.local_devices()[0].memory_stats() or {}
+    peak, limit = stats.get("peak_bytes_in_use"), stats.get("bytes_limit")
     t0 = time.perf_counter()
     memory = memory_analysis_bytes(step.lower(state, batches[0]).compile())
     aot_compile_s = time.perf_counter() - t0
@@ -122,8 +127,7 @@ def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: t
         "params": count_params(params), "bf16": exp.bf16, "perceptual_weight": exp.perceptual_weight,
         "first_call_s": first_s, "compile_s": first_s - float(np.median(times)),
         "aot_compile_s": aot_compile_s, "memory_analysis": memory,
-        "device_peak_bytes_in_use": stats.get("peak_bytes_in_use"),
-        "device_bytes_limit": stats.get("bytes_limit"),
+        "device_peak_bytes_in_use": peak, "device_bytes_limit": limit,
         "step_s_median": float(np.median(times)), "step_s_all": times,
         "loss": float(np.asarray(metrics["loss"])[0]),
         "splat_dropped": float(np.asarray(metrics["splat_dropped"])[0]),
@@ -164,7 +168,9 @@ def main() -> None:
         return
     dev = jax.devices()[0]
     result = {"benchmark": "paper_step", "device": str(dev), "device_kind": dev.device_kind,
-              "platform": dev.platform, "jax_version": jax.__version__, "cases": {}}
+              "platform": dev.platform, "jax_version": jax.__version__,
+              "xla_flags": os.environ.get("XLA_FLAGS", ""),
+              "compilation_cache_dir": os.environ.get("JAX_COMPILATION_CACHE_DIR", ""), "cases": {}}
     for impl in impls:
         cmd = [sys.executable, os.path.abspath(__file__), "--_impl", impl, "--steps", str(args.steps),
                "--views", args.views, "--size", args.size, "--block", args.block]
