@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax import config as C
+from llrmpp_jax import model as model_module
 from llrmpp_jax import train as T
 from llrmpp_jax.capture.render import spline_path
 from llrmpp_jax.data import ProceduralConfig
@@ -195,6 +196,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
     p.add_argument("--random-inputs", action="store_true",
                    help="draw the inputs from the training frames each step (evaluation keeps the fixed ones)")
+    p.add_argument("--no-target-rays", action="store_true",
+                   help="a diagnostic: zeros in place of the target's Plucker rays at the decoder's input "
+                        "(the paper has them), so target views differ only by their splatted canvases")
     p.add_argument("--depth-weight", type=float, default=0.0,
                    help="weight of a depth loss on the Gaussians' own splatted depth (expected z at "
                         "canvas resolution) against the procedural ground truth; 0: none")
@@ -221,6 +225,9 @@ def main() -> None:
     if not args.name:
         p.error("--name is required to train")
 
+    if args.no_target_rays:  # model.render looks the function up at call time
+        model_module.append_target_rays = lambda canvas, c2w, intrinsics, ratio: jnp.concatenate(
+            [canvas, jnp.zeros((*canvas.shape[:-1], 6), canvas.dtype)], axis=-1)
     init = load_params(args.init) if args.init else None
     cfg = model_config(args) if init is None else init[1]
     if init is not None and args.decoder_depth_weight and "depth" not in cfg.outputs:
