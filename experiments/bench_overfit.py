@@ -56,6 +56,7 @@ from llrmpp_jax.metrics import depth_metrics, psnr
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.initializers import parse_init_std
 from llrmpp_jax.params_io import load_params
+from llrmpp_jax.refine import heldout_psnr, refine
 from llrmpp_jax.trainer import optimizer_config
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "learning")
@@ -199,6 +200,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-target-rays", action="store_true",
                    help="a diagnostic: zeros in place of the target's Plucker rays at the decoder's input "
                         "(the paper has them), so target views differ only by their splatted canvases")
+    p.add_argument("--refine-steps", type=int, default=0,
+                   help="a diagnostic: after training, fit the fixed inputs' Gaussians directly to every "
+                        "training view for this many steps (llrmpp_jax.refine, decoder frozen) and score "
+                        "the held-out views again; 0: none")
     p.add_argument("--depth-weight", type=float, default=0.0,
                    help="weight of a depth loss on the Gaussians' own splatted depth (expected z at "
                         "canvas resolution) against the procedural ground truth; 0: none")
@@ -324,6 +329,17 @@ def main() -> None:
         "frames": {"inputs": (inputs // args.dense).tolist(), "held_out": (held // args.dense).tolist(),
                    "training_views": len(train)}, "log": log,
     }
+    if args.refine_steps:  # one set of Gaussians for every training view: 3D-consistent by construction
+        ref = {k: jnp.asarray(frames[k][train][None]) for k in ("images", "c2w", "intrinsics")}
+        fitted, info = refine(params, cfg, g, ref["images"], ref["c2w"], ref["intrinsics"],
+                              steps=args.refine_steps, progress=True)
+        result["refine"] = {
+            "steps": info.steps, "views": len(train), "loss_first_last": [float(info.losses[0]), float(info.losses[-1])],
+            "splat_dropped": info.dropped,
+            **{f"{name}_psnr": heldout_psnr(params, cfg, fitted, *(jnp.asarray(frames[k][views][None])
+                                                                    for k in ("images", "c2w", "intrinsics")))
+               for name, views in (("input", inputs), ("held_out", held), ("training", train))}}
+        print("refine:", json.dumps(result["refine"]))
     if args.decoder_depth_weight:
         result["depth"] = {"inputs": depth_scores(pred_in["depth"][..., 0], frames["depth"][inputs]),
                            "held_out": depth_scores(pred_held["depth"][..., 0], frames["depth"][held])}
