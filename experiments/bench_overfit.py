@@ -330,15 +330,16 @@ def main() -> None:
                    "training_views": len(train)}, "log": log,
     }
     if args.refine_steps:  # one set of Gaussians for every training view: 3D-consistent by construction
-        ref = {k: jnp.asarray(frames[k][train][None]) for k in ("images", "c2w", "intrinsics")}
-        fitted, info = refine(params, cfg, g, ref["images"], ref["c2w"], ref["intrinsics"],
-                              steps=args.refine_steps, progress=True)
+        def views_of(v: np.ndarray) -> tuple[jax.Array, ...]:  # (images, c2w, intrinsics), [1, T, ...]
+            return tuple(jnp.asarray(frames[k][v][None]) for k in ("images", "c2w", "intrinsics"))
+
+        ref = views_of(train)
+        fitted, info = refine(params, cfg, g, *ref, steps=args.refine_steps, progress=True)
         result["refine"] = {
             "steps": info.steps, "views": len(train), "loss_first_last": [float(info.losses[0]), float(info.losses[-1])],
             "splat_dropped": info.dropped,
-            **{f"{name}_psnr": heldout_psnr(params, cfg, fitted, *(jnp.asarray(frames[k][views][None])
-                                                                    for k in ("images", "c2w", "intrinsics")))
-               for name, views in (("input", inputs), ("held_out", held), ("training", train))}}
+            **{f"{name}_psnr": heldout_psnr(params, cfg, fitted, *views)
+               for name, views in (("input", views_of(inputs)), ("held_out", views_of(held)), ("training", ref))}}
         print("refine:", json.dumps(result["refine"]))
     if args.decoder_depth_weight:
         result["depth"] = {"inputs": depth_scores(pred_in["depth"][..., 0], frames["depth"][inputs]),
