@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from llrmpp_jax.nn import ssd
 from llrmpp_jax.nn.ssd import ssd_dense, ssd_scan, ssd_sequential
 
 # name -> f(x, dt, A, B, C, D, chunk_size)
@@ -98,6 +99,14 @@ def _inputs(L: int, b: int, nh: int, P: int, g: int, n: int, dtype):
     A = -rng.uniform(1.0, 16.0, nh).astype(np.float32)
     cast = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     return cast(x), cast(dt), jnp.asarray(A), cast(B), cast(C), jnp.ones((nh,), jnp.float32)
+
+
+def _widest_span(dt: jax.Array, A: jax.Array, q: int) -> float:
+    """Largest decay (nats) any head accumulates over a chunk of ``q`` tokens after its first."""
+    dA = np.asarray(dt, np.float64) * np.asarray(A, np.float64)  # [b, L, nh]
+    pad = -dA.shape[1] % q
+    dA = np.pad(dA, [(0, 0), (0, pad), (0, 0)]).reshape(dA.shape[0], -1, q, dA.shape[2])
+    return float(-dA[:, :, 1:].sum(axis=2).min())
 
 
 def main() -> None:
@@ -158,6 +167,9 @@ def main() -> None:
                 passes.append(("fwd+bwd", jax.grad(loss, argnums=(0, 1, 2, 3, 4)), (x, dt, A, B, C, D, w)))
             for name, fn, fn_args in passes:
                 row = {"L": L, "method": method, "pass": name, "chunk_size": q}
+                if method == "fused":  # which loop the fused form runs (nn/ssd.py, _FACTOR_SPAN)
+                    row["widest_chunk_span_nats"] = _widest_span(dt, A, q)
+                    row["every_chunk_factorised"] = row["widest_chunk_span_nats"] <= ssd._FACTOR_SPAN
                 results.append(row)
                 need = _activation_bytes(method, name == "fwd+bwd", L, b, nh, P, g, n, q)
                 scale = 1.0

@@ -152,14 +152,31 @@ def test_ssd_scan_gradients_match_sequential(rng):
             assert _rel(g, w) <= 1e-4, (chunk_size, inter_chunk, name)
 
 
-@pytest.mark.parametrize("span_limit", [-1.0, np.inf])
-def test_fused_scan_both_diagonal_forms(rng, monkeypatch, span_limit):
-    """The fused scan's two forms of a chunk's diagonal block, each forced on every chunk:
-    per head (limit -1) and shared by the heads with the decay factorised (limit inf; decays
-    here span <= 16 * 0.1 * 32 = 51 nats per chunk, so the factors cannot overflow). Values
-    <= 1e-5 and VJPs <= 1e-4 relative to the float64 recurrence, 2 groups, L = 100, chunk 32."""
-    monkeypatch.setattr(ssd_module, "_FACTOR_SPAN", span_limit)
+@pytest.mark.parametrize("forms", ["per_head", "shared", "shared_wide", "mixed"])
+def test_fused_scan_both_diagonal_forms(rng, monkeypatch, forms):
+    """The fused scan's two forms of a chunk's diagonal block: each forced on every chunk,
+    ``per_head`` (limit -1) and ``shared`` by the heads with the decay factorised (limit inf:
+    the whole-sequence branch with no per-chunk choice; decays here span <= 16 * 0.1 * 32 =
+    51 nats per chunk); ``shared_wide``: every chunk factorised at the default limit with
+    ``dt`` scaled so the widest chunk spans 115 nats (factors near e^+-58, their rounding the
+    largest the limit allows); ``mixed``: the last two chunks' ``dt`` 30x larger, so one spans
+    > 200 nats, where the shared form's factors would leave float32 and the per-chunk choice
+    must take the per-head form. Values <= 1e-5 and VJPs <= 1e-4 relative to the float64
+    recurrence, 2 groups, L = 100, chunk 32."""
     x, dt, A, B, C, D = _inputs(rng, (2,), 100, 4, 8, 2, 6, dt_range=(1e-3, 1e-1))
+
+    def spans():  # per chunk: the largest decay (nats) over its tokens after the first, any head
+        dA = np.pad(dt * A, [(0, 0), (0, 28), (0, 0)]).reshape(2, 4, 32, 4)
+        return -dA[:, :, 1:].sum(axis=2).min(axis=(0, 2))
+
+    if forms == "shared_wide":
+        dt *= 115.0 / spans().max()
+        assert spans().max() < ssd_module._FACTOR_SPAN
+    elif forms == "mixed":
+        dt[:, 64:] *= 30.0
+        assert spans().min() < ssd_module._FACTOR_SPAN < 200.0 < spans().max(), spans()
+    else:
+        monkeypatch.setattr(ssd_module, "_FACTOR_SPAN", {"per_head": -1.0, "shared": np.inf}[forms])
     cot = jnp.asarray(rng.standard_normal(x.shape))
 
     def value_and_vjp(fn, args):

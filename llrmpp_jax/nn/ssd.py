@@ -245,9 +245,14 @@ _state_write.defvjp(lambda B, E, acc: (_state_write(B, E, acc), (B, E)), _write_
 
 
 # A chunk's diagonal block is factorised (see _ssd_fused) only where every head's decay
-# across the chunk spans at most this many nats: the factors then stay within e^{+-30}, far
-# from float32/bfloat16 over- and underflow, and each costs at most ~30 ulp of relative error.
-_FACTOR_SPAN = 60.0
+# across the chunk spans at most this many nats: the factors then stay within e^{+-60}, away
+# from float32/bfloat16 over- and underflow (e^{+-87}). Their rounding grows with the span:
+# float32 against the float64 recurrence, every chunk factorised, chunk 128, the output's
+# relative error is 2e-7 / 5e-7 / 8e-7 and the VJPs' 3e-6 / 9e-6 / 1.4e-5 at spans of 30 / 60 /
+# 120 nats (per-head form: 1e-7 and <= 8e-6). 120 rather than 60 lets ~half of the layers of
+# a model at Long-LRM's init (dt, A per head) factorise every chunk of 128, not ~4%
+# (experiments/README.md, "SSD scan speed").
+_FACTOR_SPAN = 120.0
 
 
 def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
@@ -262,8 +267,15 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
       matmul shared by a group's heads, where the per-head form needs an ``[nh, Q, Q]``
       block of exponentials and ``nh`` thin matmuls. Exact in real arithmetic; used where
       every head's decay spans at most ``_FACTOR_SPAN`` nats across the chunk, else the
-      chunk takes the per-head form (:func:`_intra_chunk`'s algebra, ``lax.cond``);
-    * ``y_l += exp(cs_l) C_l . S`` (state -> output), ``y_l += D x_l``;
+      chunk takes the per-head form (:func:`_intra_chunk`'s algebra). The choice is made
+      once for the sequence where it can be: if every chunk factorises (the usual case:
+      the bench's inputs span <= 58 nats per chunk of 128), one ``lax.cond`` outside the
+      loop runs a loop with no choice in it; otherwise the loop whose chunks choose
+      (``lax.cond`` per chunk, which costs ~13% of fwd+bwd at L = 16,384 even when unused).
+      Under ``vmap`` a ``lax.cond`` runs both branches: batch through the leading axes;
+    * ``y_l += exp(cs_l) C_l . S`` (state -> output; in the loop with no choice written
+      ``exp(d_l) exp(m) C_l . S`` and summed with the diagonal block before its factor
+      ``exp(d_l)``), ``y_l += D x_l``;
     * ``S <- exp(cs_Q) S + sum_l B_l (exp(cs_Q - cs_l) dt_l x_l)^T``.
 
     Every ``x``-sized operand is read inside the loop in its stored ``[L, nh, P]`` layout and
@@ -293,40 +305,57 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
     mid = jax.lax.stop_gradient(0.5 * (hi[:, :, :1] + hi[:, :, -1:]))  # cancels exactly: no gradient
     d = (hi - mid) + lo
     factor = jnp.max(hi[:, :, 0] - hi[:, :, -1], axis=(1, 2, 3)) <= _FACTOR_SPAN  # [nc]
+    # Chunks that take the per-head form never use the factors; 0 there keeps exp(+-d) finite
+    # (e^+-d overflows past ~88 nats, and inf * 0 would make the backward NaN).
+    d = jnp.where(factor[:, None, None, None, None], d, jnp.zeros((), acc))
     log_from_start, to_end = _chunk_log_decays(dA)
     scales = (dtc * jnp.exp(-d), jnp.exp(d), jnp.exp(log_from_start), dtc * jnp.exp(to_end))
     chunk_decay = jnp.exp(log_from_start[:, :, -1])  # [nc, b, g, hg]
     causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, Q, Q)  # [b, g, l, s]: s <= l
     skip = None if D is None else D.reshape(1, 1, g, hg, 1).astype(acc)
 
-    @jax.checkpoint
-    def step(state, chunk):
-        xq, Bq, Cq, dtq, hq, lq, factored, (s_in, s_out, s_start, s_end), decay = chunk
-        xa = xq.astype(acc)
-        CB = jnp.where(causal, jnp.einsum("blgn,bsgn->bgls", Cq, Bq, preferred_element_type=acc), 0.0)
+    def run(choose_per_chunk: bool) -> Array:
+        """The chunk loop; with ``choose_per_chunk`` each chunk picks its diagonal form."""
 
-        def shared(_):
-            xs = (xa * s_in[..., None]).astype(cd)
-            return jnp.einsum("bgls,bsghp->blghp", CB.astype(cd), xs, preferred_element_type=acc) * s_out[..., None]
+        @jax.checkpoint
+        def step(state, chunk):
+            xq, Bq, Cq, dtq, hq, lq, factored, (s_in, s_out, s_start, s_end), decay, e_mid = chunk
+            xa = xq.astype(acc)
+            CB = jnp.where(causal, jnp.einsum("blgn,bsgn->bgls", Cq, Bq, preferred_element_type=acc), 0.0)
+            read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc).reshape(b, Q, g, hg, P)
 
-        def per_head(_):  # _intra_chunk's algebra in this layout (calling it costs fwd+bwd 4-7%)
-            seg = (hq[:, :, None] - hq[:, None]) + (lq[:, :, None] - lq[:, None])  # [b, l, s, g, hg]
-            scores = CB.transpose(0, 2, 3, 1)[..., None] * jnp.exp(jnp.minimum(seg, 0.0))
-            scores = jnp.where(causal.reshape(1, Q, Q, 1, 1), scores, 0.0).astype(cd)
-            xdt = (xa * dtq[..., None]).astype(cd)
-            return jnp.einsum("blsgh,bsghp->blghp", scores, xdt, preferred_element_type=acc)
+            def shared(_):  # the diagonal block before its l-side factor exp(d_l)
+                xs = (xa * s_in[..., None]).astype(cd)
+                return jnp.einsum("bgls,bsghp->blghp", CB.astype(cd), xs, preferred_element_type=acc)
 
-        y = jax.lax.cond(factored, shared, per_head, None)
-        read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc)
-        y = y + s_start[..., None] * read.reshape(b, Q, g, hg, P)
-        if skip is not None:
-            y = y + skip * xa
-        xe = (xa * s_end[..., None]).astype(cd).reshape(b, Q, g, hg * P)
-        state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)
-        return state, y.astype(x.dtype)
+            def per_head(_):  # _intra_chunk's algebra in this layout (calling it costs fwd+bwd 4-7%)
+                seg = (hq[:, :, None] - hq[:, None]) + (lq[:, :, None] - lq[:, None])  # [b, l, s, g, hg]
+                scores = CB.transpose(0, 2, 3, 1)[..., None] * jnp.exp(jnp.minimum(seg, 0.0))
+                scores = jnp.where(causal.reshape(1, Q, Q, 1, 1), scores, 0.0).astype(cd)
+                xdt = (xa * dtq[..., None]).astype(cd)
+                return jnp.einsum("blsgh,bsghp->blghp", scores, xdt, preferred_element_type=acc)
 
-    state = full_like_varying(x, (b, g, n, hg, P), 0.0, acc)
-    _, y = jax.lax.scan(step, state, (xc, Bc, Cc, dtc, hi, lo, factor, scales, chunk_decay))
+            if choose_per_chunk:
+                y = jax.lax.cond(factored, lambda _: shared(_) * s_out[..., None], per_head, None)
+                y = y + s_start[..., None] * read
+            else:
+                # exp(cs_l) = exp(d_l) exp(mid): the read-out shares the diagonal block's l-side
+                # factor, so one scaling of their sum, and one per-token reduction fewer in the
+                # backward (fwd+bwd -4 to -6% at L = 16,384; exp(mid) has no gradient).
+                y = (shared(None) + e_mid[:, None, :, :, None] * read) * s_out[..., None]
+            if skip is not None:
+                y = y + skip * xa
+            xe = (xa * s_end[..., None]).astype(cd).reshape(b, Q, g, hg * P)
+            state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)
+            return state, y.astype(x.dtype)
+
+        state = full_like_varying(x, (b, g, n, hg, P), 0.0, acc)
+        xs = (xc, Bc, Cc, dtc, hi, lo, factor, scales, chunk_decay, jnp.exp(mid[:, :, 0]))
+        return jax.lax.scan(step, state, xs)[1]
+
+    # One conditional for the whole sequence: a per-chunk `lax.cond` inside the loop costs
+    # fwd+bwd ~13% at L = 16,384 even when every chunk takes the shared form (experiments/README.md).
+    y = jax.lax.cond(jnp.all(factor), lambda: run(False), lambda: run(True))
     y = jnp.moveaxis(y, 0, 1).reshape(b, nc * Q, nh, P)[:, :L]
     return y.reshape(*batch, L, nh, P)
 
