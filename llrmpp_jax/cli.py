@@ -54,7 +54,11 @@ def cmd_train(args) -> int:
         import jax
 
         jax.distributed.initialize()
-    train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map)
+    result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map)
+    if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
+        import signal
+
+        return 128 + signal.Signals[result["stopped_by"]].value
     return 0
 
 
@@ -355,7 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
     sub = p.add_subparsers(dest="command", required=True)
 
-    t = sub.add_parser("train", help="train an experiment (resumes from the workdir's checkpoints)")
+    about = ("train an experiment (resumes from the workdir's checkpoints; Ctrl-C or SIGTERM stops after the "
+             "current step with a checkpoint, exit status 128 + signal)")
+    t = sub.add_parser("train", help=about, description=about)
     t.add_argument("--config", required=True, help="experiment file, e.g. experiments/dl3dv.py")
     t.add_argument("--workdir", required=True, help="checkpoints, TensorBoard logs and train_log.json go here")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")

@@ -208,7 +208,18 @@ def train(
     use_pmap: bool = True,
     progress: bool = True,
 ) -> dict:
-    """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``."""
+    """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``.
+
+    SIGINT (Ctrl-C) or SIGTERM stops the run after the current step with a checkpoint
+    (``result["stopped_by"]`` names the signal); the same call resumes from it. A second
+    Ctrl-C interrupts at once."""
+    with T.stop_on_signals() as stop:
+        return _train_stages(exp, workdir, stop, max_minutes=max_minutes, use_pmap=use_pmap, progress=progress)
+
+
+def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, max_minutes: float | None,
+                  use_pmap: bool, progress: bool) -> dict:
+    """:func:`train`'s body; ``stop`` ends it at the next step boundary, checkpointed."""
     exp.check_devices(jax.device_count())
     vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
     scene_source(exp.data)  # so does a missing or empty dataset
@@ -262,7 +273,7 @@ def train(
         samples, names = eval_samples(exp, stage) if exp.eval_every else ([], [])
         bar = tqdm(total=stage.steps, initial=start, desc=f"{exp.name}/{stage.name}",
                    disable=not progress or jax.process_index() != 0, dynamic_ncols=True)
-        step, t_log, out_of_time = start, time.time(), False
+        step, t_log, stop_now = start, time.time(), False
         try:
             while step < stage.steps:
                 state, metrics = run(state, place(next(it)))
@@ -277,12 +288,13 @@ def train(
                     if writer is not None:
                         for k, v in m.items():
                             writer.add_scalar(f"train/{k}", v, step)
-                out_of_time = budget is not None and (time.time() - t_start) / 60 > budget
-                last = step == stage.steps or out_of_time
+                stop_now = bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget
+                last = step == stage.steps or stop_now
                 if step % exp.checkpoint_every == 0 or last:
                     T.save_checkpoint(ckpt_dir, _host_state(state, use_pmap), data_state=it.state(),
                                       config=exp, keep=exp.keep_checkpoints)
-                if samples and (step % exp.eval_every == 0 or last):
+                # a signalled stop skips the evaluation: a scheduler's grace period is short
+                if samples and (step % exp.eval_every == 0 or last and not stop):
                     p = _host_state(state, use_pmap).params
                     _, summary, preds = evaluate(p, exp.model, samples, names=names)
                     if writer is not None:
@@ -294,14 +306,19 @@ def train(
                                f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
                     result["eval"] = summary
                     result.setdefault("evals", []).append({"stage": stage.name, "step": step, **summary["model"]})
-                if out_of_time:
+                if stop:
+                    tqdm.write(f"{stop.signal_name} received: stopped at step {step} of stage {stage.name};"
+                               " checkpoint saved, the same command resumes from it")
+                    result["stopped_by"] = stop.signal_name
+                    break
+                if stop_now:
                     tqdm.write(f"time budget of {budget} min reached at step {step}; checkpoint saved")
                     break
         finally:
             bar.close()
         params = _host_state(state, use_pmap).params
         result["stages"].append({"stage": stage.name, "steps": step, "skipped_data": it.skipped})
-        if out_of_time:
+        if stop_now:
             break
     if writer is not None:
         writer.close()
@@ -309,7 +326,7 @@ def train(
     result["params"] = params
     with open(os.path.join(workdir, "train_log.json"), "w") as f:
         json.dump({"stages": result["stages"], "history": history, "eval": result.get("eval"),
-                   "evals": result.get("evals", [])}, f, indent=1)
+                   "evals": result.get("evals", []), "stopped_by": result.get("stopped_by")}, f, indent=1)
     return result
 
 

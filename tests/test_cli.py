@@ -137,6 +137,38 @@ def test_train_resume_and_eval(tmp_path):
     assert rows[0].startswith("scene,method,psnr,ssim,lpips") and len(rows) == 1 + 3
 
 
+def test_sigterm_stops_train_with_a_checkpoint(tmp_path):
+    """``llrmpp train`` gets SIGTERM during a 1,000-step run: it stops after the current step
+    with a verified checkpoint of that step, exits 128 + 15, records the signal in
+    train_log.json, skips the final evaluation and puts the old handler back (resuming from
+    a checkpoint: test_train_resume_and_eval)."""
+    import signal
+    import threading
+
+    from llrmpp_jax.train import verify_checkpoint
+
+    before = signal.getsignal(signal.SIGTERM)
+
+    def send_once_installed():  # the signal goes out only once training handles it
+        for _ in range(12_000):
+            if signal.getsignal(signal.SIGTERM) is not before:
+                os.kill(os.getpid(), signal.SIGTERM)
+                return
+            threading.Event().wait(0.01)
+
+    cfg_file = tmp_path / "micro.py"
+    cfg_file.write_text("import sys\nsys.path.insert(0, %r)\nfrom test_cli import _micro_experiment\n"
+                        "def get_config():\n    return _micro_experiment(1000)\n" % os.path.dirname(__file__))
+    work = str(tmp_path / "run")
+    threading.Thread(target=send_once_installed, daemon=True).start()
+    assert main(["train", "--config", str(cfg_file), "--workdir", work]) == 128 + signal.SIGTERM.value
+    log = json.load(open(os.path.join(work, "train_log.json")))
+    stopped_at = log["stages"][0]["steps"]
+    assert log["stopped_by"] == "SIGTERM" and 1 <= stopped_at < 1000 and log["evals"] == []
+    verify_checkpoint(os.path.join(work, "checkpoints", "s1"), stopped_at)
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 @pytest.mark.slow
 def test_workdir_reconstruct_render_export_feature_mode(tmp_path):
     """A training workdir records its experiment: reconstruct, render and export read it

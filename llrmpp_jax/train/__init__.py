@@ -10,6 +10,7 @@ from llrmpp_jax.train.checkpoint import (
     save_checkpoint,
     verify_checkpoint,
 )
+from llrmpp_jax.train.interrupt import StopRequest, stop_on_signals
 from llrmpp_jax.train.optimizer import (
     OptimizerConfig,
     make_optimizer,
@@ -38,6 +39,7 @@ __all__ = [
     "CorruptCheckpointError",
     "IncompatibleCheckpointError",
     "OptimizerConfig",
+    "StopRequest",
     "Restored",
     "recorded_config",
     "TrainState",
@@ -55,6 +57,7 @@ __all__ = [
     "shard_for_pmap",
     "sharded_train_step",
     "step_key",
+    "stop_on_signals",
     "unreplicate",
     "verify_checkpoint",
     "warmup_cosine_schedule",
