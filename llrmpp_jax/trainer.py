@@ -306,7 +306,9 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
                                f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
                     result["eval"] = summary
                     result.setdefault("evals", []).append({"stage": stage.name, "step": step, **summary["model"]})
-                if stop:
+                # stop_now was decided before the checkpoint: a signal that came during this
+                # step's evaluation stops the loop after the next step, checkpointed there
+                if stop_now and stop:
                     tqdm.write(f"{stop.signal_name} received: stopped at step {step} of stage {stage.name};"
                                " checkpoint saved, the same command resumes from it")
                     result["stopped_by"] = stop.signal_name
