@@ -12,6 +12,7 @@ import argparse
 import csv
 import json
 import os
+import signal
 import sys
 
 from llrmpp_jax.experiment import EXPERIMENTS_DIR as EXPERIMENTS
@@ -56,8 +57,6 @@ def cmd_train(args) -> int:
         jax.distributed.initialize()
     result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map)
     if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
-        import signal
-
         return 128 + signal.Signals[result["stopped_by"]].value
     return 0
 

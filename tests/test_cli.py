@@ -116,6 +116,14 @@ def _micro_experiment(steps: int = 2) -> ExperimentConfig:
     )
 
 
+def _micro_experiment_file(tmp_path, steps: int):
+    """An experiment file (for ``--config``) whose ``get_config`` is ``_micro_experiment(steps)``."""
+    path = tmp_path / "micro.py"
+    path.write_text("import sys\nsys.path.insert(0, %r)\nfrom test_cli import _micro_experiment\n"
+                    "def get_config():\n    return _micro_experiment(%d)\n" % (os.path.dirname(__file__), steps))
+    return path
+
+
 def test_train_resume_and_eval(tmp_path):
     """2 steps, then the same run extended to 3 resumes at step 2; eval reads the checkpoint."""
     from llrmpp_jax.trainer import train
@@ -129,9 +137,7 @@ def test_train_resume_and_eval(tmp_path):
     second = train(_micro_experiment(3), work, progress=False)
     assert [h["step"] for h in second["history"]] == [3]  # resumed, not restarted
     assert os.listdir(os.path.join(work, "tb"))
-    cfg_file = tmp_path / "micro.py"
-    cfg_file.write_text("import sys\nsys.path.insert(0, %r)\nfrom test_cli import _micro_experiment\n"
-                        "def get_config():\n    return _micro_experiment(3)\n" % os.path.dirname(__file__))
+    cfg_file = _micro_experiment_file(tmp_path, 3)
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--out", str(tmp_path / "ev")]) == 0
     rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
     assert rows[0].startswith("scene,method,psnr,ssim,lpips") and len(rows) == 1 + 3
@@ -156,9 +162,7 @@ def test_sigterm_stops_train_with_a_checkpoint(tmp_path):
                 return
             threading.Event().wait(0.01)
 
-    cfg_file = tmp_path / "micro.py"
-    cfg_file.write_text("import sys\nsys.path.insert(0, %r)\nfrom test_cli import _micro_experiment\n"
-                        "def get_config():\n    return _micro_experiment(1000)\n" % os.path.dirname(__file__))
+    cfg_file = _micro_experiment_file(tmp_path, 1000)
     work = str(tmp_path / "run")
     threading.Thread(target=send_once_installed, daemon=True).start()
     assert main(["train", "--config", str(cfg_file), "--workdir", work]) == 128 + signal.SIGTERM.value
