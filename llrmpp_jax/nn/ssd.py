@@ -32,13 +32,14 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
-from llrmpp_jax.nn.variance import full_like_varying
+from llrmpp_jax.nn.variance import common_variance, full_like_varying
 
 InterChunk = Literal["associative", "sequential", "dense", "fused"]
 
@@ -255,6 +256,131 @@ _state_write.defvjp(lambda B, E, acc: (_state_write(B, E, acc), (B, E)), _write_
 _FACTOR_SPAN = 120.0
 
 
+class _FusedMeta(NamedTuple):
+    """Static sizes and dtypes of the fused scan (hashable: a ``custom_vjp`` nondiff argument)."""
+
+    b: int
+    Q: int
+    g: int
+    n: int
+    hg: int
+    P: int
+    acc: jnp.dtype
+    cd: jnp.dtype
+    out: jnp.dtype
+
+
+# One chunk's inputs, each with the chunk axis removed: x [b, Q, g, hg, P], B and C [b, Q, g, n],
+# dt, hi, lo [b, Q, g, hg], the four per-token scales (s_in, s_out, s_start, s_end)
+# [b, Q, g, hg], the chunk's total decay [b, g, hg] and exp(mid) [b, g, hg].
+_Chunk = tuple
+
+
+def _fused_step(meta: _FusedMeta, choose_per_chunk: bool, state: Array, chunk: _Chunk, factored: Array,
+                skip: Array | None) -> tuple[Array, Array]:
+    """One chunk of :func:`_ssd_fused`: ``(state entering it, its inputs) -> (state leaving it, y)``.
+
+    ``state`` is ``[b, g, n, hg, P]`` (``meta.acc``); ``y`` is ``[b, Q, g, hg, P]`` in
+    ``meta.out``. With ``choose_per_chunk`` the diagonal block takes the shared form where
+    ``factored`` (a scalar bool) holds and the per-head form elsewhere; without it, the
+    shared form (the caller knows every chunk factorises).
+    """
+    b, Q, g, n, hg, P, acc, cd, _ = meta
+    xq, Bq, Cq, dtq, hq, lq, (s_in, s_out, s_start, s_end), decay, e_mid = chunk
+    causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, Q, Q)  # [b, g, l, s]: s <= l
+    xa = xq.astype(acc)
+    CB = jnp.where(causal, jnp.einsum("blgn,bsgn->bgls", Cq, Bq, preferred_element_type=acc), 0.0)
+    read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc).reshape(b, Q, g, hg, P)
+
+    def shared(_):  # the diagonal block before its l-side factor exp(d_l)
+        xs = (xa * s_in[..., None]).astype(cd)
+        return jnp.einsum("bgls,bsghp->blghp", CB.astype(cd), xs, preferred_element_type=acc)
+
+    def per_head(_):  # _intra_chunk's algebra in this layout (calling it costs fwd+bwd 4-7%)
+        seg = (hq[:, :, None] - hq[:, None]) + (lq[:, :, None] - lq[:, None])  # [b, l, s, g, hg]
+        scores = CB.transpose(0, 2, 3, 1)[..., None] * jnp.exp(jnp.minimum(seg, 0.0))
+        scores = jnp.where(causal.reshape(1, Q, Q, 1, 1), scores, 0.0).astype(cd)
+        xdt = (xa * dtq[..., None]).astype(cd)
+        return jnp.einsum("blsgh,bsghp->blghp", scores, xdt, preferred_element_type=acc)
+
+    if choose_per_chunk:
+        y = jax.lax.cond(factored, lambda _: shared(_) * s_out[..., None], per_head, None)
+        y = y + s_start[..., None] * read
+    else:
+        # exp(cs_l) = exp(d_l) exp(mid): the read-out shares the diagonal block's l-side
+        # factor, so one scaling of their sum, and one per-token reduction fewer in the
+        # backward (fwd+bwd -4 to -6% at L = 16,384; exp(mid) has no gradient).
+        y = (shared(None) + e_mid[:, None, :, :, None] * read) * s_out[..., None]
+    if skip is not None:
+        y = y + skip * xa
+    xe = (xa * s_end[..., None]).astype(cd).reshape(b, Q, g, hg * P)
+    state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)
+    return state, y.astype(meta.out)
+
+
+def _run_chunks(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None, keep_states: bool):
+    """All chunks in one ``lax.scan`` from the zero state: ``y`` ``[nc, b, Q, g, hg, P]``, and with
+    ``keep_states`` also the state entering each chunk ``[nc, b, g, n, hg, P]``.
+
+    One ``lax.cond`` for the whole sequence picks the loop: a per-chunk ``lax.cond`` inside it
+    costs fwd+bwd ~13% at L = 16,384 even when every chunk takes the shared form
+    (experiments/README.md), so the loop with the per-chunk choice runs only when some chunk
+    does not factorise. Under ``vmap`` a ``lax.cond`` runs both branches: batch through the
+    leading axes.
+    """
+    state0 = full_like_varying(xs[0], (meta.b, meta.g, meta.n, meta.hg, meta.P), 0.0, meta.acc)
+
+    def run(choose_per_chunk: bool):
+        def body(state, inputs):
+            chunk, factored = inputs
+            new, y = _fused_step(meta, choose_per_chunk, state, chunk, factored, skip)
+            return new, ((y, state) if keep_states else y)
+
+        return jax.lax.scan(body, state0, (xs, factor))[1]
+
+    return jax.lax.cond(jnp.all(factor), lambda: run(False), lambda: run(True))
+
+
+# The fused loop's VJP is written out: the forward keeps the state entering each chunk, the
+# backward runs the chunks in reverse, recomputing each one's step from its state (the work of
+# a remat'd scan). Autodiff of a `jax.checkpoint`ed step under the whole-sequence `lax.cond`
+# passed the x-, B- and C-sized residuals out of the cond, copied: fwd+bwd at L = 65,536
+# took 5-12% longer than this (experiments/README.md, "SSD scan speed on CPU").
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _chunk_loop(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None) -> Array:
+    """``y`` ``[nc, b, Q, g, hg, P]`` of every chunk (:func:`_run_chunks`); ``factor`` ``[nc]`` bool."""
+    return _run_chunks(meta, factor, xs, skip, keep_states=False)
+
+
+def _chunk_loop_fwd(meta, factor, xs, skip):
+    y, states = _run_chunks(meta, factor, xs, skip, keep_states=True)
+    return y, (factor, xs, skip, states)
+
+
+def _chunk_loop_bwd(meta, res, dy):
+    factor, xs, skip, states = res
+
+    def run(choose_per_chunk: bool):
+        def body(carry, inputs):
+            d_state, d_skip = carry
+            chunk, factored, state, dy_c = inputs
+            _, vjp = jax.vjp(lambda s, c, k: _fused_step(meta, choose_per_chunk, s, c, factored, k),
+                             state, chunk, skip)
+            d_state, d_chunk, d_k = vjp((d_state, dy_c))
+            return (d_state, jax.tree.map(jnp.add, d_skip, d_k)), d_chunk
+
+        d0 = (full_like_varying(states, states.shape[1:], 0.0, states.dtype),
+              jax.tree.map(jnp.zeros_like, skip))
+        (_, d_skip), d_xs = jax.lax.scan(body, d0, (xs, factor, states, dy), reverse=True)
+        return d_xs, d_skip
+
+    d_xs, d_skip = jax.lax.cond(jnp.all(factor), lambda: run(False), lambda: run(True))
+    return np.zeros(factor.shape, jax.dtypes.float0), d_xs, d_skip
+
+
+_chunk_loop.defvjp(_chunk_loop_fwd, _chunk_loop_bwd)
+
+
 def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
     """``ssd_scan(..., inter_chunk="fused")``: one ``lax.scan`` over chunks whose carry is the
     ``[b, g, n, hg, P]`` state entering the chunk, everything token-major.
@@ -269,10 +395,8 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
       every head's decay spans at most ``_FACTOR_SPAN`` nats across the chunk, else the
       chunk takes the per-head form (:func:`_intra_chunk`'s algebra). The choice is made
       once for the sequence where it can be: if every chunk factorises (the usual case:
-      the bench's inputs span <= 58 nats per chunk of 128), one ``lax.cond`` outside the
-      loop runs a loop with no choice in it; otherwise the loop whose chunks choose
-      (``lax.cond`` per chunk, which costs ~13% of fwd+bwd at L = 16,384 even when unused).
-      Under ``vmap`` a ``lax.cond`` runs both branches: batch through the leading axes;
+      the bench's inputs span <= 58 nats per chunk of 128), a loop with no choice in it
+      runs (:func:`_run_chunks`);
     * ``y_l += exp(cs_l) C_l . S`` (state -> output; in the loop with no choice written
       ``exp(d_l) exp(m) C_l . S`` and summed with the diagonal block before its factor
       ``exp(d_l)``), ``y_l += D x_l``;
@@ -280,8 +404,8 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
 
     Every ``x``-sized operand is read inside the loop in its stored ``[L, nh, P]`` layout and
     ``y`` is written in it, so nothing of that size is transposed or scaled outside the loop
-    (outside it only ``[L, nh]`` decay factors are computed). The step is remat'd
-    (``jax.checkpoint``): the backward keeps one state per chunk and recomputes the rest.
+    (outside it only ``[L, nh]`` decay factors are computed). The loop's VJP is written out
+    (:func:`_chunk_loop`): the backward keeps one state per chunk and recomputes the rest.
     At the paper's block sizes and L = 16,384 the ops outside the loop took half the time of
     the head-major form this replaced (profiled fwd+bwd: 314 against 630 ms; experiments/README.md,
     "SSD scan speed").
@@ -311,51 +435,10 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
     log_from_start, to_end = _chunk_log_decays(dA)
     scales = (dtc * jnp.exp(-d), jnp.exp(d), jnp.exp(log_from_start), dtc * jnp.exp(to_end))
     chunk_decay = jnp.exp(log_from_start[:, :, -1])  # [nc, b, g, hg]
-    causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, Q, Q)  # [b, g, l, s]: s <= l
-    skip = None if D is None else D.reshape(1, 1, g, hg, 1).astype(acc)
-
-    def run(choose_per_chunk: bool) -> Array:
-        """The chunk loop; with ``choose_per_chunk`` each chunk picks its diagonal form."""
-
-        @jax.checkpoint
-        def step(state, chunk):
-            xq, Bq, Cq, dtq, hq, lq, factored, (s_in, s_out, s_start, s_end), decay, e_mid = chunk
-            xa = xq.astype(acc)
-            CB = jnp.where(causal, jnp.einsum("blgn,bsgn->bgls", Cq, Bq, preferred_element_type=acc), 0.0)
-            read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc).reshape(b, Q, g, hg, P)
-
-            def shared(_):  # the diagonal block before its l-side factor exp(d_l)
-                xs = (xa * s_in[..., None]).astype(cd)
-                return jnp.einsum("bgls,bsghp->blghp", CB.astype(cd), xs, preferred_element_type=acc)
-
-            def per_head(_):  # _intra_chunk's algebra in this layout (calling it costs fwd+bwd 4-7%)
-                seg = (hq[:, :, None] - hq[:, None]) + (lq[:, :, None] - lq[:, None])  # [b, l, s, g, hg]
-                scores = CB.transpose(0, 2, 3, 1)[..., None] * jnp.exp(jnp.minimum(seg, 0.0))
-                scores = jnp.where(causal.reshape(1, Q, Q, 1, 1), scores, 0.0).astype(cd)
-                xdt = (xa * dtq[..., None]).astype(cd)
-                return jnp.einsum("blsgh,bsghp->blghp", scores, xdt, preferred_element_type=acc)
-
-            if choose_per_chunk:
-                y = jax.lax.cond(factored, lambda _: shared(_) * s_out[..., None], per_head, None)
-                y = y + s_start[..., None] * read
-            else:
-                # exp(cs_l) = exp(d_l) exp(mid): the read-out shares the diagonal block's l-side
-                # factor, so one scaling of their sum, and one per-token reduction fewer in the
-                # backward (fwd+bwd -4 to -6% at L = 16,384; exp(mid) has no gradient).
-                y = (shared(None) + e_mid[:, None, :, :, None] * read) * s_out[..., None]
-            if skip is not None:
-                y = y + skip * xa
-            xe = (xa * s_end[..., None]).astype(cd).reshape(b, Q, g, hg * P)
-            state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)
-            return state, y.astype(x.dtype)
-
-        state = full_like_varying(x, (b, g, n, hg, P), 0.0, acc)
-        xs = (xc, Bc, Cc, dtc, hi, lo, factor, scales, chunk_decay, jnp.exp(mid[:, :, 0]))
-        return jax.lax.scan(step, state, xs)[1]
-
-    # One conditional for the whole sequence: a per-chunk `lax.cond` inside the loop costs
-    # fwd+bwd ~13% at L = 16,384 even when every chunk takes the shared form (experiments/README.md).
-    y = jax.lax.cond(jnp.all(factor), lambda: run(False), lambda: run(True))
+    meta = _FusedMeta(b, Q, g, n, hg, P, acc, jnp.dtype(cd), jnp.dtype(x.dtype))
+    xs = (xc, Bc, Cc, dtc, hi, lo, scales, chunk_decay, jnp.exp(mid[:, :, 0]))
+    skip = None if D is None else common_variance(xc, D.reshape(1, 1, g, hg, 1).astype(acc))[1]
+    y = _chunk_loop(meta, factor, xs, skip)
     y = jnp.moveaxis(y, 0, 1).reshape(b, nc * Q, nh, P)[:, :L]
     return y.reshape(*batch, L, nh, P)
 
