@@ -49,6 +49,9 @@ class DataConfig:
     eval_max_frames: int | None = None
     eval_index: str | None = None
     workers: int = 2
+    # Build batch elements in `workers` spawned processes instead of threads: the ray caster
+    # and image decoding hold the GIL, so threads stay near one core (data/batching.py).
+    worker_processes: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:

@@ -269,7 +269,8 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
             place = lambda b: T.shard_for_mesh(b, mesh)  # noqa: E731
         it = BatchIterator(scene_source(exp.data), batch_config(exp, stage), seed=exp.seed + si,
                            start_step=start, num_devices=n_local, process_index=jax.process_index(),
-                           process_count=jax.process_count(), num_workers=exp.data.workers)
+                           process_count=jax.process_count(), num_workers=exp.data.workers,
+                           worker_processes=exp.data.worker_processes)
         samples, names = eval_samples(exp, stage) if exp.eval_every else ([], [])
         bar = tqdm(total=stage.steps, initial=start, desc=f"{exp.name}/{stage.name}",
                    disable=not progress or jax.process_index() != 0, dynamic_ncols=True)
@@ -318,6 +319,7 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
                     break
         finally:
             bar.close()
+            it.close()
         params = _host_state(state, use_pmap).params
         result["stages"].append({"stage": stage.name, "steps": step, "skipped_data": it.skipped})
         if stop_now:

@@ -170,3 +170,26 @@ def test_input_order_augmentations_permute_views_whole(reverse, shuffle):
             np.testing.assert_array_equal(perm, np.arange(6)[::-1])
         else:
             assert not np.array_equal(perm, np.arange(6))
+
+
+def test_worker_processes_give_the_threads_batches_and_report_skips():
+    """Elements built in spawned processes: the same batches as in-thread building (step by
+    step, resumed), and the bad scenes they pass over counted and warned in this process."""
+    with BatchIterator(SRC, CFG, seed=4, num_workers=1) as it:
+        want = [next(it) for _ in range(3)]
+    with BatchIterator(SRC, CFG, seed=4, num_workers=2, worker_processes=True) as it:
+        got = [next(it) for _ in range(3)]
+        assert it.state() == {"seed": 4, "step": 3}
+    for a, b in zip(got, want):
+        assert_batches_equal(a, b)
+    src = FlakySource()
+    with BatchIterator(src, CFG, seed=0, num_workers=1) as it, warnings.catch_warnings(record=True) as w_threads:
+        warnings.simplefilter("always")
+        want = it.batch_at(1)
+    with BatchIterator(src, CFG, seed=0, num_workers=2, worker_processes=True) as it, \
+            warnings.catch_warnings(record=True) as w_procs:
+        warnings.simplefilter("always")
+        got = it.batch_at(1)
+        assert it.skipped == len(w_procs) == len(w_threads) > 0
+    assert [str(w.message) for w in w_procs] == [str(w.message) for w in w_threads]
+    assert_batches_equal(got, want)
