@@ -101,14 +101,18 @@ def _stage_dirs(workdir: str) -> list[str]:
 def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig]:
     from llrmpp_jax import train as T
 
-    stages = [d for d in _stage_dirs(path) if T.recorded_config(d) is not None]
-    if not stages and T.recorded_config(path) is not None:
-        stages = [path]  # one stage's folder itself
-    if not stages:
+    configs = {d: r for d in _stage_dirs(path) if (r := T.recorded_config(d)) is not None}
+    if not configs and (r := T.recorded_config(path)) is not None:
+        configs = {path: r}  # one stage's folder itself
+    if not configs:
         raise ValueError(f"no checkpoint in {path} (expected a params folder or a training workdir)")
-    recorded = T.recorded_config(stages[0])
-    order = [s["name"] for s in recorded.get("stages", [])] if isinstance(recorded, dict) else []
+    stages = list(configs)
+    # The curriculum's order from the longest one recorded: a first stage may have been trained
+    # with a config that names only it (experiments/small_accel.py), the later ones with the whole.
+    orders = [[s["name"] for s in r.get("stages", [])] for r in configs.values() if isinstance(r, dict)]
+    order = max(orders, key=len, default=[])
     stage_dir = max(stages, key=lambda d: order.index(os.path.basename(d)) if os.path.basename(d) in order else -1)
+    recorded = configs[stage_dir]
     if cfg is None:
         if not isinstance(recorded, dict) or "model" not in recorded:
             raise ValueError(f"{stage_dir}: the checkpoint records no model config; pass --config")

@@ -217,3 +217,31 @@ def test_train_data_reads_any_capture_through_read_scene():
     for name, frames in (("beer", 71), ("fox", 50)):
         source = scene_source(DataConfig(kind="auto", path=shared_path("data", name)))
         assert len(source) == 1 and len(source.load(0)) == frames
+
+
+def test_workdir_params_come_from_the_curriculum_s_last_stage(tmp_path):
+    """Stage ``a`` trained with a config naming only ``a``, then ``b`` with the curriculum
+    ``(a, b)`` (as experiments/small_accel.py, then small.py): a workdir loads ``b``'s params,
+    though ``a``'s folder sorts first and its config does not know ``b``."""
+    import dataclasses
+
+    import jax
+
+    from llrmpp_jax import train as T
+    from llrmpp_jax.model import init_params
+    from llrmpp_jax.params_io import load_params
+
+    whole = _micro_experiment(1)
+    whole = dataclasses.replace(whole, stages=(dataclasses.replace(whole.stages[0], name="a"),
+                                               dataclasses.replace(whole.stages[0], name="b")))
+    first = dataclasses.replace(whole, stages=whole.stages[:1])
+    params = init_params(jax.random.key(0), whole.model, 2, 32, 32)
+    opt = T.make_optimizer(T.OptimizerConfig(total_steps=1, warmup_steps=0))
+    later = jax.tree.map(lambda p: p + 1.0, params)
+    work = tmp_path / "run" / "checkpoints"
+    T.save_checkpoint(work / "a", T.init_train_state(params, opt, jax.random.key(1)), config=first)
+    T.save_checkpoint(work / "b", T.init_train_state(later, opt, jax.random.key(1)), config=whole)
+    got, cfg = load_params(str(tmp_path / "run"))
+    assert cfg == whole.model
+    for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(later)):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
