@@ -161,11 +161,11 @@ def _max_rss_bytes() -> int:
 
 
 def case_experiment(name: str) -> ExperimentConfig:
-    """``"demo"``, ``"small"`` (``experiments/small.py``) or ``"mid_<size>"``."""
+    """``"demo"``, ``"small"`` (``experiments/small_cpu.py``) or ``"mid_<size>"``."""
     if name == "demo":
         return demo_experiment()
     if name == "small":
-        return load_experiment(os.path.join(HERE, "small.py"))
+        return load_experiment(os.path.join(HERE, "small_cpu.py"))
     if name.startswith("mid_") and name[4:].isdigit():
         return mid_experiment(int(name[4:]))
     raise ValueError(f"unknown case {name!r}, expected 'demo', 'small' or 'mid_<size>'")

@@ -1,9 +1,9 @@
-"""Small with a finer, wider decoder: the shipped ``small`` recipe at decoder token stride 4 and width 128.
+"""Small with a finer, wider decoder: the CPU ``small`` recipe at decoder token stride 4 and width 128.
 
 Run:  nice -n 10 llrmpp train --config experiments/small_fine.py --workdir ~/runs/small_fine   (resumes)
 Eval: llrmpp eval --config experiments/small_fine.py --checkpoint ~/runs/small_fine --out ~/runs/small_fine/eval
 
-``experiments/small.py`` (data, stages, schedule, losses, evaluation) with two changes, the
+``experiments/small_cpu.py`` (data, stages, schedule, losses, evaluation) with two changes, the
 two that lifted the one-scene overfit runs (experiments/README.md, "Seventh round": `k14`,
 `k16`): the decoder's token stride 8 -> 4 and the backbone and decoder widths 64 -> 128
 (head_dim 16 kept). At stride 8 the decoder's output head maps each token's ``dim`` numbers
@@ -23,8 +23,8 @@ from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """``small.py`` with decoder token stride 4 and backbone and decoder width 128."""
-    small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small.py"))
+    """``small_cpu.py`` with decoder token stride 4 and backbone and decoder width 128."""
+    small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small_cpu.py"))
     m = small.model
     model = C.replace(m, backbone=C.replace(m.backbone, dims=(128,)),
                       decoder=C.replace(m.decoder, dim=128, token_stride=4))

@@ -3,7 +3,7 @@
 Run:  nice -n 10 llrmpp train --config experiments/small_reach.py --workdir ~/runs/small_reach   (resumes)
 Eval: llrmpp eval --config experiments/small_reach.py --checkpoint ~/runs/small_reach --out ~/runs/small_reach/eval
 
-``experiments/small.py`` with one change: the Gaussian head's ``max_dist`` 3 -> 30. A
+``experiments/small_cpu.py`` with one change: the Gaussian head's ``max_dist`` 3 -> 30. A
 Gaussian's distance along its pixel's ray is ``sigmoid(raw) * max_dist``, so with 3 nothing
 can sit farther than 3 units; on ``small``'s rescaled training windows (12-20 of 24 frames)
 53% of the target pixels lie farther along their rays (5 / 25 / 50 / 75 / 95 / 99th
@@ -25,9 +25,9 @@ from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """``small.py`` with ``max_dist`` 30."""
-    small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small.py"))
+    """``small_cpu.py`` with ``max_dist`` 30."""
+    small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small_cpu.py"))
     m = small.model
-    # Measured against small.py's head as it was then (Gaussians started at the patch centre).
+    # Measured against small_cpu.py's head as it was then (Gaussians started at the patch centre).
     head = C.replace(m.head, max_dist=30.0, anchors="centre", scale_bias=-2.5)
     return replace(small, name="small_reach", model=C.replace(m, head=head))
