@@ -6,7 +6,8 @@
 # Writes OUT_DIR/log.txt (environment, CPU count, exit status), OUT_DIR/train.log (the trainer's
 # output), OUT_DIR/train_log.json (loss every 20 steps, held-out evaluations) and
 # OUT_DIR/checkpoint.tar (the workdir's checkpoints: `tar -xf` into a workdir to evaluate or
-# resume it with `llrmpp eval` / `llrmpp train`). TRAIN_TIMEOUT: seconds (default 540).
+# resume it with `llrmpp eval` / `llrmpp train`). TRAIN_TIMEOUT: seconds (default 540);
+# ACCEL_CONFIG: the experiment file (default experiments/small_accel.py).
 set -u
 out=${1:?usage: bash experiments/accelerator_small.sh OUT_DIR}
 py=${PYTHON:-python3}
@@ -17,7 +18,7 @@ export PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; nproc;
   "$py" -c 'import jax, flax, optax; print("jax", jax.__version__, "flax", flax.__version__, "optax", optax.__version__, jax.devices())'; } >>"$log" 2>&1
 t0=$SECONDS
-timeout "${TRAIN_TIMEOUT:-540}" "$py" -m llrmpp_jax.cli train --config experiments/small_accel.py --workdir "$work" >"$out/train.log" 2>&1
+timeout "${TRAIN_TIMEOUT:-540}" "$py" -m llrmpp_jax.cli train --config "${ACCEL_CONFIG:-experiments/small_accel.py}" --workdir "$work" >"$out/train.log" 2>&1
 echo "train: exit $? after $((SECONDS - t0)) s" >>"$log"
 cp "$work/train_log.json" "$out/" 2>>"$log"
 tar -C "$work" -cf "$out/checkpoint.tar" checkpoints 2>>"$log"
