@@ -5,7 +5,7 @@ Eval: llrmpp eval --config experiments/small_cpu.py --checkpoint runs/small_cpu 
 
 The baseline of the one-change variants ``small_fine.py``, ``small_wide.py`` and
 ``small_reach.py``, and of ``bench_train.py``'s ``small`` case. Its weights (23.24 dB held
-out, LPIPS 0.436) were shipped until 2026-11-26; ``small.py`` now trains the same model on an
+out, LPIPS 0.436) were shipped until 2026-11-26; ``small.py`` now trains a wider network on an
 accelerator first (experiments/README.md, "`small.py`").
 
 64x64 procedural scenes of 24 frames, 8 input views -> 2 targets, batch 2, three stages:
