@@ -16,47 +16,19 @@ token stride 8 -> 4 and the backbone and decoder widths 64 -> 128 (1.3M paramete
 / 24.12 dB after 16,000 / 32,000 samples against the width-64 model's 22.72 / 23.24 at the same
 samples (and 23.70 after 64,000; experiments/README.md, "`small.py`").
 
-Otherwise the model is the demo's (K=4, F=16, "LG" decoder, S=2, Gaussians starting 1.5 units
-out on a 2 x 2 sub-grid of their token's patch), with its three departures from Long-LRM's
-recipe (experiments/README.md, "Second round" and "Fourth round"):
-
-* the Gaussians start on a grid (``anchors="grid"``: on-axis, isotropic, scale exp(-3.0),
-  about one cell each) instead of all at the patch centre with drawn offsets, scales and
-  rotations (scale exp(-2.5)): with the centre start an earlier shipped model re-rendered
-  its input views at their 8x8 block means' PSNR; with the grid start the CPU recipe reached
-  21.74 / 22.61 / 23.00 dB held out at steps 2,000 / 4,000 / 6,000 against 20.30 / 21.82 /
-  22.15.
-* backbone ``{4T}x1``, attention only: at equal steps it learns as fast as the demo's
-  ``{1T3M}`` (held-out 19.17 vs 19.25 dB after 1,200 steps) in half the time on a CPU,
-  where the Mamba2 scan dominates the step. The paper's hybrid is for long token sequences
-  (tens of views at 960x540); 8 views of 64 tokens are short.
-* LeCun-normal init of the Gaussian head and decoder linears (``init_std=None``): Long-LRM's
-  N(0, 0.02) is 8x smaller than 1/sqrt(fan-in) at width 64; a single-view autoencoder
-  re-renders its input at 22.9 dB after 1,000 steps with it, 21.3 dB without.
+Otherwise the model is the demo's, with its three departures from Long-LRM's recipe (the
+Gaussians' grid start, a ``{4T}x1`` backbone, LeCun-normal head and decoder init), each with its
+evidence in ``small_cpu.py``'s docstring.
 """
 
 import os
 
-from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """The demo's model at width 128 and decoder stride 4, 8 inputs of 24-frame scenes: 2k MSE steps at batch 16."""
-    here = os.path.dirname(os.path.abspath(__file__))
-    demo = load_experiment(os.path.join(here, "demo.py"))
-    m = demo.model
-    model = C.replace(m, backbone=C.replace(m.backbone, dims=(128,)),
-                      decoder=C.replace(m.decoder, dim=128, token_stride=4))
-    accel = replace(
-        demo.stages[0], name="accel", steps=2_000, global_batch=16, num_inputs=8, warmup_steps=200,
-        min_span=12, max_span=20,
-    )
-    data = replace(
-        demo.data, procedural=replace(demo.data.procedural, num_frames=24), eval_span=16,
-        workers=14, worker_processes=True,
-    )
-    return replace(
-        demo, name="small", model=model, stages=(accel,), data=data, log_every=20, eval_every=1000,
-        checkpoint_every=1000, max_minutes=None,
-    )
+    """``small_fine.py`` (``small_cpu.py`` at width 128, stride 4): its first stage as 2k steps at batch 16, data from 14 processes."""
+    fine = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small_fine.py"))
+    accel = replace(fine.stages[0], name="accel", steps=2_000, global_batch=16)
+    data = replace(fine.data, workers=14, worker_processes=True)
+    return replace(fine, name="small", stages=(accel,), data=data, eval_every=1000)

@@ -235,11 +235,11 @@ class BatchIterator:
         else:
             futures = [self._processes.submit(_process_element, self.seed, step, b) for b in elements]
             results = [f.result() for f in futures]
-        for _, skipped in results:
-            with self._lock:
-                self.skipped += len(skipped)
-            for message in skipped:
-                warnings.warn(message, stacklevel=2)
+        messages = [m for _, skipped in results for m in skipped]
+        with self._lock:
+            self.skipped += len(messages)
+        for message in messages:
+            warnings.warn(message, stacklevel=2)
         return {k: np.stack([s[k] for s, _ in results]) for k in results[0][0]}
 
     def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
