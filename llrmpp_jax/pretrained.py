@@ -23,6 +23,7 @@ import os
 
 import jax
 import numpy as np
+from flax.traverse_util import unflatten_dict
 
 from llrmpp_jax.config import ModelConfig, from_dict
 
@@ -69,17 +70,6 @@ def _config_json(cfg: ModelConfig) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg)))
 
 
-def _unflatten(flat: dict[str, np.ndarray]) -> dict:
-    tree: dict = {}
-    for key, value in flat.items():
-        node = tree
-        *parents, leaf = key.split("/")
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
-    return tree
-
-
 def read_meta(name: str, weights_dir: str = WEIGHTS_DIR) -> dict:
     """The ``NAME.json`` record. ``FileNotFoundError`` listing the shipped names."""
     _, meta_path, _ = _paths(name, weights_dir)
@@ -113,7 +103,7 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
         if diff:
             raise ValueError(f"{npz_path}: weights are for another model config: {diff}")
     with np.load(npz_path) as z:
-        params = _unflatten({k: z[k].astype(np.float32) for k in z.files})
+        params = unflatten_dict({k: z[k].astype(np.float32) for k in z.files}, sep="/")
     from llrmpp_jax.params_io import check_params_fit
 
     check_params_fit(params, shipped_cfg, npz_path)
@@ -156,7 +146,7 @@ def export_pretrained(params: dict, cfg: ModelConfig, name: str, record: dict, r
     if not all(np.isfinite(v).all() for v in half.values()):
         raise ValueError(f"export_pretrained({name!r}): a parameter overflows float16")
     np.savez(npz_path, **half)
-    loaded = _unflatten({k: v.astype(np.float32) for k, v in half.items()})
+    loaded = unflatten_dict({k: v.astype(np.float32) for k, v in half.items()}, sep="/")
     np.savez(ref_path, rgb=reference_forward(loaded, cfg, reference))
     meta = dict(record, format=_FORMAT, name=name, sha256=sha256(npz_path),
                 num_params=int(sum(v.size for v in half.values())), dtype="float16",

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from flax.traverse_util import unflatten_dict
 
 Transform = Callable[[np.ndarray], np.ndarray]
 
@@ -61,17 +62,6 @@ def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[path] = v
     return out
-
-
-def _unflatten(flat: Mapping[str, Any]) -> dict[str, Any]:
-    tree: dict[str, Any] = {}
-    for path, v in flat.items():
-        node = tree
-        *parents, leaf = path.split("/")
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = v
-    return tree
 
 
 def convert_state_dict(
@@ -134,7 +124,7 @@ def convert_state_dict(
                 )
     if problems:
         raise ValueError(f"cannot convert {source}:\n  " + "\n  ".join(problems))
-    return _unflatten(flat)
+    return unflatten_dict(flat, sep="/")
 
 
 def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
