@@ -14,7 +14,7 @@ change at a time on the overfit scene: stride 4 +1.58 dB held out, width 128 +0.
 +2.45 (+2.78 on the input views). Across scenes it starts slower (experiments/README.md,
 "`small.py`": 21.14 / 22.36 / 22.68 dB held out at steps 2,000 / 4,000 / 6,000 against
 ``small``'s 21.74 / 22.61 / 23.00) and stays behind through the MSE stage. With the data of an
-accelerator (batch 16, 32,000 samples) it leads instead, and is now the shipped ``small.py``.
+accelerator (batch 16, 32,000 samples) it leads instead, and is the network of the shipped ``small.py``.
 """
 
 import os
