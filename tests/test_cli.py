@@ -17,8 +17,13 @@ from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, loa
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-EXPERIMENT_FILES = sorted(p for p in glob.glob(os.path.join(ROOT, "experiments", "*.py"))
-                          if not os.path.basename(p).startswith(("bench", "ship")))  # scripts, not experiments
+def _is_experiment(path: str) -> bool:
+    """An experiment file defines ``get_config``; the others (bench_*, ship_weights, ...) are scripts."""
+    with open(path) as f:
+        return "\ndef get_config(" in f.read()
+
+
+EXPERIMENT_FILES = sorted(p for p in glob.glob(os.path.join(ROOT, "experiments", "*.py")) if _is_experiment(p))
 
 
 @pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=os.path.basename)
