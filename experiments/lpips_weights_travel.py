@@ -20,6 +20,7 @@ import argparse
 import os
 import pickle
 import tempfile
+
 import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from flax.traverse_util import unflatten_dict
+from flax.traverse_util import flatten_dict, unflatten_dict
 
 Transform = Callable[[np.ndarray], np.ndarray]
 
@@ -51,17 +51,6 @@ class Rule:
     def match(self, key: str) -> str | None:
         m = re.fullmatch(self.pattern, key)
         return None if m is None else self.target.format(**m.groupdict())
-
-
-def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in tree.items():
-        path = f"{prefix}/{k}" if prefix else str(k)
-        if isinstance(v, Mapping):
-            out.update(_flatten(v, path))
-        else:
-            out[path] = v
-    return out
 
 
 def convert_state_dict(
@@ -111,7 +100,7 @@ def convert_state_dict(
             problems.append(f"two keys map to {target!r} (second: {key!r})")
         flat[target] = rule.transform(arr).astype(dtype)
     if expected is not None:
-        want = _flatten(expected)
+        want = flatten_dict(dict(expected), sep="/")
         for path in sorted(set(want) - set(flat)):
             problems.append(f"parameter {path!r} {tuple(want[path].shape)} not provided by {source}")
         for path in sorted(set(flat) - set(want)):
