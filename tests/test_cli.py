@@ -61,6 +61,8 @@ def _run_cli(*args) -> subprocess.CompletedProcess:
         (["render", "--config", "experiments/demo.py", "--checkpoint", "/tmp", "--scene", "/no/scene",
           "--out", "/tmp/x"], "scene not found"),
         (["convert", "--checkpoint", "/no/such.pt", "--out", "/tmp/x"], "checkpoint file not found"),
+        (["train", "--config", "experiments/demo.py", "--workdir", "/tmp/x", "--init", "/no/such/dir"],
+         "--init: checkpoint folder not found"),
         (["train", "--config", "experiments/dl3dv.py", "--workdir", "/tmp/x"],
          "uses Long-LRM's VGG19 perceptual loss and needs its weights"),
         (["train", "--config", "experiments/scannet.py", "--workdir", "/tmp/x", "--vgg16"],
@@ -222,6 +224,60 @@ def test_train_data_reads_any_capture_through_read_scene():
     for name, frames in (("beer", 71), ("fox", 50)):
         source = scene_source(DataConfig(kind="auto", path=shared_path("data", name)))
         assert len(source) == 1 and len(source.load(0)) == frames
+
+
+def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_path):
+    """``init``: a params folder (drawn weights, not the run's own init) is where stage 1
+    starts; at learning rate 0 the trained params equal the saved ones exactly. Rerun longer
+    with other weights as ``init``, the run resumes from its checkpoint instead, and its
+    ``train_log.json`` keeps the first call's steps and ``init``."""
+    import dataclasses
+
+    import jax
+
+    from llrmpp_jax.model import init_params
+    from llrmpp_jax.params_io import save_params
+    from llrmpp_jax.trainer import train
+
+    def frozen(steps):
+        exp = _micro_experiment(steps)
+        return dataclasses.replace(exp, eval_every=0, stages=(dataclasses.replace(exp.stages[0], lr=0.0),))
+
+    exp = frozen(1)
+    start = jax.tree.map(lambda p: p + jax.random.normal(jax.random.key(5), p.shape, p.dtype),
+                         init_params(jax.random.key(3), exp.model, 2, 32, 32))
+    other = jax.tree.map(lambda p: p - 1.0, start)
+    save_params(str(tmp_path / "start"), start, exp.model)
+    save_params(str(tmp_path / "other"), other, exp.model)
+    work = str(tmp_path / "run")
+    first = train(exp, work, progress=False, init=str(tmp_path / "start"))
+    for g, w in zip(jax.tree.leaves(first["params"]), jax.tree.leaves(start)):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    second = train(frozen(2), work, progress=False, init=str(tmp_path / "other"))
+    assert [h["step"] for h in second["history"]] == [2]
+    for g, w in zip(jax.tree.leaves(second["params"]), jax.tree.leaves(start)):
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    log = json.load(open(os.path.join(work, "train_log.json")))
+    assert [h["step"] for h in log["history"]] == [1, 2] and log["init"] == str(tmp_path / "other")
+
+
+def test_train_init_of_another_architecture_is_one_line(tmp_path):
+    """Weights of a model with other head widths as ``--init``: one line naming the first
+    differing parameter and both shapes, before any training."""
+    import jax
+
+    from llrmpp_jax.model import init_params
+    from llrmpp_jax.params_io import save_params
+
+    exp = _micro_experiment(1)
+    wide = C.replace(exp.model, head=C.replace(exp.model.head, feature_dim=16))
+    save_params(str(tmp_path / "wide"), init_params(jax.random.key(0), wide, 2, 32, 32), wide)
+    res = _run_cli("train", "--config", str(_micro_experiment_file(tmp_path, 1)), "--workdir",
+                   str(tmp_path / "run"), "--init", str(tmp_path / "wide"))
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "first mismatch" in lines[0] and "(another architecture?" in lines[0], res.stderr
+    assert not os.path.exists(tmp_path / "run" / "checkpoints")
 
 
 def test_workdir_params_come_from_the_curriculum_s_last_stage(tmp_path):
