@@ -8,7 +8,10 @@ scenes (the model beside both baselines, with the diagnostics), writes the pictu
 (``train_log.json`` and the evaluation lines of ``train.log``), and packs the parameters as
 ``llrmpp_jax/weights/<name>.{npz,json,reference.npz}`` (:func:`llrmpp_jax.pretrained.export_pretrained`):
 float16, SHA-256, model config, experiment file, source commit (``COMMIT`` in the workdir,
-written when the run was started), step count and the held-out metrics.
+written when the run was started), step count and the held-out metrics. A run fine-tuned from
+shipped weights (``llrmpp train --init pretrained:NAME``, recorded in its ``train_log.json``)
+adds their steps to its own and records what it started from (their SHA-256, experiment and
+commits), read before they are replaced.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
-from llrmpp_jax.pretrained import WEIGHTS_DIR, export_pretrained
+from llrmpp_jax.pretrained import PREFIX, WEIGHTS_DIR, export_pretrained, read_meta
 from llrmpp_jax.trainer import eval_samples
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -51,12 +54,23 @@ def main() -> None:
         write_image(os.path.join(out, f"grid_{i}.png"), scene_picture(params, cfg, samples[i]))
 
     log_path = os.path.join(args.workdir, "train_log.json")
+    init = None
     if os.path.isfile(log_path):
         shutil.copy(log_path, os.path.join(out, "train_log.json"))
+        with open(log_path) as f:
+            init = json.load(f).get("init")
     # Training steps behind the shipped params: the newest checkpoint of every stage (load_params
-    # took the last stage's), summed over the curriculum.
+    # took the last stage's), summed over the curriculum, plus those of shipped start weights.
     steps = sum(max(int(d) for d in os.listdir(os.path.join(args.workdir, "checkpoints", s.name)) if d.isdigit())
                 for s in exp.stages)
+    started_from = None
+    if init is not None and init.startswith(PREFIX):
+        before = read_meta(init[len(PREFIX):])
+        steps += before["steps"]
+        started_from = {"init": init, "sha256": before["sha256"], "steps": before["steps"],
+                        "experiment": before["experiment"], "trained_at_commit": before["trained_at_commit"]}
+    elif init is not None:
+        started_from = {"init": init}
     if os.path.isfile(os.path.join(args.workdir, "train.log")):
         with open(os.path.join(args.workdir, "train.log"), errors="replace") as f:
             lines = [ln.strip() for ln in f.read().replace("\r", "\n").splitlines() if "held-out PSNR" in ln]
@@ -75,6 +89,8 @@ def main() -> None:
     record = {"experiment": os.path.relpath(os.path.abspath(args.config), ROOT), "trained_at_commit": commit,
               "shipped_at_commit": head, "steps": steps, "held_out": summary,
               "held_out_scenes": len(samples), "results": os.path.relpath(out, ROOT)}
+    if started_from is not None:
+        record["started_from"] = started_from
     meta = export_pretrained(params, cfg, args.name, record, reference)
     with open(os.path.join(out, "metrics.json"), "w") as f:
         json.dump({"summary": summary, "per_scene": rows, "steps": steps, "commit": commit}, f, indent=1)

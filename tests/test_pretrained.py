@@ -86,14 +86,19 @@ def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
 
 @pytest.mark.slow
 def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
-    """The model in the package: checksum, the config of experiments/small.py, provenance,
+    """The model in the package: checksum, the config of experiments/small.py, provenance
+    (the experiment it was fine-tuned with and the one it started from, both of that model),
     and its recorded forward pass reproduced <= 1e-5 (float32 from the float16 file)."""
     exp = load_experiment(os.path.join(ROOT, "experiments", "small.py"))
     params, cfg = load_params("pretrained:small", exp.model)
     assert cfg == exp.model
     with open(os.path.join(WEIGHTS_DIR, "small.json")) as f:
         meta = json.load(f)
-    assert meta["experiment"] == "experiments/small.py" and meta["steps"] > 0
+    start = meta["started_from"]
+    assert (meta["experiment"], start["init"], start["experiment"]) == \
+        ("experiments/small_resharpen.py", "pretrained:small", "experiments/small.py")
+    assert load_experiment(os.path.join(ROOT, meta["experiment"])).model == cfg
+    assert meta["steps"] == start["steps"] + load_experiment(os.path.join(ROOT, meta["experiment"])).stages[0].steps
     assert len(meta["trained_at_commit"]) >= 7 and meta["held_out_scenes"] >= 16
     assert os.path.getsize(os.path.join(WEIGHTS_DIR, "small.npz")) <= 20e6
     recorded = np.load(os.path.join(WEIGHTS_DIR, "small.reference.npz"))["rgb"]
