@@ -3,6 +3,7 @@
 import glob
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -230,7 +231,8 @@ def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_
     """``init``: a params folder (drawn weights, not the run's own init) is where stage 1
     starts; at learning rate 0 the trained params equal the saved ones exactly. Rerun longer
     with other weights as ``init``, the run resumes from its checkpoint instead, and its
-    ``train_log.json`` keeps the first call's steps and ``init``."""
+    ``train_log.json`` keeps the first call's steps and ``init``; a step redone after a lost
+    checkpoint is logged once."""
     import dataclasses
 
     import jax
@@ -257,6 +259,12 @@ def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_
     assert [h["step"] for h in second["history"]] == [2]
     for g, w in zip(jax.tree.leaves(second["params"]), jax.tree.leaves(start)):
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    log = json.load(open(os.path.join(work, "train_log.json")))
+    assert [h["step"] for h in log["history"]] == [1, 2] and log["init"] == str(tmp_path / "other")
+    # step 2's checkpoint lost: the rerun redoes step 2, and its log holds step 2 once
+    shutil.rmtree(os.path.join(work, "checkpoints", "s1", "2"))
+    third = train(frozen(2), work, progress=False)
+    assert [h["step"] for h in third["history"]] == [2]
     log = json.load(open(os.path.join(work, "train_log.json")))
     assert [h["step"] for h in log["history"]] == [1, 2] and log["init"] == str(tmp_path / "other")
 
