@@ -53,6 +53,14 @@ class DataConfig:
     # and image decoding hold the GIL, so threads stay near one core (data/batching.py).
     worker_processes: bool = False
 
+    @property
+    def eval_reads_training_scenes(self) -> bool:
+        """True when the held-out evaluation reads the training scenes (real data with no
+        ``eval_path`` of its own, as ``llrmpp train --data`` sets up): training windows draw
+        from every frame, the evaluation's targets included, so its scores are not held out."""
+        return self.kind != "procedural" and (self.eval_path is None or
+                                              os.path.abspath(self.eval_path) == os.path.abspath(self.path or ""))
+
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
             raise ValueError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")

@@ -232,6 +232,9 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
     vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
     scene_source(exp.data)  # so does a missing or empty dataset
     params = None if init is None else _start_params(init, exp)  # and wrong or misfit start weights
+    if exp.eval_every and exp.data.eval_reads_training_scenes and jax.process_index() == 0:
+        print(f"note: the held-out evaluation reads the training data ({exp.data.path}): its target frames are "
+              "trained on too, so its scores measure the fit, not novel views (set data.eval_path to other scenes)")
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes
     t_start = time.time()

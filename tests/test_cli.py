@@ -227,6 +227,16 @@ def test_train_data_reads_any_capture_through_read_scene():
         assert len(source) == 1 and len(source.load(0)) == frames
 
 
+def test_evaluation_on_the_training_scenes_is_flagged(tmp_path):
+    """``train --data`` evaluates on the training captures: flagged. Procedural evaluation
+    (disjoint seeds) and real data with another ``eval_path`` are not."""
+    same = str(tmp_path / "caps")
+    assert DataConfig(kind="auto", path=same).eval_reads_training_scenes
+    assert DataConfig(kind="auto", path=same, eval_path=same + "/").eval_reads_training_scenes
+    assert not DataConfig(kind="auto", path=same, eval_path=str(tmp_path / "test")).eval_reads_training_scenes
+    assert not DataConfig().eval_reads_training_scenes
+
+
 def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_path):
     """``init``: a params folder (drawn weights, not the run's own init) is where stage 1
     starts; at learning rate 0 the trained params equal the saved ones exactly. Rerun longer
