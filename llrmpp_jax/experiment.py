@@ -56,8 +56,8 @@ class DataConfig:
     @property
     def eval_reads_training_scenes(self) -> bool:
         """True when the held-out evaluation reads the training scenes (real data with no
-        ``eval_path`` of its own, as ``llrmpp train --data`` sets up): training windows draw
-        from every frame, the evaluation's targets included, so its scores are not held out."""
+        ``eval_path`` of its own, as ``llrmpp train --data`` sets up); training then leaves the
+        evaluation's target frames out (``trainer.scene_source``)."""
         return self.kind != "procedural" and (self.eval_path is None or
                                               os.path.abspath(self.eval_path) == os.path.abspath(self.path or ""))
 

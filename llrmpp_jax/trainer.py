@@ -39,10 +39,39 @@ from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 
 def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
+    """Training scenes, or with ``held_out`` those :func:`eval_samples` reads. Real training
+    data that is also the held-out data (``DataConfig.eval_reads_training_scenes``) loses the
+    evaluation's target frames (:class:`_WithoutEvalTargets`)."""
     if data.kind == "procedural":
         return _OffsetSource(ProceduralSource(data.procedural), data.eval_seed_offset if held_out else 0)
     path = data.eval_path if held_out and data.eval_path else data.path
-    return FileSource(formats.dataset_scenes(path, data.kind), functools.partial(formats.read_scene, kind=data.kind))
+    files = FileSource(formats.dataset_scenes(path, data.kind), functools.partial(formats.read_scene, kind=data.kind))
+    if held_out or not data.eval_reads_training_scenes:
+        return files
+    return _WithoutEvalTargets(files, data.num_eval_scenes, data.eval_max_frames)
+
+
+@dataclass(frozen=True)
+class _WithoutEvalTargets:
+    """Training scenes of a dataset the held-out evaluation also reads: its first
+    ``num_eval`` scenes (those :func:`eval_samples` takes) lose the frames the evaluation
+    targets, every 8th of the first ``max_frames`` (:func:`eval_split`), so their scores are
+    on views never trained on. The scenes' other frames, the evaluation's inputs among them,
+    are trained on."""
+
+    base: FileSource
+    num_eval: int
+    max_frames: int | None
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def load(self, index: int) -> Scene:
+        scene = self.base.load(index)
+        if index >= self.num_eval:
+            return scene
+        n = len(scene) if self.max_frames is None else min(self.max_frames, len(scene))
+        return scene.subset(np.setdiff1d(np.arange(len(scene)), every_nth(n)))
 
 
 @dataclass(frozen=True)
@@ -233,8 +262,9 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
     scene_source(exp.data)  # so does a missing or empty dataset
     params = None if init is None else _start_params(init, exp)  # and wrong or misfit start weights
     if exp.eval_every and exp.data.eval_reads_training_scenes and jax.process_index() == 0:
-        print(f"note: the held-out evaluation reads the training data ({exp.data.path}): its target frames are "
-              "trained on too, so its scores measure the fit, not novel views (set data.eval_path to other scenes)")
+        print(f"note: the held-out evaluation reads the training data ({exp.data.path}): the frames it targets "
+              "(every 8th) are left out of training; its scenes' other frames are trained on (set data.eval_path "
+              "to other scenes for held-out scenes)")
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes
     t_start = time.time()

@@ -223,8 +223,11 @@ def test_train_data_reads_any_capture_through_read_scene():
     from llrmpp_jax.trainer import scene_source
 
     for name, frames in (("beer", 71), ("fox", 50)):
-        source = scene_source(DataConfig(kind="auto", path=shared_path("data", name)))
+        data = DataConfig(kind="auto", path=shared_path("data", name))
+        source = scene_source(data, held_out=True)
         assert len(source) == 1 and len(source.load(0)) == frames
+        # training: less the evaluation's targets, every 8th frame
+        assert len(scene_source(data).load(0)) == frames - len(range(0, frames, 8))
 
 
 def test_evaluation_on_the_training_scenes_is_flagged(tmp_path):
@@ -235,6 +238,27 @@ def test_evaluation_on_the_training_scenes_is_flagged(tmp_path):
     assert DataConfig(kind="auto", path=same, eval_path=same + "/").eval_reads_training_scenes
     assert not DataConfig(kind="auto", path=same, eval_path=str(tmp_path / "test")).eval_reads_training_scenes
     assert not DataConfig().eval_reads_training_scenes
+
+
+def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
+    """``train --data beer``: the evaluation targets every 8th of beer's 71 frames; the
+    training scene holds the other 62, camera for camera, and none of the targets."""
+    from conftest import shared_path
+    from llrmpp_jax.data.formats import read_scene
+    from llrmpp_jax.experiment import ExperimentConfig
+    from llrmpp_jax.trainer import eval_samples, scene_source
+
+    data = DataConfig(kind="auto", path=shared_path("data", "beer"), num_eval_scenes=1)
+    full = read_scene(data.path, "auto")
+    trained = scene_source(data).load(0)
+    targets = [i for i in range(len(full)) if i % 8 == 0]
+    assert len(full) == 71 and len(trained) == 71 - len(targets) == 62
+    np.testing.assert_array_equal(trained.c2w, np.delete(full.c2w, targets, axis=0))
+    exp = _micro_experiment()
+    exp = C.replace(exp, data=data, stages=(C.replace(exp.stages[0], num_inputs=8),))
+    held_out, _ = eval_samples(exp, exp.stages[0])
+    for t in held_out[0]["target_c2w"]:  # every evaluated camera is absent from training
+        assert not any(np.allclose(t, c, atol=1e-5) for c in trained.c2w)
 
 
 def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_path):
