@@ -28,15 +28,21 @@ def _experiment(path: str):
     return load_experiment(path)
 
 
+def _require_checkpoint(checkpoint: str, flag: str = "") -> None:
+    """``UserError`` unless ``checkpoint`` is a shipped ``pretrained:NAME`` or an existing folder."""
+    from llrmpp_jax.pretrained import PREFIX
+
+    if not checkpoint.startswith(PREFIX) and not os.path.isdir(checkpoint):
+        raise UserError(f"{flag}checkpoint folder not found: {checkpoint}")
+
+
 def _load_params(checkpoint: str, config: str | None):
     """``(params, model config)`` from a training workdir, a params folder (detected) or a
     shipped ``pretrained:NAME``; ``config`` (an experiment file) is needed only for a bare
     params folder."""
     from llrmpp_jax.params_io import load_params
-    from llrmpp_jax.pretrained import PREFIX
 
-    if not checkpoint.startswith(PREFIX) and not os.path.isdir(checkpoint):
-        raise UserError(f"checkpoint folder not found: {checkpoint}")
+    _require_checkpoint(checkpoint)
     return load_params(checkpoint, _experiment(config).model if config else None)
 
 
@@ -55,8 +61,8 @@ def cmd_train(args) -> int:
         import jax
 
         jax.distributed.initialize()
-    if args.init and not args.init.startswith("pretrained:") and not os.path.isdir(args.init):
-        raise UserError(f"--init: checkpoint folder not found: {args.init}")
+    if args.init:
+        _require_checkpoint(args.init, "--init: ")
     result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map, init=args.init)
     if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
         return 128 + signal.Signals[result["stopped_by"]].value

@@ -38,6 +38,9 @@ from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 
+EVAL_EVERY = 8  # real held-out scenes: targets every 8th frame (the paper's protocol, :func:`eval_split`)
+
+
 def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
     """Training scenes, or with ``held_out`` those :func:`eval_samples` reads. Real training
     data that is also the held-out data (``DataConfig.eval_reads_training_scenes``) loses the
@@ -71,7 +74,7 @@ class _WithoutEvalTargets:
         if index >= self.num_eval:
             return scene
         n = len(scene) if self.max_frames is None else min(self.max_frames, len(scene))
-        return scene.subset(np.setdiff1d(np.arange(len(scene)), every_nth(n)))
+        return scene.subset(np.setdiff1d(np.arange(len(scene)), every_nth(n, EVAL_EVERY)))
 
 
 @dataclass(frozen=True)
@@ -109,7 +112,7 @@ def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
 
 
 def eval_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None = None,
-               index: dict[str, dict] | None = None, every: int = 8) -> tuple[np.ndarray, np.ndarray, str]:
+               index: dict[str, dict] | None = None, every: int = EVAL_EVERY) -> tuple[np.ndarray, np.ndarray, str]:
     """The paper's evaluation split of one real held-out scene: ``(inputs, targets, how)``,
     ``how`` a line saying what was used (see :class:`~llrmpp_jax.experiment.DataConfig`).
     k-means inputs come from, in this order: the scene's Long-LRM JSON at ``path``, the
@@ -263,7 +266,7 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
     params = None if init is None else _start_params(init, exp)  # and wrong or misfit start weights
     if exp.eval_every and exp.data.eval_reads_training_scenes and jax.process_index() == 0:
         print(f"note: the held-out evaluation reads the training data ({exp.data.path}): the frames it targets "
-              "(every 8th) are left out of training; its scenes' other frames are trained on (set data.eval_path "
+              f"(every {EVAL_EVERY}th) are left out of training; its scenes' other frames are trained on (set data.eval_path "
               "to other scenes for held-out scenes)")
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes

@@ -97,8 +97,9 @@ def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
     start = meta["started_from"]
     assert (meta["experiment"], start["init"], start["experiment"]) == \
         ("experiments/small_resharpen.py", "pretrained:small", "experiments/small.py")
-    assert load_experiment(os.path.join(ROOT, meta["experiment"])).model == cfg
-    assert meta["steps"] == start["steps"] + load_experiment(os.path.join(ROOT, meta["experiment"])).stages[0].steps
+    tuned = load_experiment(os.path.join(ROOT, meta["experiment"]))
+    assert tuned.model == cfg
+    assert meta["steps"] == start["steps"] + tuned.stages[0].steps
     assert len(meta["trained_at_commit"]) >= 7 and meta["held_out_scenes"] >= 16
     assert os.path.getsize(os.path.join(WEIGHTS_DIR, "small.npz")) <= 20e6
     recorded = np.load(os.path.join(WEIGHTS_DIR, "small.reference.npz"))["rgb"]
