@@ -96,6 +96,8 @@ def cmd_eval(args) -> int:
     from llrmpp_jax.metrics import load_lpips_params
     from llrmpp_jax.trainer import eval_samples
 
+    if args.refine_steps < 0:
+        raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     exp = _experiment(args.config)
     if args.data:
         exp = _with_data(exp, args.data, args.format, args.max_scenes)
@@ -103,7 +105,8 @@ def cmd_eval(args) -> int:
         exp = E.replace(exp, stages=(*exp.stages[:-1], E.replace(exp.stages[-1], num_inputs=args.num_inputs)))
     params, cfg = _load_params(args.checkpoint, args.config)
     samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
-    rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names)
+    rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
+                                progress=True)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "per_scene.csv"), "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -394,6 +397,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
     e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
     e.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
+    e.add_argument("--refine-steps", type=int, default=0,
+                   help="also score each scene's Gaussians refined this many steps against its input views "
+                        "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")
     e.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
     e.set_defaults(fn=cmd_eval)
 

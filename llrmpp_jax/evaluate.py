@@ -24,15 +24,43 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 from llrmpp_jax.array_typing import Float, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
 from llrmpp_jax.model import reconstruct, render
+from llrmpp_jax.perceptual import VGGParams
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
+from llrmpp_jax.refine import RefineConfig, refine
 
-METHODS = ("model", "mean_colour", "nearest_view")
+BASELINES = ("mean_colour", "nearest_view")
+
+
+@functools.partial(jax.jit, static_argnames="cfg")
+def _predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
+                         key: KeyArray | None) -> tuple[Gaussians, jax.Array]:
+    """The (pruned, colour mode with ``head.prune_ratio > 0``) Gaussians of a batched sample,
+    and Long-LRM's ``gaussian_usage`` [B] measured before pruning."""
+    g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
+    usage = gaussian_usage(g.opacities)
+    key = jax.random.key(0) if key is None else key
+    return prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key), usage
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
+def _render_sample(params: dict, cfg: ModelConfig, g: Gaussians, sample: dict,
+                   diagnose: bool) -> dict[str, jax.Array]:
+    """``g`` rendered at the sample's targets (and, with ``diagnose``, its inputs): see :func:`predict`."""
+    h, w = sample["target_images"].shape[2:4]
+    out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
+    result = dict(out.images, dropped=out.dropped)
+    if diagnose:
+        hi, wi = sample["input_images"].shape[2:4]
+        again = render(params, cfg, g, sample["input_c2w"], sample["input_intrinsics"], hi, wi, ("rgb",))
+        result.update(input_rgb=again.images["rgb"], **gaussian_statistics(g))
+    return result
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
@@ -47,18 +75,21 @@ def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None =
     (pruned) Gaussians (``"input_rgb" [B, V, H, W, 3]``) and the scalars of
     :func:`gaussian_statistics`.
     """
-    g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
-    usage = gaussian_usage(g.opacities)
-    key = jax.random.key(0) if key is None else key
-    g = prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key)
-    h, w = sample["target_images"].shape[2:4]
-    out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
-    result = dict(out.images, dropped=out.dropped, gaussian_usage=usage)
-    if diagnose:
-        hi, wi = sample["input_images"].shape[2:4]
-        again = render(params, cfg, g, sample["input_c2w"], sample["input_intrinsics"], hi, wi, ("rgb",))
-        result.update(input_rgb=again.images["rgb"], **gaussian_statistics(g))
-    return result
+    g, usage = _predicted_gaussians(params, cfg, sample, key)
+    return dict(_render_sample(params, cfg, g, sample, diagnose), gaussian_usage=usage)
+
+
+def predict_refined(params: dict, cfg: ModelConfig, sample: dict, steps: int,
+                    rc: RefineConfig = RefineConfig(), vgg_params: VGGParams | None = None) -> dict[str, jax.Array]:
+    """:func:`predict` with ``diagnose``, the Gaussians first refined for ``steps`` updates
+    against the sample's input views (:func:`llrmpp_jax.refine.refine`: the paper's
+    post-prediction optimisation, Table 1's "Long-LRM_10"). ``gaussian_usage`` is that of the
+    refined opacities."""
+    g, _ = _predicted_gaussians(params, cfg, sample, None)
+    g, _ = refine(params, cfg, g, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"],
+                     steps=steps, rc=rc, vgg_params=vgg_params)
+    out = _render_sample(params, cfg, g, sample, True)
+    return dict(out, gaussian_usage=gaussian_usage(g.opacities))
 
 
 def gaussian_statistics(g: Gaussians) -> dict[str, jax.Array]:
@@ -89,12 +120,30 @@ def image_metrics(pred: np.ndarray, target: np.ndarray, lpips_params: dict | Non
     return out
 
 
+def _model_diagnostics(out: dict, sample: dict[str, np.ndarray]) -> dict[str, float]:
+    """A model row's extra columns from a batch-of-one prediction with ``diagnose``: usage,
+    input-view re-render PSNR, Gaussian statistics and (with a depth head and depth targets)
+    the depth metrics in metres."""
+    again = jnp.clip(out["input_rgb"][0], 0.0, 1.0)
+    extra = {"gaussian_usage": float(out["gaussian_usage"][0]),
+             "input_psnr": float(jnp.mean(psnr(again, jnp.asarray(sample["input_images"])))),
+             **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")}}
+    if "depth" in out and "target_depth" in sample:
+        metres = np.float32(1.0) / sample["scene_scale"]
+        dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(sample["target_depth"] * metres))
+        extra.update({k: float(jnp.mean(v)) for k, v in dm.items()})
+    return extra
+
+
 def evaluate(
     params: dict,
     cfg: ModelConfig,
     samples: Sequence[dict[str, np.ndarray]],
     lpips_params: dict | None = None,
     names: Sequence[str] | None = None,
+    refine_steps: int = 0,
+    refine_config: RefineConfig = RefineConfig(),
+    progress: bool = False,
 ) -> tuple[list[dict], dict[str, dict[str, float]], list[np.ndarray]]:
     """Evaluate the model and the baselines on unbatched samples (batch layout without B).
 
@@ -103,28 +152,31 @@ def evaluate(
     rows also hold diagnostics: ``input_psnr`` (the input views re-rendered from the
     Gaussians; a model that has learned its inputs reproduces them closely) and the
     :func:`gaussian_statistics` of the scene.
+
+    With ``refine_steps`` > 0 a method ``refined_<steps>`` follows ``model``: the same
+    Gaussians refined against each scene's input views first (:func:`predict_refined`, with
+    ``refine_config``), with the same diagnostics (its ``input_psnr`` is the fit to the views
+    it was refined on). ``progress`` shows a bar over the scenes.
     """
+    if refine_steps < 0:
+        raise ValueError(f"evaluate: refine_steps must be >= 0, got {refine_steps}")
+    refined = f"refined_{refine_steps}"
     rows, preds = [], []
-    for i, s in enumerate(samples):
-        out = predict(params, cfg, {k: v[None] for k, v in s.items()}, diagnose=True)
-        rgb = np.asarray(out["rgb"][0])
-        preds.append(rgb)
+    for i, s in enumerate(tqdm(samples, desc="evaluate", disable=not progress, dynamic_ncols=True)):
+        batch = {k: v[None] for k, v in s.items()}
+        outs = {"model": predict(params, cfg, batch, diagnose=True)}
+        if refine_steps:
+            outs[refined] = predict_refined(params, cfg, batch, refine_steps, refine_config)
+        candidates = {m: np.asarray(o["rgb"][0]) for m, o in outs.items()} | baseline_predictions(s)
         name = names[i] if names is not None else f"scene_{i:03d}"
-        candidates = {"model": rgb, **baseline_predictions(s)}
-        for method in METHODS:
-            rows.append({"scene": name, "method": method,
-                         **image_metrics(candidates[method], s["target_images"], lpips_params)})
-        rows[-len(METHODS)].update(
-            gaussian_usage=float(out["gaussian_usage"][0]),
-            input_psnr=float(jnp.mean(psnr(jnp.clip(out["input_rgb"][0], 0.0, 1.0), jnp.asarray(s["input_images"])))),
-            **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")},
-        )
-        if "depth" in out and "target_depth" in s:
-            metres = np.float32(1.0) / s["scene_scale"]
-            dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(s["target_depth"] * metres))
-            rows[-len(METHODS)].update({k: float(jnp.mean(v)) for k, v in dm.items()})
+        for method, pred in candidates.items():
+            row = {"scene": name, "method": method, **image_metrics(pred, s["target_images"], lpips_params)}
+            if method in outs:
+                row.update(_model_diagnostics(outs[method], s))
+            rows.append(row)
+        preds.append(candidates["model"])
     summary = {}
-    for method in METHODS:
+    for method in dict.fromkeys(r["method"] for r in rows):
         mine = [r for r in rows if r["method"] == method]
         keys = [k for k in mine[0] if k not in ("scene", "method")]
         summary[method] = {k: float(np.mean([r[k] for r in mine if k in r])) for k in keys}

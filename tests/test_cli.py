@@ -132,8 +132,9 @@ def _micro_experiment_file(tmp_path, steps: int):
     return path
 
 
-def test_train_resume_and_eval(tmp_path):
-    """2 steps, then the same run extended to 3 resumes at step 2; eval reads the checkpoint."""
+def test_train_resume_and_eval(tmp_path, capsys):
+    """2 steps, then the same run extended to 3 resumes at step 2; eval reads the checkpoint,
+    with ``--refine-steps`` adds a refined row per scene, and rejects a negative count in one line."""
     from llrmpp_jax.trainer import train
 
     work = str(tmp_path / "run")
@@ -149,6 +150,16 @@ def test_train_resume_and_eval(tmp_path):
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--out", str(tmp_path / "ev")]) == 0
     rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
     assert rows[0].startswith("scene,method,psnr,ssim,lpips") and len(rows) == 1 + 3
+    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
+                 "--out", str(tmp_path / "ev2")]) == 0
+    rows = open(tmp_path / "ev2" / "per_scene.csv").read().splitlines()
+    assert [r.split(",")[1] for r in rows[1:]] == ["model", "refined_2", "mean_colour", "nearest_view"]
+    assert "refined_2" in json.load(open(tmp_path / "ev2" / "metrics.json"))
+    capsys.readouterr()
+    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "-1",
+                 "--out", str(tmp_path / "ev3")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["llrmpp: error: --refine-steps must be >= 0, got -1"]
+    assert not os.path.exists(tmp_path / "ev3")
 
 
 def test_sigterm_stops_train_with_a_checkpoint(tmp_path):

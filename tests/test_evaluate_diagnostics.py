@@ -1,11 +1,13 @@
-"""Evaluation diagnostics (input-view re-render PSNR, Gaussian statistics) against NumPy."""
+"""Evaluation diagnostics (input-view re-render PSNR, Gaussian statistics) and the refined rows, against NumPy."""
 
 import jax
 import numpy as np
+import pytest
 
 from llrmpp_jax import config as C
 from llrmpp_jax.evaluate import evaluate, format_table
 from llrmpp_jax.model import init_params, reconstruct, render
+from llrmpp_jax.refine import refine
 
 
 def _camera(x: float, yaw: float) -> np.ndarray:
@@ -16,7 +18,8 @@ def _camera(x: float, yaw: float) -> np.ndarray:
     return m
 
 
-def test_model_row_diagnostics_match_numpy():
+def _setup():
+    """A tiny model with a perturbed head and one random two-view sample (cfg, params, sample)."""
     # Opacity bias -4.6 puts sigmoid(bias) at ~0.01, so with a perturbed head the
     # opacities straddle the 0.01 threshold and the fraction is neither 0 nor 1.
     cfg = C.replace(C.tiny(), head=C.replace(C.tiny().head, max_dist=4.0, scale_bias=-3.0, opacity_bias=-4.6))
@@ -33,6 +36,18 @@ def test_model_row_diagnostics_match_numpy():
         "target_c2w": _camera(0.0, 0.3)[None],
         "target_intrinsics": np.array([[14.5, 14.5, 8.0, 8.0]], np.float32),
     }
+    return cfg, params, sample
+
+
+def _psnr(rgb, target) -> float:
+    """Mean over views of the PSNR of clipped ``rgb`` [V, H, W, 3], in float64."""
+    err = (np.clip(np.asarray(rgb, np.float64), 0, 1) - target) ** 2
+    return float(np.mean(-10 * np.log10(err.mean(axis=(1, 2, 3)))))
+
+
+def test_model_row_diagnostics_match_numpy():
+    cfg, params, sample = _setup()
+    h, w = sample["input_images"].shape[1:3]
     rows, summary, _ = evaluate(params, cfg, [sample])
     model = next(r for r in rows if r["method"] == "model")
 
@@ -42,8 +57,7 @@ def test_model_row_diagnostics_match_numpy():
         return g, render(params, cfg, g, b["input_c2w"], b["input_intrinsics"], h, w).images["rgb"]
 
     g, again = rerender(params, {k: x[None] for k, x in sample.items()})
-    err = (np.clip(np.asarray(again[0], np.float64), 0, 1) - sample["input_images"]) ** 2
-    want_psnr = np.mean(-10 * np.log10(err.mean(axis=(1, 2, 3))))
+    want_psnr = _psnr(again[0], sample["input_images"])
     opac = np.asarray(g.opacities, np.float64)
     np.testing.assert_allclose(model["input_psnr"], want_psnr, rtol=1e-4)
     np.testing.assert_allclose(model["mean_scale"], np.mean(np.asarray(g.scales, np.float64)), rtol=1e-5)
@@ -54,3 +68,27 @@ def test_model_row_diagnostics_match_numpy():
     # The baselines have no diagnostics: the table shows nan there instead of failing.
     assert "input_psnr" not in summary["nearest_view"]
     assert "nan" in format_table(summary).splitlines()[-1]
+
+
+def test_refined_rows_are_refine_then_render():
+    """``refine_steps``: a ``refined_<n>`` row per scene, equal to refine.refine's Gaussians
+    rendered by model.render and scored in NumPy; its input views fit better than the model's."""
+    cfg, params, sample = _setup()
+    h, w = sample["input_images"].shape[1:3]
+    rows, summary, _ = evaluate(params, cfg, [sample], refine_steps=4)
+    assert [r["method"] for r in rows] == ["model", "refined_4", "mean_colour", "nearest_view"]
+    assert list(summary) == ["model", "refined_4", "mean_colour", "nearest_view"]
+    model, refined = rows[0], rows[1]
+
+    b = {k: x[None] for k, x in sample.items()}
+    g = reconstruct(params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"])
+    g, info = refine(params, cfg, g, b["input_images"], b["input_c2w"], b["input_intrinsics"], steps=4)
+    assert info.steps == 4 and info.losses[-1] < info.losses[0]
+    targets = render(params, cfg, g, b["target_c2w"], b["target_intrinsics"], h, w).images["rgb"]
+    inputs = render(params, cfg, g, b["input_c2w"], b["input_intrinsics"], h, w).images["rgb"]
+    np.testing.assert_allclose(refined["psnr"], _psnr(targets[0], sample["target_images"]), rtol=1e-4)
+    np.testing.assert_allclose(refined["input_psnr"], _psnr(inputs[0], sample["input_images"]), rtol=1e-4)
+    np.testing.assert_allclose(refined["mean_opacity"], np.mean(np.asarray(g.opacities, np.float64)), rtol=1e-5)
+    assert refined["input_psnr"] > model["input_psnr"] + 0.01
+    with pytest.raises(ValueError, match="refine_steps must be >= 0, got -1"):
+        evaluate(params, cfg, [sample], refine_steps=-1)
