@@ -12,7 +12,9 @@ head, the depth metrics in metres (the sample's scene normalisation undone first
 model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``)
 and diagnostics (so a blur shows in numbers): the PSNR of the input views re-rendered from
 the Gaussians, the mean predicted scale and opacity, and the fraction of Gaussians with
-opacity above 0.01.
+opacity above 0.01. Optionally a ``refined_<n>`` method beside the model: the same Gaussians
+refined ``n`` steps against the scene's inputs first (``refine.py``; the paper's Table 1
+scores Long-LRM this way after 10 steps), with the same diagnostics.
 """
 
 from __future__ import annotations
