@@ -1,6 +1,6 @@
 """Pictures of the shipped model's novel views before and after post-prediction refinement.
 
-Run:  python experiments/refine_pictures.py --steps 100 --scenes 4 --out experiments/results/small/refined_100.png
+Run:  python experiments/refine_pictures.py --steps 100 --scenes 3 --out experiments/results/small/refined_100.png
 
 For the first ``--scenes`` held-out scenes of ``experiments/small.py``, one row per target
 view: the target, the model's prediction, the prediction after its Gaussians were refined
