@@ -51,9 +51,8 @@ def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, r
         write_image(os.path.join(out, f"grid_{i}.png"), scene_picture(params, cfg, samples[i]))
 
     shown = samples[:refine_scenes]
-    args = {k: _batched(shown, k) for k in ("input_images", "input_c2w", "input_intrinsics")}
+    inputs = [_batched(shown, k) for k in ("input_images", "input_c2w", "input_intrinsics")]
     targets = [_batched(shown, k) for k in ("target_images", "target_c2w", "target_intrinsics")]
-    inputs = [args[k] for k in ("input_images", "input_c2w", "input_intrinsics")]
     g = reconstruct(params, cfg, *inputs)
     refined, info = refine(params, cfg, g, *inputs, steps=refine_steps)
     report = {"summary": summary, "per_scene": rows,

@@ -37,8 +37,6 @@ from llrmpp_jax.perceptual import VGGParams
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 from llrmpp_jax.refine import RefineConfig, refine
 
-BASELINES = ("mean_colour", "nearest_view")
-
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def _predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
@@ -89,7 +87,7 @@ def predict_refined(params: dict, cfg: ModelConfig, sample: dict, steps: int,
     refined opacities."""
     g, _ = _predicted_gaussians(params, cfg, sample, None)
     g, _ = refine(params, cfg, g, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"],
-                     steps=steps, rc=rc, vgg_params=vgg_params)
+                  steps=steps, rc=rc, vgg_params=vgg_params)
     out = _render_sample(params, cfg, g, sample, True)
     return dict(out, gaussian_usage=gaussian_usage(g.opacities))
 
