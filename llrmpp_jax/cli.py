@@ -103,6 +103,9 @@ def cmd_eval(args) -> int:
         exp = _with_data(exp, args.data, args.format, args.max_scenes)
     if args.num_inputs:
         exp = E.replace(exp, stages=(*exp.stages[:-1], E.replace(exp.stages[-1], num_inputs=args.num_inputs)))
+    if args.size:
+        resize_h, resize_w = _parse_size(args.size)
+        exp = E.replace(exp, stages=(*exp.stages[:-1], E.replace(exp.stages[-1], resize_h=resize_h, resize_w=resize_w)))
     params, cfg = _load_params(args.checkpoint, args.config)
     samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
     rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
@@ -397,6 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
     e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
     e.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
+    e.add_argument("--size", default=None,
+                   help="view size: H (width keeps the aspect) or HxW, before the config's square crop if it has one "
+                        "(default: the config's last stage; each real scene's line says the size used)")
     e.add_argument("--refine-steps", type=int, default=0,
                    help="also score each scene's Gaussians refined this many steps against its input views "
                         "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")

@@ -158,8 +158,10 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict],
                                              exp.data.eval_span, exp.data.eval_span, input_weight=0.0)
         else:
             inputs, targets, how = eval_split(exp.data, stage.num_inputs, scene, source.paths[i], index)
-            print(f"eval scene {scene.name}: {how}")
         samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth))
+        if exp.data.kind != "procedural":
+            h, w = samples[-1]["input_images"].shape[-3:-1]
+            print(f"eval scene {scene.name}: {len(inputs)} inputs, {len(targets)} targets, views {h}x{w} (HxW); {how}")
         names.append(scene.name)
     return samples, names
 

@@ -272,6 +272,32 @@ def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
         assert not any(np.allclose(t, c, atol=1e-5) for c in trained.c2w)
 
 
+def test_eval_on_a_capture_says_and_takes_the_view_size(tmp_path, capsys):
+    """``eval --data beer`` (portrait 720x1280) with the micro experiment (square crop, patch 8)
+    and ``--size 48x40`` resizes to 48 x 40 before the crop and says so: views 40 x 40 (the
+    config's height 32 would give 32 x 16, cropped to 16 x 16). A bad size is one line."""
+    import jax
+
+    from conftest import shared_path
+    from llrmpp_jax.model import init_params
+    from llrmpp_jax.params_io import save_params
+
+    exp = _micro_experiment()
+    save_params(str(tmp_path / "p"), init_params(jax.random.key(3), exp.model, 2, 32, 32), exp.model)
+    cfg_file = _micro_experiment_file(tmp_path, 2)
+    base = ["eval", "--config", str(cfg_file), "--checkpoint", str(tmp_path / "p"), "--data",
+            shared_path("data", "beer"), "--num-inputs", "2"]
+    capsys.readouterr()
+    assert main([*base, "--size", "48x40", "--out", str(tmp_path / "ev")]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("eval scene beer:")]
+    assert line and line[0].startswith("eval scene beer: 2 inputs, 9 targets, views 40x40 (HxW); "), line
+    rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
+    assert [r.split(",")[1] for r in rows[1:]] == ["model", "mean_colour", "nearest_view"]
+    assert main([*base, "--size", "big", "--out", str(tmp_path / "bad")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "llrmpp: error: --size must be H or HxW (e.g. 256 or 256x448), got 'big'"]
+
+
 def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_path):
     """``init``: a params folder (drawn weights, not the run's own init) is where stage 1
     starts; at learning rate 0 the trained params equal the saved ones exactly. Rerun longer
