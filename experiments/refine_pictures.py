@@ -1,8 +1,11 @@
 """Pictures of the shipped model's novel views before and after post-prediction refinement.
 
 Run:  python experiments/refine_pictures.py --steps 100 --scenes 3 --out experiments/results/small/refined_100.png
+      python experiments/refine_pictures.py --steps 10 --data ../shared/data/beer --size 112x64 --out beer.png
 
-For the first ``--scenes`` held-out scenes of ``experiments/small.py``, one row per target
+For the first ``--scenes`` held-out scenes of ``experiments/small.py`` (or of the captures at
+``--data``, split as ``llrmpp eval --data`` splits them: k-means inputs, every 8th frame a
+target; ``--size`` as ``eval --size``, before the config's square crop), one row per target
 view: the target, the model's prediction, the prediction after its Gaussians were refined
 ``--steps`` steps against the scene's 8 inputs (``evaluate.predict_refined``, the row
 ``refined_N`` of ``llrmpp eval --refine-steps N``), and the nearest input view. Scaled up
@@ -18,7 +21,7 @@ import numpy as np
 
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import baseline_predictions, predict, predict_refined
-from llrmpp_jax.experiment import EXPERIMENTS_DIR, load_experiment
+from llrmpp_jax.experiment import EXPERIMENTS_DIR, load_experiment, replace
 from llrmpp_jax.pretrained import load_pretrained
 from llrmpp_jax.trainer import eval_samples
 
@@ -28,9 +31,18 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=100, help="refinement steps per scene")
     ap.add_argument("--scenes", type=int, default=4, help="how many held-out scenes (from the first)")
     ap.add_argument("--zoom", type=int, default=3, help="nearest-neighbour upscaling of the picture")
+    ap.add_argument("--data", default=None, help="capture folder or dataset root instead of the procedural scenes")
+    ap.add_argument("--size", default=None, help="with --data: view size H or HxW before the square crop")
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args()
     exp = load_experiment(os.path.join(EXPERIMENTS_DIR, "small.py"))
+    if args.data:
+        stage = exp.stages[-1]
+        if args.size:
+            h, _, w = args.size.partition("x")
+            stage = replace(stage, resize_h=int(h), resize_w=int(w) if w else None)
+        exp = replace(exp, stages=(*exp.stages[:-1], stage),
+                      data=replace(exp.data, kind="auto", path=args.data, eval_path=args.data, num_eval_scenes=args.scenes))
     params, cfg = load_pretrained("small", exp.model)
     samples, names = eval_samples(exp, exp.stages[-1])
     rows = []
