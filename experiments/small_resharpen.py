@@ -1,4 +1,4 @@
-"""Small, sharpened again: a perceptual stage fine-tuned from the shipped ``pretrained:small`` (run three times).
+"""Small, sharpened again: a perceptual stage fine-tuned from the shipped ``pretrained:small`` (run four times).
 
 Run:  llrmpp train --config experiments/small_resharpen.py --init pretrained:small --workdir ~/runs/resharpen
 Eval: llrmpp eval --config experiments/small_resharpen.py --checkpoint ~/runs/resharpen --out ~/runs/resharpen/eval
@@ -28,7 +28,10 @@ held-out PSNR (input views) at steps 500-2,500 from the training's evaluations 2
 23.99 (25.12), 24.10 (25.22), 24.16 (25.28), 24.21 (25.34); at 2,500 ``llrmpp eval``: 24.21 dB,
 SSIM 0.623, LPIPS 0.366, input views 25.34 (11,000 steps in all). A third run (both cores, 40
 minutes): 24.02 (25.13), 24.03 (25.18), 24.16 (25.33), 24.18 (25.37), 24.23 (25.42); ``llrmpp
-eval`` 24.23 dB, SSIM 0.626, LPIPS 0.361, input views 25.42 (13,500 steps; shipped).
+eval`` 24.23 dB, SSIM 0.626, LPIPS 0.361, input views 25.42 (13,500 steps). A fourth (one core,
+68 minutes, beside ``small_lowlr.py``): 24.05 (25.18), 23.96 (25.17), 24.20 (25.37), 24.18
+(25.40), 24.25 (25.45); ``llrmpp eval`` 24.25 dB, SSIM 0.628, LPIPS 0.357, input views 25.45
+(16,000 steps; shipped).
 """
 
 import os
