@@ -41,8 +41,8 @@ def main() -> None:
         if args.size:
             h, _, w = args.size.partition("x")
             stage = replace(stage, resize_h=int(h), resize_w=int(w) if w else None)
-        exp = replace(exp, stages=(*exp.stages[:-1], stage),
-                      data=replace(exp.data, kind="auto", path=args.data, eval_path=args.data, num_eval_scenes=args.scenes))
+        data = replace(exp.data, kind="auto", path=args.data, eval_path=args.data, num_eval_scenes=args.scenes)
+        exp = replace(exp, stages=(*exp.stages[:-1], stage), data=data)
     params, cfg = load_pretrained("small", exp.model)
     samples, names = eval_samples(exp, exp.stages[-1])
     rows = []

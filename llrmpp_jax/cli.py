@@ -401,8 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
     e.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
     e.add_argument("--size", default=None,
-                   help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, before the config's square crop if it has one "
-                        "(default: the config's last stage; each real scene's line says the size used)")
+                   help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
+                        "before the config's square crop if it has one (default: the config's last stage; each "
+                        "real scene's line says the size used)")
     e.add_argument("--refine-steps", type=int, default=0,
                    help="also score each scene's Gaussians refined this many steps against its input views "
                         "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")
