@@ -19,6 +19,7 @@ import os
 
 import numpy as np
 
+from llrmpp_jax.cli import parse_size, with_data
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import baseline_predictions, predict, predict_refined
 from llrmpp_jax.experiment import EXPERIMENTS_DIR, load_experiment, replace
@@ -37,12 +38,10 @@ def main() -> None:
     args = ap.parse_args()
     exp = load_experiment(os.path.join(EXPERIMENTS_DIR, "small.py"))
     if args.data:
-        stage = exp.stages[-1]
+        exp = with_data(exp, args.data, "auto", args.scenes)
         if args.size:
-            h, _, w = args.size.partition("x")
-            stage = replace(stage, resize_h=int(h), resize_w=int(w) if w else None)
-        data = replace(exp.data, kind="auto", path=args.data, eval_path=args.data, num_eval_scenes=args.scenes)
-        exp = replace(exp, stages=(*exp.stages[:-1], stage), data=data)
+            resize_h, resize_w = parse_size(args.size)
+            exp = replace(exp, stages=(*exp.stages[:-1], replace(exp.stages[-1], resize_h=resize_h, resize_w=resize_w)))
     params, cfg = load_pretrained("small", exp.model)
     samples, names = eval_samples(exp, exp.stages[-1])
     rows = []

@@ -56,7 +56,7 @@ def cmd_train(args) -> int:
     elif args.vgg16:
         exp = replace(exp, perceptual_net="vgg16")
     if args.data:
-        exp = _with_data(exp, args.data, args.format, exp.data.num_eval_scenes)
+        exp = with_data(exp, args.data, args.format, exp.data.num_eval_scenes)
     if args.distributed:
         import jax
 
@@ -69,7 +69,7 @@ def cmd_train(args) -> int:
     return 0
 
 
-def _with_data(exp, path: str, kind: str, max_scenes: int):
+def with_data(exp, path: str, kind: str, max_scenes: int):
     """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``)."""
     from llrmpp_jax.experiment import replace
 
@@ -100,12 +100,14 @@ def cmd_eval(args) -> int:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     exp = _experiment(args.config)
     if args.data:
-        exp = _with_data(exp, args.data, args.format, args.max_scenes)
+        exp = with_data(exp, args.data, args.format, args.max_scenes)
+    last = exp.stages[-1]  # the evaluation reads the last stage's view count and size
     if args.num_inputs:
-        exp = E.replace(exp, stages=(*exp.stages[:-1], E.replace(exp.stages[-1], num_inputs=args.num_inputs)))
+        last = E.replace(last, num_inputs=args.num_inputs)
     if args.size:
-        resize_h, resize_w = _parse_size(args.size)
-        exp = E.replace(exp, stages=(*exp.stages[:-1], E.replace(exp.stages[-1], resize_h=resize_h, resize_w=resize_w)))
+        resize_h, resize_w = parse_size(args.size)
+        last = E.replace(last, resize_h=resize_h, resize_w=resize_w)
+    exp = E.replace(exp, stages=(*exp.stages[:-1], last))
     params, cfg = _load_params(args.checkpoint, args.config)
     samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
     rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
@@ -121,7 +123,8 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def _parse_size(text: str) -> tuple[int, int | None]:
+def parse_size(text: str) -> tuple[int, int | None]:
+    """``"H"`` -> ``(H, None)`` (the width keeps the aspect), ``"HxW"`` -> ``(H, W)``; else one-line ``UserError``."""
     try:
         parts = [int(v) for v in text.lower().split("x")]
     except ValueError:
@@ -138,7 +141,7 @@ def _reconstruct(args):
     from llrmpp_jax.capture.reconstruct import view_size
     from llrmpp_jax.data.formats import detect_format
 
-    size = _parse_size(args.size)
+    size = parse_size(args.size)
     inputs = None
     if args.inputs:
         try:
