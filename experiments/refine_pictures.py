@@ -1,6 +1,6 @@
 """Pictures of the shipped model's novel views before and after post-prediction refinement.
 
-Run:  python experiments/refine_pictures.py --steps 100 --scenes 3 --out experiments/results/small/refined_100.png
+Run:  python experiments/refine_pictures.py --steps 10 --scenes 3 --out experiments/results/small/refined_10.png
       python experiments/refine_pictures.py --steps 10 --data ../shared/data/beer --size 112x64 --out beer.png
 
 For the first ``--scenes`` held-out scenes of ``experiments/small.py`` (or of the captures at

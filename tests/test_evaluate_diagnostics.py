@@ -6,8 +6,9 @@ import pytest
 
 from llrmpp_jax import config as C
 from llrmpp_jax.evaluate import evaluate, format_table
+from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.model import init_params, reconstruct, render
-from llrmpp_jax.refine import refine
+from llrmpp_jax.refine import RefineConfig, refine
 
 
 def _camera(x: float, yaw: float) -> np.ndarray:
@@ -92,3 +93,25 @@ def test_refined_rows_are_refine_then_render():
     assert refined["input_psnr"] > model["input_psnr"] + 0.01
     with pytest.raises(ValueError, match="refine_steps must be >= 0, got -1"):
         evaluate(params, cfg, [sample], refine_steps=-1)
+
+
+def test_refined_rows_with_the_perceptual_term():
+    """A perceptual refinement (``RefineConfig.perceptual_weight``) uses the LPIPS network's
+    VGG16: the refined row equals refine.refine called with that VGG16, rendered and scored
+    in NumPy; without LPIPS params to take it from, evaluate fails as refine does."""
+    cfg, params, sample = _setup()
+    h, w = sample["input_images"].shape[1:3]
+    lpips_params, rc = load_lpips_params(), RefineConfig(perceptual_weight=0.5)
+    rows, _, _ = evaluate(params, cfg, [sample], lpips_params, refine_steps=3, refine_config=rc)
+    refined = rows[1]
+    b = {k: x[None] for k, x in sample.items()}
+    g = reconstruct(params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"])
+    g, info = refine(params, cfg, g, b["input_images"], b["input_c2w"], b["input_intrinsics"], steps=3, rc=rc,
+                     vgg_params=lpips_params["vgg"])
+    assert info.losses[-1] < info.losses[0]
+    targets = render(params, cfg, g, b["target_c2w"], b["target_intrinsics"], h, w).images["rgb"]
+    np.testing.assert_allclose(refined["psnr"], _psnr(targets[0], sample["target_images"]), rtol=1e-4)
+    mse_only, _, _ = evaluate(params, cfg, [sample], lpips_params, refine_steps=3)
+    assert abs(mse_only[1]["psnr"] - refined["psnr"]) > 1e-4  # the perceptual term changed the fit
+    with pytest.raises(ValueError, match="perceptual_weight=0.5 needs vgg_params"):
+        evaluate(params, cfg, [sample], refine_steps=3, refine_config=rc)

@@ -100,3 +100,21 @@ def test_refine_rejects_bad_arguments(rng):
         refine({}, COLOUR, g, images, c2w, intr, steps=-1)
     with pytest.raises(ValueError, match="vgg_params"):
         refine({}, COLOUR, g, images, c2w, intr, rc=RefineConfig(perceptual_weight=0.5))
+
+
+@pytest.mark.parametrize("steps, scale", [(4, 10.0), (25, 4.0)])
+def test_default_rates_scale_with_the_steps(rng, steps, scale):
+    """``rate_scale=None`` multiplies every field's rate by 100 / steps clipped to [1, 10]:
+    the same fit as those rates multiplied by hand with ``rate_scale=1``."""
+    g, c2w, intr = known_scene(rng, n=40, views=2)
+    images = jnp.asarray(rng.uniform(0.1, 0.9, (1, 2, H, W, 3)), jnp.float32)
+    base = RefineConfig()
+    by_hand = RefineConfig(rate_scale=1.0, lr_means=base.lr_means * scale, lr_log_scales=base.lr_log_scales * scale,
+                           lr_quats=base.lr_quats * scale, lr_opacity_logits=base.lr_opacity_logits * scale,
+                           lr_features=base.lr_features * scale)
+    got, _ = refine({}, COLOUR, g, images, c2w, intr, steps=steps)
+    want, _ = refine({}, COLOUR, g, images, c2w, intr, steps=steps, rc=by_hand)
+    unscaled, _ = refine({}, COLOUR, g, images, c2w, intr, steps=steps, rc=RefineConfig(rate_scale=1.0))
+    for name, a, b, c in zip(Gaussians._fields, got, want, unscaled, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=name)
+        assert float(jnp.max(jnp.abs(a - c))) > 1e-4, name  # the scale is not a no-op

@@ -1,0 +1,93 @@
+"""Post-prediction refinement's learning rates and loss, chosen on validation scenes.
+
+Run:  python experiments/bench_refine_rates.py --checkpoint pretrained:small --scenes 8 --steps 10 \
+          --variants 1:0 3:0 10:0 3:0.5
+
+``refine.RefineConfig``'s per-field rates were picked by hand. Each variant
+``SCALE:PERCEPTUAL`` sets its ``rate_scale`` (every rate times ``SCALE``; the default,
+:func:`llrmpp_jax.refine.rate_scale_for` the steps, was chosen from these runs) and its
+perceptual weight (0: MSE only, the default; the paper trains with 0.5), then
+``evaluate(..., refine_steps=--steps)`` scores the refined Gaussians on held-out targets.
+The scenes are *validation* scenes: procedural seeds ``--seed-offset`` above the held-out
+evaluation's (``DataConfig.eval_seed_offset``), so neither the 16 held-out scenes the README
+reports nor any training scene is used to choose. Writes
+``experiments/results/refine_rates/<name>.json``: per variant the refined row (PSNR, SSIM,
+LPIPS, input-view fit), the unrefined model's row once, and the wall time; rewritten after
+every variant, so a stopped run keeps what it measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+from llrmpp_jax.evaluate import evaluate
+from llrmpp_jax.experiment import load_experiment, replace
+from llrmpp_jax.metrics import load_lpips_params
+from llrmpp_jax.params_io import load_params
+from llrmpp_jax.refine import RefineConfig
+from llrmpp_jax.trainer import eval_samples
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def parse_variant(text: str) -> tuple[float, float]:
+    """``"SCALE:PERCEPTUAL"`` -> ``(scale, perceptual)``; argparse's error on anything else."""
+    try:
+        scale, perceptual = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a variant is SCALE:PERCEPTUAL (e.g. 3:0.5), got {text!r}") from None
+    if scale <= 0 or perceptual < 0:
+        raise argparse.ArgumentTypeError(f"a variant needs SCALE > 0 and PERCEPTUAL >= 0, got {text!r}")
+    return scale, perceptual
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default=os.path.join(ROOT, "experiments", "small.py"),
+                   help="experiment file: its procedural data and last stage's views (default: small.py)")
+    p.add_argument("--checkpoint", default="pretrained:small",
+                   help="training workdir, params folder or pretrained:NAME")
+    p.add_argument("--scenes", type=int, default=8, help="validation scenes")
+    p.add_argument("--seed-offset", type=int, default=1_000,
+                   help="validation seeds start this far above the held-out evaluation's")
+    p.add_argument("--steps", type=int, default=10, help="refinement steps (the paper's Table 1: 10)")
+    p.add_argument("--variants", type=parse_variant, nargs="+", default=[(1.0, 0.0), (3.0, 0.0), (10.0, 0.0)],
+                   help="SCALE:PERCEPTUAL pairs: all learning rates times SCALE, perceptual weight")
+    p.add_argument("--name", default="small_10", help="results file name (experiments/results/refine_rates/NAME.json)")
+    args = p.parse_args()
+
+    exp = load_experiment(args.config)
+    if exp.data.kind != "procedural":
+        p.error(f"--config {args.config}: validation scenes are procedural seeds, its data is {exp.data.kind!r}")
+    params, cfg = load_params(args.checkpoint, exp.model)
+    data = replace(exp.data, num_eval_scenes=args.scenes, eval_seed_offset=exp.data.eval_seed_offset + args.seed_offset)
+    exp = replace(exp, data=data, model=cfg)
+    samples, names = eval_samples(exp, exp.stages[-1])
+    lpips_params = load_lpips_params()  # its VGG16 is also the refinement's perceptual network
+    path = os.path.join(ROOT, "experiments", "results", "refine_rates", f"{args.name}.json")
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    out = {"checkpoint": args.checkpoint, "config": os.path.relpath(args.config, ROOT), "scenes": names,
+           "steps": args.steps, "defaults": dataclasses.asdict(RefineConfig()), "variants": []}
+    for scale, perceptual in args.variants:
+        rc = RefineConfig(rate_scale=scale, perceptual_weight=perceptual)
+        t0 = time.perf_counter()
+        _, summary, _ = evaluate(params, cfg, samples, lpips_params, names, refine_steps=args.steps,
+                                 refine_config=rc, progress=True)
+        seconds = time.perf_counter() - t0
+        out["model"] = summary["model"]
+        row = summary[f"refined_{args.steps}"]
+        out["variants"].append({"rate_scale": scale, "perceptual_weight": perceptual, "seconds": seconds, **row})
+        print(f"rates x{scale:g}, perceptual {perceptual:g}: PSNR {row['psnr']:.2f} SSIM {row['ssim']:.3f} "
+              f"LPIPS {row['lpips']:.3f} inputs {row['input_psnr']:.2f} ({seconds:.0f} s; model "
+              f"{summary['model']['psnr']:.2f} / {summary['model']['lpips']:.3f})", flush=True)
+        with open(path, "w") as f:
+            json.dump(out, f, indent=1)
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
