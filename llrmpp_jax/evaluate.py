@@ -156,7 +156,8 @@ def evaluate(
     With ``refine_steps`` > 0 a method ``refined_<steps>`` follows ``model``: the same
     Gaussians refined against each scene's input views first (:func:`predict_refined`, with
     ``refine_config``; a perceptual term there uses ``lpips_params``' VGG16), with the same
-    diagnostics (its ``input_psnr`` is the fit to the views it was refined on). ``progress`` shows a bar over the scenes.
+    diagnostics (its ``input_psnr`` is the fit to the views it was refined on). ``progress``
+    shows a bar over the scenes.
     """
     if refine_steps < 0:
         raise ValueError(f"evaluate: refine_steps must be >= 0, got {refine_steps}")
