@@ -94,7 +94,8 @@ def rate_scale_for(steps: int) -> float:
     100 steps (4 scenes) x1 27.44 / 0.299, x3 27.19 / 0.298, x10 26.56 / 0.308, where the
     larger rates over-fit the inputs. Colour mode was not swept; with the same rule (x2 at 50
     steps) the golden Long-LRM's refinement on fox / beer (``bench_refine_golden.py``) reaches
-    6.88 / 9.77 dB held out, against 6.11 / 9.02 at x1.
+    6.88 / 9.77 dB held out, against 6.11 / 9.02 at x1 (7.35 / 9.66 with :class:`RefineConfig`'s
+    log-scale rate 3x, as now).
     """
     return float(min(10.0, max(1.0, 100.0 / max(steps, 1))))
 
