@@ -36,9 +36,8 @@ from llrmpp_jax.refine import RefineConfig
 from llrmpp_jax.trainer import eval_samples
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-FIELDS = ("means", "log_scales", "quats", "opacity_logits", "features")
+# The fields with a rate of their own: RefineConfig's lr_FIELD.
+FIELDS = tuple(f.name.removeprefix("lr_") for f in dataclasses.fields(RefineConfig) if f.name.startswith("lr_"))
 
 
 def parse_variant(text: str) -> tuple[float, float, dict[str, float]]:
@@ -90,9 +89,9 @@ def main() -> None:
     lpips_params = load_lpips_params()  # its VGG16 is also the refinement's perceptual network
     path = os.path.join(ROOT, "experiments", "results", "refine_rates", f"{args.name}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    out = {"checkpoint": args.checkpoint, "config": os.path.relpath(args.config, ROOT), "scenes": names,
-           "steps": args.steps, "defaults": dataclasses.asdict(RefineConfig()), "variants": []}
     defaults = RefineConfig()
+    out = {"checkpoint": args.checkpoint, "config": os.path.relpath(args.config, ROOT), "scenes": names,
+           "steps": args.steps, "defaults": dataclasses.asdict(defaults), "variants": []}
     for scale, perceptual, fields in args.variants:
         rc = dataclasses.replace(defaults, rate_scale=scale, perceptual_weight=perceptual,
                                  **{f"lr_{k}": getattr(defaults, f"lr_{k}") * v for k, v in fields.items()})
