@@ -25,7 +25,7 @@ Ship: python experiments/ship_weights.py --workdir runs/small --config experimen
 
   LPIPS falls as the learning rate decays and PSNR comes back (SSIM 0.605 -> 0.611).
 
-``pretrained:small`` as shipped now is this model fine-tuned ten times more by
+``pretrained:small`` as shipped now is this model fine-tuned nine times more by
 ``small_resharpen.py`` (``llrmpp train --init pretrained:small``: the ``sharpen`` stage again at
 lr 2e-4 for 2,500 steps, each run from the weights the one before shipped): 24.18 dB, SSIM
 0.619, LPIPS 0.373, input views 25.21 after the first; 24.21 dB, SSIM 0.623, LPIPS 0.366,
