@@ -25,8 +25,8 @@ from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
-    """``small.py``'s ``sharpen`` at batch 16 for 2,500 steps (start: ``--init pretrained:small``), 6 minutes per run."""
+    """``small.py``'s ``sharpen`` at batch 16 for 2,500 steps (start: ``--init pretrained:small``), 7 minutes per run."""
     small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small.py"))
     stage = replace(small.stages[-1], name="accel_sharpen", steps=2_500, global_batch=16)
-    return replace(small, name="small_accel_sharpen", stages=(stage,), max_minutes=6.0, eval_every=500,
-                   checkpoint_every=500)
+    return replace(small, name="small_accel_sharpen", stages=(stage,), max_minutes=7.0, eval_every=500,
+                   checkpoint_every=500, keep_checkpoints=1)
