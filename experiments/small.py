@@ -35,7 +35,10 @@ SSIM 0.630, LPIPS 0.354, input views 25.49 after the fifth; 24.30 dB, SSIM 0.633
 input views 25.52 after the sixth; 24.31 dB, SSIM 0.635, LPIPS 0.348, input views 25.54 after
 the seventh; 24.35 dB, SSIM 0.638, LPIPS 0.343, input views 25.59 after the eighth; 24.39 dB, SSIM 0.640,
 LPIPS 0.340, input views 25.63 after the ninth; then once by ``small_resharpen_long.py``, the
-same over 5,000 steps: 24.42 dB, SSIM 0.643, LPIPS 0.330, input views 25.69 (33,500 steps in all).
+same over 5,000 steps: 24.42 dB, SSIM 0.643, LPIPS 0.330, input views 25.69 (33,500 steps); then
+twice by ``small_accel_sharpen.py``, the ``sharpen`` stage at batch 16 on a lent H200 (2,500 steps,
+6 minutes each): 24.66 dB, SSIM 0.661, LPIPS 0.297, input views 25.95 after the first; **24.85 dB,
+SSIM 0.675, LPIPS 0.282, input views 26.14** after the second (38,500 steps in all).
 
 The network is ``small_fine.py``'s: the CPU recipe's (``small_cpu.py``) with the decoder's
 token stride 8 -> 4 and the backbone and decoder widths 64 -> 128 (1.3M parameters). Through

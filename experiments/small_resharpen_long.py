@@ -12,7 +12,8 @@ It gains more than two, about as much as three. From the 28,500-step model (24.3
 shared them for 40): held-out PSNR (input views) at steps 500-5,000 24.19 (25.38), 23.97
 (25.18), 24.20 (25.43), 24.11 (25.25), 24.27 (25.48), 24.42 (25.61), 24.40 (25.64), 24.42
 (25.67), 24.39 (25.68), 24.42 (25.69); ``llrmpp eval`` at 5,000 **24.42 dB, SSIM 0.643, LPIPS
-0.330, input views 25.69** (33,500 steps; shipped as ``pretrained:small``). LPIPS -0.010, where
+0.330, input views 25.69** (33,500 steps; shipped as ``pretrained:small``, then fine-tuned twice
+by ``small_accel_sharpen.py`` on a lent H200, each run gaining more than this). LPIPS -0.010, where
 the last six 2,500-step cycles gained 0.003-0.004 each. The dip is as deep (23.97 at step
 1,000) and paid once instead of twice; the held-out PSNR passes the start by step 3,000.
 """

@@ -87,8 +87,8 @@ def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
 @pytest.mark.slow
 def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
     """The model in the package: checksum, the config of experiments/small.py, provenance
-    (the experiment it was fine-tuned with, ``small_accel_sharpen.py``, and the one that made
-    the weights it started from, ``small_resharpen_long.py``; all of that model),
+    (the experiment it was fine-tuned with, ``small_accel_sharpen.py``, run twice: it also made
+    the weights it started from; all of that model),
     and its recorded forward pass reproduced <= 1e-5 (float32 from the float16 file)."""
     exp = load_experiment(os.path.join(ROOT, "experiments", "small.py"))
     params, cfg = load_params("pretrained:small", exp.model)
@@ -97,7 +97,7 @@ def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
         meta = json.load(f)
     start = meta["started_from"]
     assert (meta["experiment"], start["init"], start["experiment"]) == \
-        ("experiments/small_accel_sharpen.py", "pretrained:small", "experiments/small_resharpen_long.py")
+        ("experiments/small_accel_sharpen.py", "pretrained:small", "experiments/small_accel_sharpen.py")
     tuned = load_experiment(os.path.join(ROOT, meta["experiment"]))
     assert tuned.model == cfg
     assert meta["steps"] == start["steps"] + tuned.stages[0].steps
