@@ -11,9 +11,9 @@ On the experiment's held-out procedural scenes (``--config``, default the checkp
   transparent (opacity 0), so nothing of the other views can cover it;
 * ``single_input``: reconstructed from that view alone.
 
-and, for scale, the image's own 8 x 8, 4 x 4 and 2 x 2 block means. If ``all_views`` is far below
-``own_only``, other views' Gaussians (at wrong depths) spoil the view; if ``own_only`` is at
-the 8 x 8 block mean, the model passes each patch's mean colour and nothing finer. Writes
+and, for scale, the image's own 8 x 8, 4 x 4 and 2 x 2 block means. If ``all_views`` is far
+below ``own_only``, other views' Gaussians (at wrong depths) spoil the view; if ``own_only`` is
+at the 8 x 8 block mean, the model passes each patch's mean colour and nothing finer. Writes
 ``experiments/results/learning/input_views_<name>.json``.
 """
 
@@ -75,9 +75,9 @@ def main() -> None:
             own.append(score(ren(g._replace(opacities=g.opacities * mask), *cam, h, w)[0, 0], s["input_images"][i]))
             alone = rec(im[:, i:i + 1], *cam)
             single.append(score(ren(alone, *cam, h, w)[0, 0], s["input_images"][i]))
+        blocks = {f"block_mean_{b}": score(block_mean(s["input_images"], b), s["input_images"]) for b in (8, 4, 2)}
         rows.append({"scene": name, "all_views": score(ren(g, c2w, k, h, w)[0], s["input_images"]),
-                     "own_only": float(np.mean(own)), "single_input": float(np.mean(single)),
-                     **{f"block_mean_{b}": score(block_mean(s["input_images"], b), s["input_images"]) for b in (8, 4, 2)}})
+                     "own_only": float(np.mean(own)), "single_input": float(np.mean(single)), **blocks})
         print(" ".join(f"{k_}={v_:.2f}" if isinstance(v_, float) else v_ for k_, v_ in rows[-1].items()), flush=True)
     mean = {k_: float(np.mean([r[k_] for r in rows])) for k_ in rows[0] if k_ != "scene"}
     print("mean over scenes (PSNR dB): " + ", ".join(f"{k_} {v_:.2f}" for k_, v_ in mean.items()))

@@ -8,8 +8,8 @@ Eval: llrmpp eval --config experiments/small_accel_sharpen.py --checkpoint runs/
 Run twice on a lent H200 (session of 2026-11-27), the second time from the first's checkpoint
 (``WORKDIR=/tmp/small_accel2 ACCEL_INIT=/tmp/small_accel``, the same warm machine), and shipped
 as ``pretrained:small`` after each: ~9.3 steps/s (~150 samples/s), ~6 minutes per run with
-compile (~48 s) and five held-out evaluations (~28 s for the first, a few seconds each after). ``llrmpp eval`` on the 16 held-out scenes, PSNR / SSIM /
-LPIPS / input views re-rendered:
+compile (~48 s) and five held-out evaluations (~28 s for the first, a few seconds each after).
+``llrmpp eval`` on the 16 held-out scenes, PSNR / SSIM / LPIPS / input views re-rendered:
 
 | weights | PSNR | SSIM | LPIPS | input views | steps in all |
 |---|---|---|---|---|---|
