@@ -4,7 +4,7 @@
   in the environment before jax is imported anywhere.
 * XLA's CPU backend at optimisation level 0 without its expensive LLVM passes (flags the
   caller sets come after, so they win): most tests run a program once or twice, so compile
-  time dominates. The suite takes 774 s instead of 948 s on 2 cores (the few tests that run
+  time dominates. The suite takes 774-874 s instead of 948 s on 2 cores (the few tests that run
   long loops, the capture end-to-end ones, get slower); every oracle tolerance still holds.
 * ``jax_numpy_dtype_promotion="strict"`` and ``jax_numpy_rank_promotion="raise"``: silent
   float64 upcasts and accidental broadcasting are bugs here.
