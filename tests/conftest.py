@@ -15,8 +15,9 @@
 import os
 import zlib
 
+QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 os.environ["XLA_FLAGS"] = " ".join([
-    "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+    QUICK_XLA_FLAGS,
     os.environ.get("XLA_FLAGS", ""),
     "--xla_force_host_platform_device_count=2",
 ])

@@ -26,7 +26,7 @@ import tempfile
 
 import pytest
 
-from conftest import shared_path
+from conftest import QUICK_XLA_FLAGS, shared_path
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 NB_DIR = os.path.join(ROOT, "notebooks")
@@ -138,7 +138,7 @@ def _run_notebook(name: str, tmp_path, rows: str, **env: str) -> tuple[subproces
         JAX_NUMPY_RANK_PROMOTION="raise",
         JAX_COMPILATION_CACHE_DIR=os.path.join(tempfile.gettempdir(), "llrmpp-notebook-xla-cache"),
         JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-        XLA_FLAGS="--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+        XLA_FLAGS=QUICK_XLA_FLAGS,
         **env,
     )
     proc = subprocess.run([sys.executable, "-c", runner], cwd=ROOT, env=env, capture_output=True, text=True,
