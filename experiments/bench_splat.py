@@ -18,23 +18,39 @@ in [0.25, 4] pixels on a 256-pixel-wide canvas (Long-LRM++'s Gaussians are ~1 px
 random rotations and features. So the work (intersections x 256 pixels) grows with N and
 with the pixel count.
 
-Full sweep (the issue's):  python experiments/bench_splat.py
+Capacity: ``--capacity default`` uses ``SplatConfig``'s trace-time buffer (8 slots per
+Gaussian), ``fitted`` sizes it from the scene as the eager entry points and ``refine`` do
+(:func:`llrmpp_jax.splat.render.fitted_capacity` of the exact count); ``both`` (the
+default) times the two.
+
+``--baseline REF`` first runs this script as it was at git ``REF`` (a temporary worktree)
+with the same sweep, so a speed-up is measured on the same machine in the same run; its
+rows go under ``"baseline"``.
+
+Current numbers (docs/results.md):
+  python experiments/bench_splat.py --n 100000 --canvas 128x128 256x256 --repeats 5 \
+      --baseline 49415ad --out experiments/results/splat_speed.json
+Full sweep:                python experiments/bench_splat.py
 Quick run (2-core CPU):    python experiments/bench_splat.py --quick
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
+import subprocess
+import sys
+import tempfile
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.splat import SplatConfig, render_features
+from llrmpp_jax.splat import SplatConfig, count_intersections, render_features
 from llrmpp_jax.splat.reference import render_features_reference
 
 
@@ -82,9 +98,14 @@ def _device_peak() -> int | None:
 
 
 def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats: int, oracle_max_work: float,
-              oracle_max_bytes: float, seed: int) -> dict:
+              oracle_max_bytes: float, seed: int, fitted: bool = False) -> dict:
     rng = np.random.default_rng(seed)
     means, quats, scales, opac, feats, c2w, intr = make_scene(rng, n, f, height, width)
+    if fitted:
+        from llrmpp_jax.splat.render import fitted_capacity
+
+        needed = int(count_intersections(means, quats, scales, c2w, intr, height, width, cfg, opacities=opac))
+        cfg = dataclasses.replace(cfg, max_intersections=fitted_capacity(needed))
     cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((height, width, f), (height, width), (height, width))]
 
     def forward(m, q, s, o, x):
@@ -99,7 +120,7 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
     fwd_compile_s, fwd_s, out = _time(forward, args, repeats)
     stats = out.stats
     row = {
-        "n": n, "width": width, "height": height, "pixels": width * height, "features": f,
+        "capacity_rule": "fitted" if fitted else "default", "n": n, "width": width, "height": height, "pixels": width * height, "features": f,
         "num_visible": int(stats.num_visible), "num_intersections": int(stats.num_intersections),
         "capacity": int(stats.capacity), "overflow": bool(stats.overflow),
         "max_tile_intersections": int(stats.max_tile_intersections),
@@ -143,32 +164,68 @@ def fit_exponents(rows: list[dict], key: str) -> dict:
     return fits
 
 
+def run_baseline(ref: str, argv: list[str]) -> dict:
+    """This script's sweep as it was at git ``ref``, in a temporary worktree; its JSON."""
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = os.path.join(tmp, "tree")
+        subprocess.run(["git", "-C", repo, "worktree", "add", "--detach", tree, ref], check=True, capture_output=True)
+        try:
+            out = os.path.join(tmp, "baseline.json")
+            env = dict(os.environ, PYTHONPATH=tree)
+            cmd = [sys.executable, os.path.join(tree, "experiments", "bench_splat.py"), *argv, "--out", out]
+            subprocess.run(cmd, check=True, env=env, cwd=tree)
+            with open(out) as fh:
+                result = json.load(fh)
+            result["ref"] = subprocess.run(["git", "-C", repo, "rev-parse", ref], check=True, capture_output=True,
+                                           text=True).stdout.strip()
+            return result
+        finally:
+            subprocess.run(["git", "-C", repo, "worktree", "remove", "--force", tree], check=False)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=float, nargs="+", default=[1e4, 1e5, 1e6], help="numbers of Gaussians")
     parser.add_argument("--canvas", nargs="+", default=["128x128", "256x256", "480x272"], help="WxH canvases")
-    parser.add_argument("--features", type=int, default=32)
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--chunk-size", type=int, default=SplatConfig.chunk_size)
-    parser.add_argument("--tiles-per-group", type=int, default=SplatConfig.tiles_per_group)
+    parser.add_argument("--features", type=int, default=32, help="feature width F")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs after the compile (best is kept)")
+    parser.add_argument("--chunk-size", type=int, default=SplatConfig.chunk_size, help="SplatConfig.chunk_size")
+    parser.add_argument("--tiles-per-group", type=int, default=SplatConfig.tiles_per_group,
+                        help="SplatConfig.tiles_per_group")
+    parser.add_argument("--composite-tile", type=int, default=SplatConfig.composite_tile,
+                        help="SplatConfig.composite_tile (pixels a side of a compositor block)")
+    parser.add_argument("--capacity", choices=("default", "fitted", "both"), default="both",
+                        help="intersection buffer: SplatConfig's default, fitted to the scene, or both")
     parser.add_argument("--oracle-max-work", type=float, default=2e8, help="largest N x pixels for the oracle")
     parser.add_argument("--oracle-max-bytes", type=float, default=2e9, help="largest oracle fwd+bwd residuals")
     parser.add_argument("--quick", action="store_true", help="N in {1e4, 1e5}, canvases 128x128 and 256x256")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_splat.json"))
+    parser.add_argument("--seed", type=int, default=0, help="scene seed")
+    parser.add_argument("--baseline", metavar="REF", help="also run this script as it was at git REF, first")
+    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_splat.json"),
+                        help="JSON file to write")
     args = parser.parse_args()
     if args.quick:
         args.n, args.canvas = [1e4, 1e5], ["128x128", "256x256"]
-    cfg = SplatConfig(chunk_size=args.chunk_size, tiles_per_group=args.tiles_per_group)
 
+    baseline = None
+    if args.baseline:
+        argv = ["--n", *map(str, args.n), "--canvas", *args.canvas, "--features", str(args.features),
+                "--repeats", str(args.repeats), "--oracle-max-work", "0", "--seed", str(args.seed)]
+        baseline = run_baseline(args.baseline, argv)
+
+    cfg = SplatConfig(chunk_size=args.chunk_size, tiles_per_group=args.tiles_per_group,
+                      composite_tile=args.composite_tile)
+    rules = {"default": [False], "fitted": [True], "both": [False, True]}[args.capacity]
     rows = []
     for canvas in args.canvas:
         width, height = (int(v) for v in canvas.lower().split("x"))
         for n in args.n:
-            row = bench_one(int(n), width, height, args.features, cfg, args.repeats, args.oracle_max_work,
-                            args.oracle_max_bytes, args.seed)
-            rows.append(row)
-            print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
+            for fitted in rules:
+                row = bench_one(int(n), width, height, args.features, cfg, args.repeats, args.oracle_max_work,
+                                args.oracle_max_bytes, args.seed, fitted)
+                rows.append(row)
+                print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
 
     result = {
         "device": str(jax.devices()[0]), "backend": jax.default_backend(), "jax": jax.__version__,
@@ -176,11 +233,29 @@ def main() -> None:
         "rows": rows,
         "exponents": {"fwd_s": fit_exponents(rows, "fwd_s"), "fwd_bwd_s": fit_exponents(rows, "fwd_bwd_s")},
     }
+    if baseline is not None:
+        result["baseline"] = baseline
+        result["speedup"] = speedups(baseline["rows"], rows)
+        print(json.dumps(result["speedup"], indent=1))
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=1)
     print(json.dumps(result["exponents"], indent=1))
     print(f"wrote {args.out}")
+
+
+def speedups(base_rows: list[dict], rows: list[dict]) -> list[dict]:
+    """Baseline time / current time per (N, canvas) and capacity rule, forward and fwd+bwd."""
+    base = {(r["n"], r["width"], r["height"]): r for r in base_rows}
+    out = []
+    for r in rows:
+        b = base.get((r["n"], r["width"], r["height"]))
+        if b is not None:
+            out.append({"n": r["n"], "canvas": f"{r['width']}x{r['height']}", "capacity_rule": r["capacity_rule"],
+                        "baseline_fwd_s": b["fwd_s"], "fwd_s": r["fwd_s"], "fwd_speedup": b["fwd_s"] / r["fwd_s"],
+                        "baseline_fwd_bwd_s": b["fwd_bwd_s"], "fwd_bwd_s": r["fwd_bwd_s"],
+                        "fwd_bwd_speedup": b["fwd_bwd_s"] / r["fwd_bwd_s"]})
+    return out
 
 
 if __name__ == "__main__":

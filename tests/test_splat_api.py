@@ -6,7 +6,7 @@ import re
 import jax
 import numpy as np
 import pytest
-from test_splat_oracle import assert_render_close, oracle_project, oracle_render, oracle_tile_lists, random_scene
+from test_splat_oracle import BLOCK, assert_render_close, oracle_project, oracle_render, oracle_tile_lists, random_scene
 
 from llrmpp_jax.splat import SplatConfig, render_features
 
@@ -27,7 +27,7 @@ def test_vmap_over_cameras_equals_separate_renders(rng):
 
 def test_overflow_renders_the_nearest_entries_and_reports(rng):
     scene = random_scene(rng, N, F, H, W)
-    _, needed = oracle_tile_lists(oracle_project(*scene[:3], *scene[5:], H, W), H, W, opacities=scene[3])
+    _, needed = oracle_tile_lists(oracle_project(*scene[:3], *scene[5:], H, W), H, W, opacities=scene[3], block=BLOCK)
     capacity = needed // 3
     cfg = SplatConfig(max_intersections=capacity)
     out = render_features(*scene, H, W, cfg)

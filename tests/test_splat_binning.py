@@ -5,7 +5,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from test_splat_oracle import oracle_project, oracle_tile_lists, random_scene
+from test_splat_oracle import BLOCK, oracle_project, oracle_tile_lists, random_scene
 
 from llrmpp_jax.splat import SplatConfig, count_intersections
 from llrmpp_jax.splat.binning import bin_gaussians
@@ -34,8 +34,8 @@ def _scene(rng):
 
 def test_tile_lists_match_oracle(rng):
     scene = _scene(rng)
-    expected, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W)
-    bins = _bin(*(jnp.asarray(a) for a in scene), capacity=4 * N)
+    expected, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W, block=BLOCK)
+    bins = _bin(*(jnp.asarray(a) for a in scene), capacity=16 * N)
     assert _lists(bins) == expected
     assert int(bins.num_intersections) == needed and not bool(bins.overflow)
     assert int(bins.num_dropped) == 0
@@ -45,21 +45,22 @@ def test_tile_lists_match_oracle(rng):
 def test_opacity_trimmed_lists_match_oracle_and_are_shorter(rng):
     scene = _scene(rng)
     opac = rng.uniform(0.0, 1.0, N) ** 2  # mostly faint, a few below 1/255
-    full, needed_full = oracle_tile_lists(oracle_project(*scene, H, W), H, W)
-    expected, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W, opacities=opac)
-    bins = _bin(*(jnp.asarray(a) for a in scene), capacity=4 * N, opacities=jnp.asarray(opac, jnp.float32))
+    full, needed_full = oracle_tile_lists(oracle_project(*scene, H, W), H, W, block=BLOCK)
+    expected, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W, opacities=opac, block=BLOCK)
+    bins = _bin(*(jnp.asarray(a) for a in scene), capacity=16 * N, opacities=jnp.asarray(opac, jnp.float32))
     assert _lists(bins) == expected
     assert int(bins.num_intersections) == needed and not bool(bins.overflow)
     assert needed < 0.9 * needed_full  # the trim removes real work on faint Gaussians
     assert all(set(t) <= set(f) for t, f in zip(expected, full))  # it only removes entries
-    assert int(count_intersections(*scene, H, W)) == needed_full  # the sizing bound stays the full count
+    assert int(count_intersections(*scene, H, W)) == needed_full  # the bound without opacities
+    assert int(count_intersections(*scene, H, W, opacities=opac)) == needed  # exact with them
 
 
 def test_overflow_is_reported_and_keeps_nearest(rng):
     scene = _scene(rng)
-    _, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W)
+    _, needed = oracle_tile_lists(oracle_project(*scene, H, W), H, W, block=BLOCK)
     capacity = needed // 2
-    expected, _ = oracle_tile_lists(oracle_project(*scene, H, W), H, W, capacity=capacity)
+    expected, _ = oracle_tile_lists(oracle_project(*scene, H, W), H, W, capacity=capacity, block=BLOCK)
     bins = _bin(*(jnp.asarray(a) for a in scene), capacity=capacity)
     assert bool(bins.overflow)
     assert int(bins.num_intersections) == needed
@@ -84,7 +85,11 @@ def test_default_capacity_holds_at_paper_density(rng):
     scales = sigma_px * z[:, None] / fx * np.exp(rng.uniform(-1.0, 0.0, (n, 3)))
     quats = rng.normal(size=(n, 4))
     cfg = SplatConfig()
-    needed = int(count_intersections(*(a.astype(np.float32) for a in (means, quats, scales, np.eye(4), intr)), height, width))
+    # Every Gaussian as opaque as it can be: the most blocks a render can fill.
+    opaque = np.full(n, cfg.alpha_max, np.float32)
+    scene = [a.astype(np.float32) for a in (means, quats, scales, np.eye(4), intr)]
+    needed = int(count_intersections(*scene, height, width, opacities=opaque))
     capacity = cfg.capacity(n, height, width)
     print(f"paper density: {n} Gaussians need {needed} slots ({needed / n:.2f} each), capacity {capacity}")
     assert n < needed < capacity / 2, (needed, capacity)
+    assert needed < int(count_intersections(*scene, height, width))  # the bound without opacities

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-TILE = 16
+TILE = 16  # gsplat's tile: which Gaussians a pixel sees
+BLOCK = 8  # the splatter's compositor block (SplatConfig.composite_tile)
 
 
 def oracle_rotmat(quats: np.ndarray) -> np.ndarray:
@@ -61,45 +62,51 @@ def oracle_project(means, quats, scales, c2w, intr, height, width, eps2d=0.3, ne
                 visible=visible)
 
 
-def oracle_tile_boxes(proj, height, width, opacities=None):
-    """gsplat ``_isect_tiles`` box per Gaussian: half-open [x0, x1) x [y0, y1) tiles.
+def oracle_tile_boxes(proj, height, width, opacities=None, block=TILE):
+    """gsplat ``_isect_tiles`` box per Gaussian, in blocks of ``block`` pixels (``TILE``:
+    gsplat's own tiles): half-open [x0, x1) x [y0, y1).
 
-    With ``opacities``, each axis's half-width is capped where ``o exp(-sigma)`` can reach
-    1/255 (gsplat's optional opacity-tightened boxes, PR #597; 0.01 of slack on ``sigma``):
+    The box covers the 16x16 tiles of the 3-sigma square. With ``opacities``, it is cut on
+    each axis to where ``o exp(-sigma)`` can reach 1/255 (gsplat's optional
+    opacity-tightened boxes, PR #597; 0.01 of slack on ``sigma``), the half-width
     ``sqrt(2 (ln(255 o) + 0.01) cov2d_ii)``; a Gaussian that cannot reach it has no box."""
-    tw, th = -(-width // TILE), -(-height // TILE)
-    rx = ry = proj["radii"]
+    bw, bh = -(-width // block), -(-height // block)
+    r = proj["radii"]
+    reach_x = reach_y = np.full(len(r), np.inf)
     drawn = proj["visible"]
     if opacities is not None:
         level = np.log(np.maximum(np.asarray(opacities, np.float64), 1e-30) * 255.0) + 0.01
         with np.errstate(invalid="ignore"):
-            rx = np.minimum(rx, np.sqrt(2.0 * np.maximum(level, 0.0) * proj["cov2d"][:, 0, 0]))
-            ry = np.minimum(ry, np.sqrt(2.0 * np.maximum(level, 0.0) * proj["cov2d"][:, 1, 1]))
+            reach_x = np.sqrt(2.0 * np.maximum(level, 0.0) * proj["cov2d"][:, 0, 0])
+            reach_y = np.sqrt(2.0 * np.maximum(level, 0.0) * proj["cov2d"][:, 1, 1])
         drawn = drawn & (level > 0)
-    m = proj["means2d"] / TILE
-    x0 = np.clip(np.floor(m[:, 0] - rx / TILE), 0, tw).astype(int)
-    x1 = np.clip(np.ceil(m[:, 0] + rx / TILE), 0, tw).astype(int)
-    y0 = np.clip(np.floor(m[:, 1] - ry / TILE), 0, th).astype(int)
-    y1 = np.clip(np.ceil(m[:, 1] + ry / TILE), 0, th).astype(int)
+    boxes = []
+    for m, reach, n in ((proj["means2d"][:, 0], reach_x, bw), (proj["means2d"][:, 1], reach_y, bh)):
+        lo = np.maximum(np.floor((m - r) / TILE) * TILE, m - reach)
+        hi = np.minimum(np.ceil((m + r) / TILE) * TILE, m + reach)
+        b0 = np.clip(np.floor(lo / block), 0, n).astype(int)
+        boxes += [b0, np.maximum(np.clip(np.ceil(hi / block), 0, n).astype(int), b0)]
+    x0, x1, y0, y1 = boxes
     return x0, np.where(drawn, x1, x0), y0, np.where(drawn, y1, y0)
 
 
-def oracle_tile_lists(proj, height, width, capacity=None, opacities=None):
-    """Per tile (row-major), the depth-sorted Gaussian ids; with ``capacity``, the entries of
-    the farthest Gaussians beyond that many are dropped (emission in depth order, each
-    Gaussian's tiles row-major in its box; boxes trimmed by ``opacities`` when given, see
-    :func:`oracle_tile_boxes`). Returns (lists, number of entries needed)."""
-    tw, th = -(-width // TILE), -(-height // TILE)
-    x0, x1, y0, y1 = oracle_tile_boxes(proj, height, width, opacities)
+def oracle_tile_lists(proj, height, width, capacity=None, opacities=None, block=TILE):
+    """Per block of ``block`` pixels (row-major), the depth-sorted Gaussian ids; with
+    ``capacity``, the entries of the farthest Gaussians beyond that many are dropped
+    (emission in depth order, each Gaussian's blocks row-major in its box; boxes trimmed by
+    ``opacities`` when given, see :func:`oracle_tile_boxes`). Returns (lists, number of
+    entries needed)."""
+    bw, bh = -(-width // block), -(-height // block)
+    x0, x1, y0, y1 = oracle_tile_boxes(proj, height, width, opacities, block)
     vis = np.flatnonzero(proj["visible"])
     order = vis[np.lexsort((vis, proj["depths"][vis]))]  # depth, then index
-    lists = [[] for _ in range(tw * th)]
+    lists = [[] for _ in range(bw * bh)]
     used = 0
     for g in order:
         for ty in range(y0[g], y1[g]):
             for tx in range(x0[g], x1[g]):
                 if capacity is None or used < capacity:
-                    lists[ty * tw + tx].append(int(g))
+                    lists[ty * bw + tx].append(int(g))
                 used += 1
     return lists, used
 
@@ -109,10 +116,11 @@ def oracle_render(
 ):
     """Brute force: every pixel against every Gaussian of its tile's list, front to back.
 
-    The lists are gsplat v1.4's (3-sigma boxes) unless ``capacity`` is given: the splatter
-    trims each box to where the Gaussian can be drawn, which changes no pixel (the tests
-    of the full lists check that) but does change which entries an overflowing buffer
-    keeps, so with a capacity the oracle trims its boxes the same way.
+    The lists are gsplat v1.4's (3-sigma boxes, 16x16 tiles) unless ``capacity`` is given:
+    the splatter keeps lists per 8x8 block and trims each box to where the Gaussian can be
+    drawn, which changes no pixel (the tests of the full lists check that) but does change
+    which entries an overflowing buffer keeps, so with a capacity the oracle uses the
+    splatter's blocks and trimmed boxes.
 
     Returns (features [H, W, F], transmittance [H, W], depth [H, W]) in float64, and with
     ``with_margin`` also ``margin [H, W]``: the smallest relative distance of any alpha to
@@ -121,17 +129,18 @@ def oracle_render(
     """
     proj = oracle_project(means, quats, scales, c2w, intr, height, width)
     opacities = np.asarray(opacities, np.float64)
-    lists, _ = oracle_tile_lists(proj, height, width, capacity, None if capacity is None else opacities)
+    block = TILE if capacity is None else BLOCK
+    lists, _ = oracle_tile_lists(proj, height, width, capacity, None if capacity is None else opacities, block)
     feats = np.concatenate([np.asarray(features, np.float64), proj["depths"][:, None]], -1)
-    tw = -(-width // TILE)
+    tw = -(-width // block)
     out = np.zeros((height, width, feats.shape[1]))
     trans_out = np.ones((height, width))
     margin_out = np.full((height, width), np.inf)
     for t, gaussians in enumerate(lists):
         # The pixels of tile t, all handled at once; the loop over its list is sequential.
         ys, xs = np.meshgrid(
-            np.arange((t // tw) * TILE, min((t // tw + 1) * TILE, height)),
-            np.arange((t % tw) * TILE, min((t % tw + 1) * TILE, width)),
+            np.arange((t // tw) * block, min((t // tw + 1) * block, height)),
+            np.arange((t % tw) * block, min((t % tw + 1) * block, width)),
             indexing="ij",
         )
         ys, xs = ys.ravel(), xs.ravel()

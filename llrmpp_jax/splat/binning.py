@@ -1,21 +1,25 @@
-"""Tile binning: (tile, depth)-sorted Gaussian lists in a static-capacity buffer.
+"""Tile binning: (block, depth)-sorted Gaussian lists in a static-capacity buffer.
 
-Each visible Gaussian intersects the tiles of its screen box, gsplat's rule:
-``x in [floor(mx/ts - r/ts), ceil(mx/ts + r/ts))`` (same for y), clipped to the grid.
-Given the opacities, the box shrinks to where the Gaussian can be drawn at all
-(:func:`screen_extents`); what is rendered does not change, only the work.
-Steps, all O(N + C) apart from two sorts, no 64-bit keys:
+Each visible Gaussian is drawn on the 16x16 tiles of its screen box, gsplat's rule:
+``x in [floor(mx/ts - r/ts), ceil(mx/ts + r/ts))`` (same for y). The compositor works on
+blocks of ``cfg.composite_tile`` pixels; a Gaussian enters the lists of the blocks inside
+its tiles that it can reach at all given its opacity (:func:`screen_extents`), so each
+pixel meets exactly the entries it would meet in its 16x16 tile's list, minus entries that
+are below ``alpha_min`` there and would be skipped anyway. Steps, all O(N + C) apart from
+two sorts:
 
 1. sort the Gaussians by depth (stable: ties keep index order), culled ones last;
-2. a prefix sum of their tile counts (saturating for huge problems) gives each
+2. a prefix sum of their block counts (saturating for huge problems) gives each
    Gaussian its first slot;
 3. every slot finds its Gaussian by a scatter-max of the start slots and a running max
-   (no per-slot search), then its tile from the slot's rank inside the Gaussian's box;
-4. one stable sort of the slots by tile id; since slots were emitted in depth order, each
-   tile's list comes out depth-sorted;
-5. per-tile ranges by a binary search of every tile id in the sorted keys.
+   (no per-slot search), then its block from the slot's rank inside the Gaussian's box;
+4. one sort of the slots by (block, depth rank), so each block's list comes out
+   depth-sorted. When ``(blocks + 1) x N < 2**31`` (static) the pair is packed into one
+   int32 key, whose sort is 5x faster than sorting two arrays on CPU; otherwise a stable
+   sort by block of slots emitted in depth order;
+5. per-block ranges by a binary search of every block id in the sorted keys.
 
-Slots beyond the needed count hold a sentinel tile and are ignored. If more slots are
+Slots beyond the needed count hold a sentinel block and are ignored. If more slots are
 needed than the capacity, the nearest Gaussians keep theirs; ``overflow`` and
 ``num_dropped`` say so (see :mod:`llrmpp_jax.splat.config`).
 """
@@ -50,61 +54,67 @@ class TileBins(NamedTuple):
 def screen_extents(
     projected: ProjectedGaussians, cfg: SplatConfig, opacities: Float[Array, "N"] | None = None
 ) -> tuple[Float[Array, "N"], Float[Array, "N"]]:
-    """Half-widths ``(ex, ey)`` in pixels of each Gaussian's screen box.
+    """Half-widths ``(ex, ey)`` in pixels of the box where each Gaussian can be drawn.
 
-    Without ``opacities``: the screen radius on both axes (gsplat v1.4's 3-sigma square).
-    With them, each axis is capped where the Gaussian can still pass the compositor's
+    Without ``opacities``: unbounded (``inf``; the tile rule alone decides). With them,
+    each axis is capped where the Gaussian can still pass the compositor's
     ``alpha >= alpha_min`` test: ``o exp(-sigma) >= alpha_min`` needs
     ``sigma <= L = ln(o / alpha_min)``, and on that ellipse ``|dx| <= sqrt(2 L Sigma_xx)``
-    (``Sigma = conic^-1``, so ``Sigma_xx = c / det``, ``Sigma_yy = a / det``). A tile
+    (``Sigma = conic^-1``, so ``Sigma_xx = c / det``, ``Sigma_yy = a / det``). A block
     outside this box holds no pixel the Gaussian is drawn on, so dropping it leaves every
     output and gradient as it was (gsplat's optional opacity-tightened boxes, its PR #597,
     rest on the same bound); ``L`` gets a slack of 0.01 (alpha within 1%) against rounding. A
-    Gaussian with ``o < alpha_min`` gets an empty box. Feature Gaussians are mostly faint
-    (median opacity 0.11 for the untrained cpu-scale model of ``notebooks/``): their
-    (Gaussian, tile) pairs drop by 37% on a 64x64 canvas and 26% on 32x32, and by 14-18%
-    for ``experiments/bench_splat.py``'s opacities in [0.05, 0.5].
+    Gaussian with ``o < alpha_min`` or culled gets an empty box. Feature Gaussians are
+    mostly faint (median opacity 0.11 for the untrained cpu-scale model of ``notebooks/``),
+    so this removes many (Gaussian, block) pairs.
     """
-    r = projected.radii.astype(projected.means2d.dtype)
+    dtype = projected.means2d.dtype
     if opacities is None:
-        return r, r
+        inf = jnp.where(projected.radii > 0, jnp.inf, 0.0).astype(dtype)
+        return inf, inf
     # Binning is not differentiated: cut the graph at the inputs (no sqrt(0) tangents).
     conics, opacities = lax.stop_gradient(projected.conics), lax.stop_gradient(opacities)
     a, b, c = conics[:, 0], conics[:, 1], conics[:, 2]
     det = a * c - b * b
     ok = (projected.radii > 0) & (det > 0)
     det = jnp.where(ok, det, 1.0)
-    level = jnp.log(jnp.maximum(opacities.astype(r.dtype), 1e-30) / cfg.alpha_min) + 0.01
+    level = jnp.log(jnp.maximum(opacities.astype(dtype), 1e-30) / cfg.alpha_min) + 0.01
     two_l = jnp.where(ok, 2.0 * jnp.maximum(level, 0.0), 0.0)
-    ex = jnp.minimum(r, jnp.sqrt(two_l * jnp.maximum(c, 0.0) / det))
-    ey = jnp.minimum(r, jnp.sqrt(two_l * jnp.maximum(a, 0.0) / det))
-    return ex, ey
+    return jnp.sqrt(two_l * jnp.maximum(c, 0.0) / det), jnp.sqrt(two_l * jnp.maximum(a, 0.0) / det)
 
 
 def tile_rects(
     projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
     opacities: Float[Array, "N"] | None = None,
 ) -> tuple[Int[Array, "N"], Int[Array, "N"], Int[Array, "N"], Int[Array, "N"]]:
-    """Half-open tile box ``(x0, x1, y0, y1)`` of each Gaussian; empty when culled or, given
-    ``opacities``, when it is too faint to be drawn (:func:`screen_extents`)."""
-    tiles_y, tiles_x = cfg.tile_grid(height, width)
-    ts = float(cfg.tile_size)
+    """Half-open box ``(x0, x1, y0, y1)`` of compositor blocks for each Gaussian: the blocks
+    of its gsplat tiles that it can reach (:func:`screen_extents`); empty when culled or,
+    given ``opacities``, when it is too faint to be drawn."""
+    blocks_y, blocks_x = cfg.tile_grid(height, width)
+    ts, bs = float(cfg.tile_size), float(cfg.composite_tile)
+    r = projected.radii.astype(projected.means2d.dtype)
     ex, ey = screen_extents(projected, cfg, opacities)
-    tx = projected.means2d[:, 0] / ts
-    ty = projected.means2d[:, 1] / ts
-    x0 = jnp.clip(jnp.floor(tx - ex / ts), 0, tiles_x).astype(jnp.int32)
-    x1 = jnp.clip(jnp.ceil(tx + ex / ts), 0, tiles_x).astype(jnp.int32)
-    y0 = jnp.clip(jnp.floor(ty - ey / ts), 0, tiles_y).astype(jnp.int32)
-    y1 = jnp.clip(jnp.ceil(ty + ey / ts), 0, tiles_y).astype(jnp.int32)
-    drawn = (ex > 0) & (ey > 0)  # culled Gaussians have radius 0, so extent 0
+
+    def axis(m, e, n_blocks):
+        lo = jnp.maximum(jnp.floor((m - r) / ts) * ts, m - e)  # gsplat's tiles, cut to reach
+        hi = jnp.minimum(jnp.ceil((m + r) / ts) * ts, m + e)
+        b0 = jnp.clip(jnp.floor(lo / bs), 0, n_blocks).astype(jnp.int32)
+        b1 = jnp.clip(jnp.ceil(hi / bs), 0, n_blocks).astype(jnp.int32)
+        return b0, jnp.maximum(b1, b0)
+
+    x0, x1 = axis(projected.means2d[:, 0], ex, blocks_x)
+    y0, y1 = axis(projected.means2d[:, 1], ey, blocks_y)
+    drawn = (r > 0) & (ex > 0) & (ey > 0)  # culled Gaussians have radius 0
     return x0, jnp.where(drawn, x1, x0), y0, jnp.where(drawn, y1, y0)
 
 
 def intersection_counts(
-    projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig
+    projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
+    opacities: Float[Array, "N"] | None = None,
 ) -> Int[Array, "N"]:
-    """Number of tiles each Gaussian's untrimmed box intersects (0 when culled)."""
-    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg)
+    """Number of compositor blocks each Gaussian enters (0 when culled); without
+    ``opacities`` an upper bound (every block of its tiles)."""
+    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities)
     return (x1 - x0) * (y1 - y0)
 
 
@@ -156,7 +166,12 @@ def bin_gaussians(
     tile = (y0[gid] + rank // box_w) * tiles_x + x0[gid] + rank % box_w
     tile = jnp.where(slots < needed, tile, num_tiles)  # sentinel sorts after every tile
 
-    sorted_tile, sorted_gid = lax.sort((tile, gid), num_keys=1, is_stable=True)
+    if (num_tiles + 1) * n < 2**31:
+        # One int32 key (block, depth rank): src is the slot's position in depth order.
+        key = lax.sort(tile * n + src)
+        sorted_tile, sorted_gid = key // n, order[key % n]
+    else:
+        sorted_tile, sorted_gid = lax.sort((tile, gid), num_keys=1, is_stable=True)
     bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
     bounds = bounds.astype(jnp.int32)
     return TileBins(

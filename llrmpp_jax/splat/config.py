@@ -5,21 +5,32 @@ argument of ``jax.jit``. Defaults follow gsplat's ``rasterize_mode="classic"`` a
 Long-LRM (tile 16, ``eps2d`` 0.3, near 0.01, far 1e6, alpha in ``[1/255, 0.999]``, stop at
 transmittance ``<= 1e-4``) and gsplat v1.4's isotropic 3-sigma screen radius.
 
+Tiles
+-----
+``tile_size`` (16) is gsplat's rule of which Gaussians a pixel sees: a Gaussian is drawn
+on the 16x16 tiles its screen box (``[mean - r, mean + r]``, ``r = ceil(3 sqrt(lambda_max))``
+pixels) touches. The compositor works on smaller blocks of ``composite_tile`` pixels (8):
+each block's list holds the Gaussians of its 16x16 tile that can reach the block at all
+(:func:`~llrmpp_jax.splat.binning.screen_extents`), so every pixel composites exactly the
+entries it would with 16x16 lists, and a block of 64 pixels evaluates far fewer
+(Gaussian, pixel) pairs than a tile of 256 (``experiments/results/splat_speed.json``).
+
 Sizing the intersection buffer
 ------------------------------
-Every visible Gaussian writes one entry per 16x16 tile of its screen bounding box
-(``[mean - r, mean + r]`` with ``r = ceil(3 sqrt(lambda_max))`` pixels), so the buffer
-needs ``sum_visible tiles(g)`` slots. This number depends on the scene, not only on N, and
+Every visible Gaussian writes one entry per compositor block it reaches, so the buffer
+needs ``sum_visible blocks(g)`` slots. This number depends on the scene, not only on N, and
 JAX needs it as a static shape, so it is a capacity:
 
 * ``max_intersections`` (an int) fixes the buffer size; ``None`` derives it at trace time
-  as ``ceil(intersections_per_gaussian * N)`` (at least one slot per tile, at most
-  ``N * tiles``, which can never overflow).
-* A Gaussian of screen footprint sigma (pixels) touches about ``(1 + 6 sigma / 16)^2``
-  tiles. Long-LRM++ at its paper config predicts ~4.2M Gaussians whose footprint is about
+  as ``ceil(intersections_per_gaussian * N)`` (at least one slot per block, at most
+  ``N * blocks``, which can never overflow). Called outside ``jit`` with concrete arrays,
+  the render entry points size it from the scene itself instead
+  (:func:`llrmpp_jax.splat.render.fitted_capacity`).
+* A Gaussian of screen footprint sigma (pixels) touches about ``(1 + 6 sigma / 8)^2``
+  blocks. Long-LRM++ at its paper config predicts ~4.2M Gaussians whose footprint is about
   one canvas pixel (16 Gaussians per 8x8-pixel token rendered at half resolution), i.e.
-  1.5-2.5 tiles each, and not all of them are in a target's frustum. The default of
-  8 slots per Gaussian leaves a 3x margin there (tested at that density in
+  2-4 blocks each, and not all of them are in a target's frustum. The default of
+  8 slots per Gaussian leaves a 2x margin there (tested at that density in
   ``tests/test_splat_binning.py``); colour mode (one Gaussian per pixel) is similar.
 * Measure a real model with :func:`llrmpp_jax.splat.count_intersections` on a few
   scenes and set ``max_intersections`` to ~1.25x the largest count; every render also
@@ -29,10 +40,10 @@ JAX needs it as a static shape, so it is a capacity:
   emitted in depth order) and drops the farthest ones; ``stats.overflow`` is set and
   ``stats.num_dropped`` counts the lost entries. Nothing is dropped silently.
 
-Loop shape (speed only, results do not depend on it): tiles are sorted by occupancy and
+Loop shape (speed only, results do not depend on it): blocks are sorted by occupancy and
 processed in groups of ``tiles_per_group``; each group runs a dynamic loop over chunks of
-``chunk_size`` Gaussians until its busiest tile is exhausted or all its pixels are
-saturated, so the cost follows the real work, not a static per-tile bound.
+``chunk_size`` Gaussians until its busiest block is exhausted or all its pixels are
+saturated, so the cost follows the real work, not a static per-block bound.
 """
 
 from __future__ import annotations
@@ -45,7 +56,8 @@ from dataclasses import dataclass
 class SplatConfig:
     """Splatter settings; see the module docstring for how to size the capacity."""
 
-    tile_size: int = 16
+    tile_size: int = 16  # gsplat's tile: a Gaussian is drawn on the 16x16 tiles its box touches
+    composite_tile: int = 8  # the compositor's block of pixels (divides tile_size; speed only)
     eps2d: float = 0.3  # screen-space dilation added to the 2D covariance (pixels^2)
     near: float = 0.01  # camera-space z range kept (scene units)
     far: float = 1e6
@@ -59,9 +71,14 @@ class SplatConfig:
     tiles_per_group: int = 64  # tiles advanced together by one dynamic loop
 
     def __post_init__(self) -> None:
-        for name in ("tile_size", "chunk_size", "tiles_per_group"):
+        for name in ("tile_size", "composite_tile", "chunk_size", "tiles_per_group"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"SplatConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.tile_size % self.composite_tile:
+            raise ValueError(
+                f"SplatConfig.composite_tile must divide tile_size, got composite_tile="
+                f"{self.composite_tile}, tile_size={self.tile_size}"
+            )
         if not 0.0 < self.near < self.far:
             raise ValueError(f"SplatConfig: need 0 < near < far, got near={self.near}, far={self.far}")
         if not 0.0 < self.alpha_min <= self.alpha_max < 1.0:
@@ -87,11 +104,13 @@ class SplatConfig:
             )
 
     def tile_grid(self, height: int, width: int) -> tuple[int, int]:
-        """Number of tiles ``(tiles_y, tiles_x)`` covering an ``height x width`` canvas."""
-        return -(-height // self.tile_size), -(-width // self.tile_size)
+        """Number of compositor tiles ``(tiles_y, tiles_x)`` (``composite_tile`` pixels a
+        side) covering an ``height x width`` canvas."""
+        return -(-height // self.composite_tile), -(-width // self.composite_tile)
 
     def capacity(self, num_gaussians: int, height: int, width: int) -> int:
-        """Static intersection-buffer size for N Gaussians on an ``height x width`` canvas."""
+        """Static intersection-buffer size (``(Gaussian, compositor tile)`` slots) for N
+        Gaussians on an ``height x width`` canvas."""
         tiles_y, tiles_x = self.tile_grid(height, width)
         most = max(num_gaussians * tiles_y * tiles_x, 1)
         if self.max_intersections is not None:

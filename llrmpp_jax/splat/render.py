@@ -21,6 +21,7 @@ Bad input:
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -200,6 +201,7 @@ def render_feature_copies(
         opacities=(opacities, ("*", "N")), features=(features, ("N", "*")),
     )
     _check_values(c2w, intrinsics, means=means, quats=quats, scales=scales, opacities=opacities, features=features)
+    cfg = _fit_capacity(cfg, means, quats, scales, opacities, c2w, intrinsics, height, width)
     return _render_copies_jit(means, quats, scales, opacities, features, c2w, intrinsics, height, width, cfg)
 
 
@@ -229,6 +231,7 @@ def render_features(
         opacities=(opacities, ("N",)), features=(features, ("N", "*")),
     )
     _check_values(c2w, intrinsics, means=means, quats=quats, scales=scales, opacities=opacities, features=features)
+    cfg = _fit_capacity(cfg, means, quats, scales, opacities, c2w, intrinsics, height, width)
     out = _render_copies_jit(
         means, quats, scales, opacities[None, :], features, c2w, intrinsics, height, width, cfg
     )
@@ -277,6 +280,7 @@ def render_sh(
         opacities=(opacities, ("N",)), sh_coeffs=(sh_coeffs, ("N", "*", 3)),
     )
     _check_values(c2w, intrinsics, means=means, quats=quats, scales=scales, opacities=opacities, sh_coeffs=sh_coeffs)
+    cfg = _fit_capacity(cfg, means, quats, scales, opacities, c2w, intrinsics, height, width)
     return _render_sh_jit(
         means, quats, scales, opacities, sh_coeffs, c2w, intrinsics, background, height, width, cfg, degree
     )
@@ -311,28 +315,59 @@ def count_intersections(
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
+    opacities: Float[Array, "N"] | Float[Array, "S N"] | None = None,
 ) -> Int[Array, ""]:
-    """(Gaussian, tile) pairs a render of this scene needs: size ``max_intersections`` by it.
+    """(Gaussian, compositor block) pairs a render of this scene needs: size
+    ``max_intersections`` by it.
 
-    An upper bound: opacities are not looked at, and a render also leaves out the tiles
-    where a Gaussian is too faint to be drawn (:func:`~llrmpp_jax.splat.binning.screen_extents`).
-    Saturates at 2**30 - 1. Cheap (projection only, no sort, no composite).
+    With ``opacities`` (``[N]``, or ``[S, N]`` for the copies of
+    :func:`render_feature_copies`) the exact number a render fills; without, an upper bound
+    that also counts the blocks where a Gaussian is too faint to be drawn
+    (:func:`~llrmpp_jax.splat.binning.screen_extents`). Saturates at 2**30 - 1. Cheap
+    (projection only, no sort, no composite).
     """
     _check_shapes(
         height, width, c2w, intrinsics,
         means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
     )
-    return _count_jit(means, quats, scales, c2w, intrinsics, height, width, cfg)
+    if opacities is not None:
+        opacities = jnp.asarray(opacities)
+        opacities = jnp.max(opacities.reshape(-1, opacities.shape[-1]), axis=0)
+    return _count_jit(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
 
 
-def _count(means, quats, scales, c2w, intrinsics, height, width, cfg):
+def _count(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg):
     dtype = _compute_dtype(means)
     means, quats, scales, c2w, intrinsics = (
         jnp.asarray(x).astype(dtype) for x in (means, quats, scales, c2w, intrinsics)
     )
-    proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg)
-    counts = intersection_counts(proj, height, width, cfg)
+    keep = None
+    if opacities is not None:
+        keep = jnp.isfinite(opacities)
+        opacities = jnp.where(keep, opacities, 0.0).astype(dtype)
+    proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=keep)
+    counts = intersection_counts(proj, height, width, cfg, opacities)
     return lax.reduce(counts, jnp.int32(0), lambda a, b: jnp.minimum(a + b, SATURATION), (0,))
 
 
 _count_jit = jax.jit(_count, static_argnames=("height", "width", "cfg"))
+
+
+def fitted_capacity(needed: int) -> int:
+    """Buffer size for a scene that needs ``needed`` slots: the next size of the form
+    ``m 2^e`` with ``m`` in 8..15, so it wastes under 1/8 and renders of similar scenes share
+    one compiled program."""
+    needed = max(int(needed), 1)
+    e = max(needed.bit_length() - 4, 0)
+    return min(-(-needed // (1 << e)) << e, SATURATION)
+
+
+def _fit_capacity(cfg: SplatConfig, means, quats, scales, opacities, c2w, intrinsics, height, width) -> SplatConfig:
+    """``cfg`` with ``max_intersections`` fitted to this scene when it is unset and the
+    inputs are concrete (called outside ``jit``); under a trace, ``cfg`` as it is."""
+    if cfg.max_intersections is not None or any(
+        isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)
+    ):
+        return cfg
+    needed = int(count_intersections(means, quats, scales, c2w, intrinsics, height, width, cfg, opacities))
+    return dataclasses.replace(cfg, max_intersections=fitted_capacity(needed))
