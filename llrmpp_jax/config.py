@@ -16,6 +16,7 @@ import dataclasses
 import math
 import typing
 from dataclasses import dataclass, field
+from typing import Literal
 
 from llrmpp_jax.splat.config import SplatConfig
 
@@ -33,23 +34,38 @@ class Mamba2Config:
     bidirectional: bool = True  # "bi": forward + reversed scan, outputs summed
     norm_eps: float = 1e-5
     # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth),
-    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens) or
-    # "fused" (one lax.scan doing each chunk's whole work: the fastest on CPU, with
-    # chunk_size 128; experiments/results/bench_scan.json). All three compute the same
-    # function; they differ in speed and memory.
-    inter_chunk: str = "associative"
+    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens),
+    # "fused" (one lax.scan doing each chunk's whole work: the fastest on CPU, 1.9-2.1x the
+    # associative form forward and backward; experiments/results/bench_scan.json) or "auto"
+    # (the default): "fused" on CPU, "sequential" on GPU and TPU (for_accelerators' choice),
+    # see :meth:`resolved_inter_chunk`. All compute the same function; they differ in speed
+    # and memory.
+    inter_chunk: Literal["auto", "associative", "sequential", "fused"] = "auto"
     # Run the two scan directions as a loop of two, each recomputed in the backward pass
     # (remat): the block's backward then holds one direction's activations, for one more
     # forward pass of the directions
     remat_directions: bool = False
 
     def __post_init__(self) -> None:
-        if self.inter_chunk not in ("associative", "sequential", "fused"):
+        if self.inter_chunk not in ("auto", "associative", "sequential", "fused"):
             raise ValueError(
-                f"Mamba2Config.inter_chunk must be 'associative', 'sequential' or 'fused', got {self.inter_chunk!r}"
+                "Mamba2Config.inter_chunk must be 'auto', 'associative', 'sequential' or 'fused', "
+                f"got {self.inter_chunk!r}"
             )
         if self.chunk_size < 1:
             raise ValueError(f"Mamba2Config.chunk_size must be >= 1, got {self.chunk_size}")
+
+    def resolved_inter_chunk(self, backend: str | None = None) -> str:
+        """The SSD form to run on ``backend`` (default ``jax.default_backend()``): ``"auto"``
+        is ``"fused"`` on ``"cpu"`` (the fastest there) and ``"sequential"`` elsewhere (the
+        least memory at the paper's lengths); any other value as it is."""
+        if self.inter_chunk != "auto":
+            return self.inter_chunk
+        if backend is None:
+            import jax
+
+            backend = jax.default_backend()
+        return "fused" if backend == "cpu" else "sequential"
 
     def d_inner(self, d_model: int) -> int:
         return self.expand * d_model

@@ -111,15 +111,16 @@ def rgb_loss(
             f"rgb_loss: perceptual_weight={perceptual_weight} needs vgg_params; load them with "
             "perceptual.load_vgg16_lpips() or perceptual.load_vgg19_torch(path)"
         )
-    p = pred.astype(jnp.float32)
-    t = target.astype(jnp.float32)
-    mse = jnp.mean(jnp.square(p - t))
-    if perceptual_weight:
-        perceptual = perceptual_loss(vgg_params, p, t)
-    else:
-        perceptual = jnp.zeros((), jnp.float32)
-    loss = mse + perceptual_weight * perceptual
-    return loss, {"mse": mse, "perceptual": perceptual, "psnr": -10.0 * jnp.log10(mse)}
+    with jax.named_scope("loss"):  # a phase for llrmpp_jax.profiling
+        p = pred.astype(jnp.float32)
+        t = target.astype(jnp.float32)
+        mse = jnp.mean(jnp.square(p - t))
+        if perceptual_weight:
+            perceptual = perceptual_loss(vgg_params, p, t)
+        else:
+            perceptual = jnp.zeros((), jnp.float32)
+        loss = mse + perceptual_weight * perceptual
+        return loss, {"mse": mse, "perceptual": perceptual, "psnr": -10.0 * jnp.log10(mse)}
 
 
 def sobel(x: Float[Array, "*B H W"]) -> Float[Array, "*B 2 H W"]:

@@ -29,13 +29,13 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.array_typing import Array, Float, Int, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.decoder import TargetDecoder, partition_opacities
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
-from llrmpp_jax.splat import render_feature_copies, render_sh
+from llrmpp_jax.splat import count_intersections, render_feature_copies, render_sh
 
 
 # Colour-mode depth divides by the accumulated alpha, clamped as gsplat's "ED" render mode
@@ -94,8 +94,10 @@ class LongLRMPP(nn.Module):
             self.decoder = TargetDecoder(cfg.decoder)
 
     def reconstruct(self, images, c2w, intrinsics) -> Gaussians:
-        out = self.backbone(input_features(images, c2w, intrinsics))
-        return self.head(out.tokens, out.grid, c2w, intrinsics)
+        with jax.named_scope("backbone"):  # phases for llrmpp_jax.profiling
+            out = self.backbone(input_features(images, c2w, intrinsics))
+        with jax.named_scope("gaussian_head"):
+            return self.head(out.tokens, out.grid, c2w, intrinsics)
 
     def render(self, gaussians: Gaussians, c2w, intrinsics, height: int, width: int,
                outputs: tuple[str, ...]) -> RenderOutput:
@@ -132,9 +134,25 @@ class LongLRMPP(nn.Module):
             gaussians, copies, c2w, intrinsics)  # [B, T, S, hc, wc, F]
         b, t, s = canvas.shape[:3]
         canvas = append_target_rays(canvas, c2w, intrinsics, r)
-        images = self.decoder(canvas.reshape(b * t, s, hc, wc, -1), outputs)
+        with jax.named_scope("decoder"):
+            images = self.decoder(canvas.reshape(b * t, s, hc, wc, -1), outputs)
         images = {k: v.reshape(b, t, height, width, -1) for k, v in images.items()}
         return RenderOutput(images, jnp.sum(dropped, axis=1))
+
+    def splat_intersections(self, gaussians: Gaussians, c2w, intrinsics, height: int, width: int):
+        cfg = self.cfg
+        per_target = lambda f: jax.vmap(jax.vmap(f, (None, None, 0, 0)), (0, 0, 0, 0))  # noqa: E731  over B, T
+        if cfg.head.mode == "color":
+            opac, scale, hc, wc = gaussians.opacities, 1.0, height, width
+        else:
+            r = cfg.decoder.canvas_ratio
+            opac = jax.vmap(partition_opacities)(gaussians.opacities, self.partition(gaussians.features))
+            scale, hc, wc = float(r), height // r, width // r
+
+        def one(g, o, cam, k):
+            return count_intersections(g.means, g.quats, g.scales, cam, k / scale, hc, wc, cfg.splat, o)
+
+        return per_target(one)(gaussians, opac, c2w, intrinsics)
 
     def __call__(self, images, c2w, intrinsics, target_c2w, target_intrinsics,
                  outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
@@ -178,6 +196,15 @@ def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Arra
         raise ValueError(f"target intrinsics must be {(*c2w.shape[:2], 4)}, got {intrinsics.shape}")
     return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
                                 tuple(outputs), method="render")
+
+
+def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Array, "B T 4 4"],
+                        intrinsics: Float[Array, "B T 4"], height: int, width: int) -> Int[Array, "B T"]:
+    """(Gaussian, compositor block) pairs each render of :func:`render` at these cameras
+    fills: size ``cfg.splat.max_intersections`` by the largest (feature mode counts the
+    canvas and all S partition copies, as the render does)."""
+    return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
+                                method="splat_intersections")
 
 
 def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Float[Array, "B N S"]:

@@ -16,19 +16,37 @@ The log-scale is not clamped at ``cfg.head.scale_max`` (a hard clamp has zero gr
 above it); opacities are clipped to ``[2^-24, 1 - 2^-24]`` before the logit, as in
 ``export_ply``.
 
+Views per step. Like 3DGS (one view per step), each update fits a fresh random subset of
+``RefineConfig.views_per_step`` input views (drawn without replacement from the caller's
+PRNG key), so a step costs the same with 8 inputs or 64. The subset's size is static,
+so nothing recompiles; with ``views_per_step >= V`` every step fits all V views (the
+paper's setting, exactly the full-batch fit). The default, 8, covers the procedural
+scenes' 8 inputs, so their 10-step numbers are the full-batch ones; a 32-input capture
+fits 8 views a step (``docs/results.md``, "Refinement").
+
+Splat buffer. The intersection capacity is fitted to the scene before the first step:
+``1.25x`` the most (Gaussian, block) pairs any input view needs with the starting
+Gaussians (:func:`llrmpp_jax.model.splat_intersections`), rounded by
+:func:`llrmpp_jax.splat.render.fitted_capacity` (Gaussians move and grow during the fit;
+overflow is still counted in ``RefineInfo.dropped``). A config that sets
+``splat.max_intersections`` keeps it.
+
 Solver. ``optimistix.OptaxMinimiser`` around ``optax.multi_transform`` of one Adam per
 field (learning rates in :class:`RefineConfig`), driven through optimistix's iterative
 API (``solver.init`` once, a jitted ``solver.step`` per iteration, ``solver.terminate``
 checked after each) rather than ``optimistix.minimise``: the same solver and stopping
 rule as ``minimise(..., max_steps=steps)``, but the Python loop can drive a progress bar
 and record the loss of every step. ``rtol = atol = 0`` (the default) never stops early,
-so exactly ``steps`` updates are taken, as in Long-LRM's fixed-step optimisation.
+so exactly ``steps`` updates are taken, as in Long-LRM's fixed-step optimisation. (The
+stopping rule compares successive subset losses when ``views_per_step < V``.)
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import math
+import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -39,13 +57,16 @@ import optax
 import optimistix as optx
 from tqdm.auto import tqdm
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, Float, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.metrics import psnr
-from llrmpp_jax.model import render
+from llrmpp_jax.model import render, splat_intersections
 from llrmpp_jax.perceptual import VGGParams
+from llrmpp_jax.splat import fitted_capacity
+
+CAPACITY_HEADROOM = 1.25  # splat buffer = this x the starting Gaussians' most-needed slots
 
 
 @dataclass(frozen=True)
@@ -77,8 +98,13 @@ class RefineConfig:
     sh_rest_lr_factor: float = 1.0 / 20.0  # colour mode: SH coefficients 1.. (3DGS's ratio)
     rate_scale: float | None = None  # every rate times this; None: rate_scale_for(steps)
     perceptual_weight: float = 0.0  # the paper trains with 0.5 (needs VGG params)
+    views_per_step: int = 8  # input views fitted per update (a random subset; all when >= V)
     rtol: float = 0.0
     atol: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.views_per_step < 1:
+            raise ValueError(f"RefineConfig.views_per_step must be >= 1, got {self.views_per_step}")
 
 
 def rate_scale_for(steps: int) -> float:
@@ -101,11 +127,20 @@ def rate_scale_for(steps: int) -> float:
 
 
 class RefineInfo(NamedTuple):
-    """``losses[i]`` is the input-view loss before update i; ``losses[-1]`` after the last."""
+    """``losses[i]`` (``i < steps``) is the loss of update i's views before it, and
+    ``losses[-1]`` the loss of the first update's views after the last update, so
+    ``losses[0] -> losses[-1]`` compares the same views. With ``views_per_step >= V`` every
+    update fits all V views and these are the input-view losses. (The whole input set is
+    not scored in one program: on a 32-view capture that alone would take about as long as
+    four updates and most of the memory.)"""
 
     losses: Float[np.ndarray, "steps+1"]
     steps: int  # updates taken (fewer than asked only if the solver's tolerances were met)
     dropped: int  # most splat intersections dropped by any step's render (0 = exact)
+    views_per_step: int = 0  # input views each update fitted
+    capacity: int = 0  # the splat buffer the fit used (slots per rendered view)
+    compile_s: float = 0.0  # wall time to compile the step
+    step_s: float = 0.0  # median wall time of one update after the first
 
 
 def to_unconstrained(gaussians: Gaussians, cfg: ModelConfig) -> dict[str, Array]:
@@ -149,8 +184,10 @@ def _solver(rc: RefineConfig) -> optx.OptaxMinimiser:
     return optx.OptaxMinimiser(_optimizer(rc), rtol=rc.rtol, atol=rc.atol)
 
 
-def _objective(cfg: ModelConfig, rc: RefineConfig):
-    """``fn(y, args) -> (loss, aux)`` with ``args = (params, images, c2w, intrinsics, vgg)``."""
+def objective(cfg: ModelConfig, rc: RefineConfig):
+    """The refinement's objective ``fn(y, args) -> (loss, aux)`` over the unconstrained
+    Gaussians ``y`` (:func:`to_unconstrained`), ``args = (params, images, c2w, intrinsics,
+    vgg)``; aux holds the batch's ``psnr`` and the splat's ``dropped`` count."""
 
     def fn(y, args):
         params, images, c2w, intrinsics, vgg = args
@@ -166,24 +203,55 @@ def _objective(cfg: ModelConfig, rc: RefineConfig):
 _TAGS = frozenset()
 
 
+def _subset(args, idx: Array | None):
+    """``args`` with only the input views ``idx`` (``None``: all)."""
+    if idx is None:
+        return args
+    params, images, c2w, intrinsics, vgg = args
+    return params, images[:, idx], c2w[:, idx], intrinsics[:, idx], vgg
+
+
+def _views(key: KeyArray, step: Array, num_views: int, per_step: int) -> Array | None:
+    """Update ``step``'s views: ``per_step`` distinct indices in ``[0, num_views)``."""
+    if per_step >= num_views:
+        return None
+    return jax.random.permutation(jax.random.fold_in(key, step), num_views)[:per_step]
+
+
 @functools.partial(jax.jit, static_argnames=("cfg", "rc"))
 def _init(y, args, cfg: ModelConfig, rc: RefineConfig):
-    fn = _objective(cfg, rc)
-    f_struct, aux_struct = jax.eval_shape(fn, y, args)
-    return _solver(rc).init(fn, y, args, {}, f_struct, aux_struct, _TAGS)
+    fn = objective(cfg, rc)
+    sub = _subset(args, _views(jax.random.key(0), jnp.int32(0), args[1].shape[1], rc.views_per_step))
+    f_struct, aux_struct = jax.eval_shape(fn, y, sub)
+    return _solver(rc).init(fn, y, sub, {}, f_struct, aux_struct, _TAGS)
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rc"), donate_argnames=("y", "state"))
-def _step(y, state, args, cfg: ModelConfig, rc: RefineConfig):
-    fn, solver = _objective(cfg, rc), _solver(rc)
-    y, state, aux = solver.step(fn, y, args, {}, state, _TAGS)
-    done, _ = solver.terminate(fn, y, args, {}, state, _TAGS)
+def _step(y, state, args, key, step, cfg: ModelConfig, rc: RefineConfig):
+    fn, solver = objective(cfg, rc), _solver(rc)
+    sub = _subset(args, _views(key, step, args[1].shape[1], rc.views_per_step))
+    y, state, aux = solver.step(fn, y, sub, {}, state, _TAGS)
+    done, _ = solver.terminate(fn, y, sub, {}, state, _TAGS)
     return y, state, aux, done
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "rc"))
 def _loss(y, args, cfg: ModelConfig, rc: RefineConfig):
-    return _objective(cfg, rc)(y, args)
+    return objective(cfg, rc)(y, args)
+
+
+def fit_splat_capacity(
+    params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Array, "B V 4 4"],
+    intrinsics: Float[Array, "B V 4"], height: int, width: int, headroom: float = CAPACITY_HEADROOM,
+) -> ModelConfig:
+    """``cfg`` with ``splat.max_intersections`` sized for rendering ``gaussians`` at these
+    cameras: ``headroom`` x the most slots any view needs, rounded by
+    :func:`~llrmpp_jax.splat.render.fitted_capacity`. A config that sets the capacity keeps it."""
+    if cfg.splat.max_intersections is not None:
+        return cfg
+    needed = int(jnp.max(splat_intersections(params, cfg, gaussians, c2w, intrinsics, height, width)))
+    capacity = fitted_capacity(math.ceil(headroom * needed))
+    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=capacity))
 
 
 def refine(
@@ -197,19 +265,24 @@ def refine(
     rc: RefineConfig = RefineConfig(),
     vgg_params: VGGParams | None = None,
     progress: bool = False,
+    key: KeyArray | None = None,
 ) -> tuple[Gaussians, RefineInfo]:
     """Optimise ``gaussians`` (``[B, N, ...]``, scene frame) against the input views.
 
     Args:
       params: the model's parameters; only feature mode reads them (the frozen decoder
         and partition linear), colour mode may pass ``{}``.
-      cfg: the model's config (static).
+      cfg: the model's config (static); its splat capacity is fitted to the scene
+        (module docstring).
       gaussians: ``model.reconstruct``'s output for these inputs.
       images, c2w, intrinsics: the input views in [0, 1] and their cameras (the loss targets).
       steps: the most updates to take (optimistix's ``max_steps``).
-      rc: learning rates, loss weights and tolerances.
+      rc: learning rates, loss weights, views per step and tolerances.
       vgg_params: needed only when ``rc.perceptual_weight > 0``.
-      progress: show a tqdm bar with the loss.
+      progress: show a tqdm bar: "compiling", then the updates with their rate and loss,
+        and a line with the expected time once the first update has run.
+      key: draws each update's views (``jax.random.key(0)`` when omitted); unused when
+        ``rc.views_per_step >= V``.
 
     Returns:
       ``(refined Gaussians, RefineInfo)``; one jitted step per update (compiled once per
@@ -221,25 +294,45 @@ def refine(
         raise ValueError(f"refine: perceptual_weight={rc.perceptual_weight} needs vgg_params")
     if rc.rate_scale is None:
         rc = dataclasses.replace(rc, rate_scale=rate_scale_for(steps))
+    num_views = int(images.shape[1])
+    rc = dataclasses.replace(rc, views_per_step=min(rc.views_per_step, num_views))
+    key = jax.random.key(0) if key is None else key
+    h, w = int(images.shape[2]), int(images.shape[3])
     args = (params, jnp.asarray(images), jnp.asarray(c2w), jnp.asarray(intrinsics), vgg_params)
+    gaussians = jax.tree.map(jnp.asarray, gaussians)
+    cfg = fit_splat_capacity(params, cfg, gaussians, args[2], args[3], h, w)
     # Fresh buffers: the step donates y, which must not alias the caller's arrays.
-    y = jax.tree.map(jnp.array, to_unconstrained(jax.tree.map(jnp.asarray, gaussians), cfg))
+    y = jax.tree.map(jnp.array, to_unconstrained(gaussians, cfg))
     state = _init(y, args, cfg, rc)
-    losses, dropped, taken = [], 0, 0
-    with tqdm(total=steps, desc="refine", disable=not progress, dynamic_ncols=True) as bar:
-        for _ in range(steps):
-            y, state, aux, done = _step(y, state, args, cfg, rc)
-            taken += 1
+    losses, dropped, taken, times = [], 0, 0, []
+    with tqdm(total=steps, desc="refine (compiling)", disable=not progress, dynamic_ncols=True) as bar:
+        t0 = time.perf_counter()
+        step_fn = _step.lower(y, state, args, key, jnp.int32(0), cfg, rc).compile()
+        compile_s = time.perf_counter() - t0
+        bar.set_description("refine")
+        for i in range(steps):
+            t0 = time.perf_counter()
+            y, state, aux, done = step_fn(y, state, args, key, jnp.int32(i))
             losses.append(float(state.f))  # the loss at the iterate this step started from
             dropped = max(dropped, int(aux["dropped"]))
+            times.append(time.perf_counter() - t0)
+            taken += 1
+            if i == 0 and progress:
+                bar.write(f"refine: {steps} updates of {rc.views_per_step}/{num_views} views at {h}x{w}, "
+                          f"~{times[0]:.1f} s each: about {steps * times[0]:.0f} s "
+                          f"(compiled in {compile_s:.0f} s)")
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.5f}", psnr=f"{float(aux['psnr']):.2f}")
             if bool(done):
                 break
-    final, aux = _loss(y, args, cfg, rc)
+    first_views = _subset(args, _views(key, jnp.int32(0), num_views, rc.views_per_step))
+    final, aux = _loss(y, first_views, cfg, rc)
     losses.append(float(final))
     dropped = max(dropped, int(aux["dropped"]))
-    return from_unconstrained(y), RefineInfo(np.asarray(losses, np.float32), taken, dropped)
+    info = RefineInfo(np.asarray(losses, np.float32), taken, dropped, rc.views_per_step,
+                      int(cfg.splat.max_intersections), compile_s,
+                      float(np.median(times[1:])) if len(times) > 1 else (times[0] if times else 0.0))
+    return from_unconstrained(y), info
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "height", "width"))

@@ -132,12 +132,17 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
                  "--perceptual-weight", "0.5", "--quiet", "--out", refined]) == 0
     out = capsys.readouterr().out
     before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))
-    loss0, loss1 = (float(v) for v in re.search(r"input-view loss (\S+) -> (\S+);", out).groups())
+    loss0, loss1 = (float(v) for v in re.search(r"input-view loss (\S+) -> (\S+) \(the first step's views\);", out).groups())
     assert np.isfinite([before, after]).all() and loss1 < loss0  # 3 steps lower the loss on the inputs
     assert load_gs(refined).gaussians.means.shape == saved.gaussians.means.shape
     assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--perceptual-weight", "-1",
                  "--out", refined]) == 2
     assert capsys.readouterr().err.strip().splitlines() == ["llrmpp: error: --perceptual-weight must be >= 0, got -1.0"]
+    for flags, line in ((["--steps", "0"], "--steps must be >= 1, got 0"),
+                        (["--views-per-step", "0"], "--views-per-step must be in [1, 4] (the input views), got 0"),
+                        (["--views-per-step", "5"], "--views-per-step must be in [1, 4] (the input views), got 5")):
+        assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, *flags, "--out", refined]) == 2
+        assert capsys.readouterr().err.strip().splitlines() == [f"llrmpp: error: {line}"]
 
 
 def _tiny_scene(tmp_path, n=6, h=32, w=48):

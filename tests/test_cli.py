@@ -166,6 +166,12 @@ def test_train_resume_and_eval(tmp_path, capsys):
     assert capsys.readouterr().err.strip().splitlines() == [
         "llrmpp: error: --refine-perceptual-weight must be >= 0, got -0.5"]
     assert not os.path.exists(tmp_path / "ev3")
+    n_in = _micro_experiment(3).stages[-1].num_inputs
+    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
+                 "--refine-views-per-step", str(n_in + 1), "--out", str(tmp_path / "ev3")]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"llrmpp: error: --refine-views-per-step must be in [1, {n_in}] (the input views), got {n_in + 1}"]
+    assert not os.path.exists(tmp_path / "ev3")
 
 
 def test_sigterm_stops_train_with_a_checkpoint(tmp_path):

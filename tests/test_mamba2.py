@@ -130,7 +130,18 @@ def test_gated_rms_norm_matches_formula(rng):
     np.testing.assert_allclose(np.asarray(got), want, rtol=2e-6, atol=2e-6)
 
 
-@pytest.mark.parametrize("inter_chunk", ["associative", "sequential", "fused"])
+def test_auto_inter_chunk_is_the_fastest_form_on_each_backend():
+    """The default resolves to the fused scan on CPU (bench_scan.json: ~2x the associative
+    form there) and to the low-memory sequential one on accelerators; explicit forms stay."""
+    cfg = Mamba2Config()
+    assert cfg.inter_chunk == "auto"
+    assert cfg.resolved_inter_chunk("cpu") == "fused" == cfg.resolved_inter_chunk()  # this suite runs on CPU
+    assert cfg.resolved_inter_chunk("gpu") == "sequential" == cfg.resolved_inter_chunk("tpu")
+    for form in ("associative", "sequential", "fused"):
+        assert Mamba2Config(inter_chunk=form).resolved_inter_chunk("cpu") == form
+
+
+@pytest.mark.parametrize("inter_chunk", ["auto", "associative", "sequential", "fused"])
 def test_block_matches_golden_fixture(inter_chunk):
     """mamba2_block.npz: d_model 64, d_state 16, headdim 64 (2 heads), chunk 8, L = 37,
     with each form of the SSD scan."""

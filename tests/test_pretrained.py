@@ -80,7 +80,7 @@ def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
     _, got_cfg = load_pretrained("tiny", cfg, weights_dir=old)
     assert got_cfg == cfg
     other = C.replace(cfg, backbone=C.replace(cfg.backbone, mamba=C.replace(cfg.backbone.mamba, inter_chunk="sequential")))
-    with pytest.raises(ValueError, match=r"model\.backbone\.mamba\.inter_chunk: shipped 'associative', expected 'sequential'$"):
+    with pytest.raises(ValueError, match=r"model\.backbone\.mamba\.inter_chunk: shipped 'auto', expected 'sequential'$"):
         load_pretrained("tiny", other, weights_dir=old)
 
 

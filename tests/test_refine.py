@@ -93,6 +93,41 @@ def test_refine_lowers_feature_mode_loss_with_frozen_decoder(key):
         assert float(jnp.max(jnp.abs(a - b))) > 0, name
 
 
+@pytest.mark.parametrize("views", [3, 5])
+def test_a_step_fits_the_views_its_key_draws(rng, views):
+    """With ``views_per_step=1`` an update on V views is the update on the one view that
+    ``permutation(fold_in(key, 0), V)[0]`` picks, fitted alone; the recorded first and last
+    losses are that view's before and after."""
+    g, c2w, intr = known_scene(rng, n=60, views=views)
+    images = jnp.asarray(rng.uniform(0.1, 0.9, (1, views, H, W, 3)), jnp.float32)
+    key = jax.random.key(int(rng.integers(1 << 30)))
+    rc = RefineConfig(views_per_step=1)
+    got, info = refine({}, COLOUR, g, images, c2w, intr, steps=1, rc=rc, key=key)
+    j = int(jax.random.permutation(jax.random.fold_in(key, 0), views)[0])
+    want, _ = refine({}, COLOUR, g, images[:, j:j + 1], c2w[:, j:j + 1], intr[:, j:j + 1], steps=1, rc=rc,
+                     key=jax.random.key(7))
+    for name, a, b in zip(Gaussians._fields, got, want, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=name)
+    assert info.views_per_step == 1 and info.steps == 1 and info.losses.shape == (2,)
+    for start, loss in ((g, info.losses[0]), (got, info.losses[-1])):
+        rgb = render({}, COLOUR, start, c2w[:, j:j + 1], intr[:, j:j + 1], H, W).images["rgb"]
+        np.testing.assert_allclose(float(jnp.mean(jnp.square(rgb - images[:, j:j + 1]))), loss, rtol=1e-4)
+
+
+def test_refine_sizes_the_splat_buffer_from_the_scene(rng):
+    """The capacity is fitted_capacity(ceil(1.25 x the most pairs any input view needs)),
+    counted independently here view by view with count_intersections."""
+    from llrmpp_jax.splat import count_intersections, fitted_capacity
+
+    g, c2w, intr = known_scene(rng, n=80, views=3)
+    images = jnp.asarray(rng.uniform(0.1, 0.9, (1, 3, H, W, 3)), jnp.float32)
+    _, info = refine({}, COLOUR, g, images, c2w, intr, steps=1)
+    most = max(int(count_intersections(g.means[0], g.quats[0], g.scales[0], c2w[0, v], intr[0, v], H, W,
+                                       COLOUR.splat, g.opacities[0])) for v in range(3))
+    assert info.capacity == fitted_capacity(int(np.ceil(1.25 * most))) and info.dropped == 0
+    assert info.compile_s > 0 and info.step_s > 0
+
+
 def test_refine_rejects_bad_arguments(rng):
     g, c2w, intr = known_scene(rng, n=10, views=2)
     images = jnp.zeros((1, 2, H, W, 3), jnp.float32)
@@ -100,6 +135,8 @@ def test_refine_rejects_bad_arguments(rng):
         refine({}, COLOUR, g, images, c2w, intr, steps=-1)
     with pytest.raises(ValueError, match="vgg_params"):
         refine({}, COLOUR, g, images, c2w, intr, rc=RefineConfig(perceptual_weight=0.5))
+    with pytest.raises(ValueError, match=r"^RefineConfig.views_per_step must be >= 1, got 0$"):
+        RefineConfig(views_per_step=0)
 
 
 @pytest.mark.parametrize("steps, scale", [(4, 10.0), (25, 4.0)])

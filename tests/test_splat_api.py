@@ -85,3 +85,28 @@ def test_eager_bad_input_raises(rng):
         render_features(**args, height=0, width=W)
     with pytest.raises(ValueError, match="max_intersections"):
         dataclasses.replace(SplatConfig(), max_intersections=0)
+
+
+def test_fitted_capacity_is_the_next_size_of_eight_to_fifteen_times_a_power_of_two():
+    from llrmpp_jax.splat import fitted_capacity
+
+    sizes = sorted({m << e for m in range(8, 16) for e in range(0, 24)} | set(range(1, 8)))
+    for needed in [1, 7, 8, 9, 15, 16, 17, 100, 1000, 4097, 123457, 2**20 + 1]:
+        want = min(x for x in sizes if x >= needed)
+        assert fitted_capacity(needed) == want, needed
+        assert want < needed * 1.125 + 1
+
+
+def test_eager_render_fits_its_buffer_to_the_scene(rng):
+    """Called eagerly with the default config, the buffer is sized from the exact count:
+    no overflow, and the same canvas as a jitted render with the default capacity."""
+    from llrmpp_jax.splat import count_intersections, fitted_capacity
+
+    scene = random_scene(rng, N, F, H, W)
+    out = render_features(*scene, H, W)
+    needed = int(count_intersections(*scene[:3], *scene[5:], H, W, opacities=scene[3]))
+    assert int(out.stats.num_intersections) == needed and not bool(out.stats.overflow)
+    assert int(out.stats.capacity) == fitted_capacity(needed) < SplatConfig().capacity(N, H, W)
+    jitted = jax.jit(render_features, static_argnums=(7, 8))(*scene, H, W)
+    assert int(jitted.stats.capacity) == SplatConfig().capacity(N, H, W)
+    assert_render_close(out[:3], jitted[:3], atol=1e-12)

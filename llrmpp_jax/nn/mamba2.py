@@ -156,7 +156,7 @@ def mamba2_scan_direction(proj: InProj, params: dict[str, Array], cfg: Mamba2Con
     A = -jnp.exp(params["A_log"].astype(acc))
     y = ssd_scan(
         x.reshape(*lead, L, nh, cfg.headdim), dt, A, B.reshape(*lead, L, g, n), C.reshape(*lead, L, g, n),
-        chunk_size=cfg.chunk_size, D=params["D"].astype(acc), inter_chunk=cfg.inter_chunk,
+        chunk_size=cfg.chunk_size, D=params["D"].astype(acc), inter_chunk=cfg.resolved_inter_chunk(),
     )
     return gated_rms_norm(y.reshape(*lead, L, d_inner), proj.z, params["norm_scale"], cfg.norm_eps)
 

@@ -8,7 +8,8 @@ pixel meets exactly the entries it would meet in its 16x16 tile's list, minus en
 are below ``alpha_min`` there and would be skipped anyway. Steps, all O(N + C) apart from
 two sorts:
 
-1. sort the Gaussians by depth (stable: ties keep index order), culled ones last;
+1. sort the Gaussians by depth (stable: ties keep index order), culled ones last
+   (:func:`depth_order`: one int32 key sort unless two depths are equal);
 2. a prefix sum of their block counts (saturating for huge problems) gives each
    Gaussian its first slot;
 3. every slot finds its Gaussian by a scatter-max of the start slots and a running max
@@ -28,12 +29,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import lax
 
 from llrmpp_jax.array_typing import Array, Bool, Float, Int
 from llrmpp_jax.splat.config import SplatConfig
 from llrmpp_jax.splat.projection import ProjectedGaussians
+from llrmpp_jax.splat.sequential import sequential_over_batch
 
 # Prefix sums of intersection counts saturate here, so int32 never wraps.
 SATURATION = 2**30 - 1
@@ -118,6 +121,54 @@ def intersection_counts(
     return (x1 - x0) * (y1 - y0)
 
 
+# Float32 bit patterns of positive numbers sort as int32; +inf's is the largest finite-ish key.
+_INF_BITS = 0x7F800000
+
+
+def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> tuple[Int[Array, "N"], Bool[Array, ""]]:
+    """:func:`depth_order` by one int32 sort, when no two drawn Gaussians share a depth.
+
+    Drawn depths are > ``near`` > 0, so their float32 bit patterns order as the depths;
+    undrawn Gaussians get the distinct keys ``inf_bits + index`` after every drawn one. A
+    single-array int32 sort is ~6x faster than ``argsort`` on CPU, and a Gaussian's
+    position is found by binary search of its key among the sorted keys. Returns ``(order,
+    tied)``: ``tied`` says two drawn keys were equal, where ``order`` is not valid.
+    """
+    n = depths.shape[0]
+    bits = lax.bitcast_convert_type(depths.astype(jnp.float32), jnp.int32)
+    keys = jnp.where(drawn, bits, _INF_BITS + jnp.arange(n, dtype=jnp.int32))
+    sorted_keys = lax.sort(keys)
+    tied = jnp.any(sorted_keys[1:] == sorted_keys[:-1])
+    rank = jnp.searchsorted(sorted_keys, keys, side="left").astype(jnp.int32)
+    order = jnp.zeros((n,), jnp.int32).at[rank].set(jnp.arange(n, dtype=jnp.int32), mode="drop")
+    return order, tied
+
+
+def depth_order(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> Int[Array, "N"]:
+    """Indices of the drawn Gaussians by increasing depth (ties by index: a stable sort),
+    then the undrawn ones by index.
+
+    Float32 depths with fewer than 2**23 Gaussians take the int32 key sort of
+    :func:`_depth_order_by_key` and fall back to a stable ``argsort`` only when two drawn
+    depths are exactly equal (``lax.cond``: the sort is skipped otherwise, also under
+    ``vmap``, which runs this one element at a time).
+    """
+    n = depths.shape[0]
+    depths = lax.stop_gradient(depths)  # an order: nothing to differentiate
+
+    def stable(depths, drawn):
+        return jnp.argsort(jnp.where(drawn, depths, jnp.inf), stable=True).astype(jnp.int32)
+
+    if depths.dtype != jnp.float32 or n >= (1 << 31) - _INF_BITS:
+        return stable(depths, drawn)
+
+    def by_key(depths, drawn):
+        order, tied = _depth_order_by_key(depths, drawn)
+        return lax.cond(tied, stable, lambda d, m: order, depths, drawn)
+
+    return sequential_over_batch(by_key)(depths, drawn)
+
+
 def _saturating_add(a: Int[Array, "..."], b: Int[Array, "..."]) -> Int[Array, "..."]:
     return jnp.minimum(a + b, SATURATION)
 
@@ -147,8 +198,8 @@ def bin_gaussians(
     x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities)
     counts = (x1 - x0) * (y1 - y0)
 
-    depth_key = jnp.where(counts > 0, projected.depths, jnp.inf)
-    order = jnp.argsort(depth_key, stable=True).astype(jnp.int32)
+    with jax.named_scope("splat_sort"):
+        order = depth_order(projected.depths, counts > 0)
     counts_sorted = counts[order]
     ends = _inclusive_prefix_sum(counts_sorted, num_tiles)
     starts = jnp.concatenate([jnp.zeros((1,), jnp.int32), ends[:-1]])
@@ -166,12 +217,13 @@ def bin_gaussians(
     tile = (y0[gid] + rank // box_w) * tiles_x + x0[gid] + rank % box_w
     tile = jnp.where(slots < needed, tile, num_tiles)  # sentinel sorts after every tile
 
-    if (num_tiles + 1) * n < 2**31:
-        # One int32 key (block, depth rank): src is the slot's position in depth order.
-        key = lax.sort(tile * n + src)
-        sorted_tile, sorted_gid = key // n, order[key % n]
-    else:
-        sorted_tile, sorted_gid = lax.sort((tile, gid), num_keys=1, is_stable=True)
+    with jax.named_scope("splat_sort"):
+        if (num_tiles + 1) * n < 2**31:
+            # One int32 key (block, depth rank): src is the slot's position in depth order.
+            key = lax.sort(tile * n + src)
+            sorted_tile, sorted_gid = key // n, order[key % n]
+        else:
+            sorted_tile, sorted_gid = lax.sort((tile, gid), num_keys=1, is_stable=True)
     bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
     bounds = bounds.astype(jnp.int32)
     return TileBins(

@@ -33,10 +33,9 @@ O(N + pixels), independent of the number of chunks.
 
 Batches: ``jax.vmap`` of a ``while_loop`` whose trip count differs across the batch runs
 every element to the longest count and selects each loop carry on every step, which for
-the backward pass is a copy of the whole [N, C] gradient per chunk. The group loops are
-therefore :func:`~jax.custom_batching.custom_vmap` functions that run one batch element
-after another (``lax.map``): vmapping the splatter over cameras, scenes or partition copies
-costs the sum of the single renders.
+the backward pass is a copy of the whole [N, C] gradient per chunk. The group loops
+therefore run one batch element after another under ``vmap``
+(:func:`~llrmpp_jax.splat.sequential.sequential_over_batch`).
 """
 
 from __future__ import annotations
@@ -49,11 +48,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.custom_batching import custom_vmap
 
 from llrmpp_jax.array_typing import Array, Bool, Float, Int
 from llrmpp_jax.splat.binning import TileBins
 from llrmpp_jax.splat.config import SplatConfig
+from llrmpp_jax.splat.sequential import sequential_over_batch
 
 _HIGHEST = lax.Precision.HIGHEST
 
@@ -78,27 +77,6 @@ class _Chunk(NamedTuple):
     vis: Float[Array, "group chunk pix"]  # exp(-sigma)
     alpha: Float[Array, "group chunk pix"]  # min(alpha_max, o exp(-sigma))
     active: Bool[Array, "group chunk pix"]  # valid and alpha >= alpha_min
-
-
-def _sequential_over_batch(fn: Callable) -> Callable:
-    """``fn`` (positional array pytrees in and out) whose ``jax.vmap`` runs it once per
-    batch element (``lax.map``) instead of batching its loops; see the module docstring."""
-    wrapped = custom_vmap(fn)
-
-    @wrapped.def_vmap
-    def _rule(axis_size, in_batched, *args):
-        del axis_size
-        leaves, tree = jax.tree.flatten(args)
-        flags = jax.tree.leaves(in_batched)
-
-        def one(batched_leaves):
-            it = iter(batched_leaves)
-            return wrapped(*jax.tree.unflatten(tree, [next(it) if b else x for x, b in zip(leaves, flags)]))
-
-        out = lax.map(one, [x for x, b in zip(leaves, flags) if b])
-        return out, jax.tree.map(lambda _: True, out)
-
-    return wrapped
 
 
 def _cumulative(
@@ -325,6 +303,7 @@ def _forward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
     """All groups' forward pass: ``(geometry, opacities, features, gaussian_ids, groups) ->
     (features [H, W, C], T [H, W]), (per-group T, last)``, sequential under vmap."""
 
+    @jax.named_scope("splat_composite")
     def forward(geometry, opacities, features, gaussian_ids, groups):
         def one(group):
             return _forward_group(geometry, opacities, features, gaussian_ids, group, height, width, cfg)
@@ -338,7 +317,7 @@ def _forward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
         t_canvas = _to_canvas(trans.reshape(-1, p)[where_tile], height, width, cfg)
         return (feat, t_canvas), (trans, last)
 
-    return _sequential_over_batch(forward)
+    return sequential_over_batch(forward)
 
 
 @functools.cache
@@ -346,6 +325,7 @@ def _backward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
     """All groups' backward pass: ``(residuals..., cotangents) -> (d_geometry, d_opacities,
     d_features)``, sequential under vmap."""
 
+    @jax.named_scope("splat_composite")
     def backward(geometry, opacities, features, gaussian_ids, groups, trans, last, g_feat, g_trans):
         flat_ids = groups.tile_ids.reshape(-1)
         gf = _from_canvas(g_feat, height, width, cfg)[flat_ids].reshape(trans.shape + g_feat.shape[-1:])
@@ -364,7 +344,7 @@ def _backward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
         grads, _ = lax.scan(step, zeros, (tuple(groups), trans, last, gf, gt))
         return grads
 
-    return _sequential_over_batch(backward)
+    return sequential_over_batch(backward)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))

@@ -150,13 +150,16 @@ def _render_copies(
     opacities = jnp.where(attr_ok[None, :], opacities, 0.0)
     features = jnp.where(attr_ok[:, None], features, 0.0)
 
-    proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=attr_ok)
+    with jax.named_scope("splat_project"):
+        proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=attr_ok)
     capacity = cfg.capacity(n, height, width)
     # Boxes trimmed to where the most opaque copy can be drawn: less work, same output.
-    bins = bin_gaussians(proj, height, width, capacity, cfg, opacities=jnp.max(opacities, axis=0))
+    with jax.named_scope("splat_bin"):
+        bins = bin_gaussians(proj, height, width, capacity, cfg, opacities=jnp.max(opacities, axis=0))
     # Depth rides along as one more feature channel: one composite gives both.
     feats_z = jnp.concatenate([features, proj.depths[:, None]], axis=-1)
 
+    @jax.named_scope("splat_composite")
     def one(op):
         return composite(proj.means2d, proj.quad_form, op, feats_z, bins, height, width, cfg)
 
