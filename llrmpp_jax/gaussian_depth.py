@@ -21,10 +21,7 @@ from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.losses import depth_loss
-from llrmpp_jax.splat.render import render_feature_copies
-
-# Accumulated alpha below this counts as "nothing here" in the expected depth (gsplat's ED).
-MIN_ALPHA = 1e-10
+from llrmpp_jax.splat.render import SplatOutput, expected_depth, render_feature_copies
 
 
 def splatted_depth(
@@ -41,8 +38,8 @@ def splatted_depth(
 
     def one(means, quats, scales, opac, feat, cam, k):
         out = render_feature_copies(means, quats, scales, opac[None], feat, cam, k, height, width, cfg.splat)
-        alpha = 1.0 - out.transmittance[0]
-        return out.depth[0] / jnp.maximum(alpha, MIN_ALPHA), alpha
+        one_copy = SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
+        return expected_depth(one_copy), 1.0 - one_copy.transmittance
 
     per_target = jax.vmap(one, (None, None, None, None, None, 0, 0))
     return jax.vmap(per_target)(g.means, g.quats, g.scales, g.opacities, zeros, c2w, intrinsics)

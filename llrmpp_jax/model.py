@@ -35,12 +35,8 @@ from llrmpp_jax.decoder import TargetDecoder, partition_opacities
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
-from llrmpp_jax.splat import count_intersections, render_feature_copies, render_sh
+from llrmpp_jax.splat import count_intersections, expected_depth, render_feature_copies, render_sh
 
-
-# Colour-mode depth divides by the accumulated alpha, clamped as gsplat's "ED" render mode
-# does; a pixel no Gaussian reaches gets depth 0.
-COLOR_DEPTH_MIN_ALPHA = 1e-10
 
 
 class RenderOutput(NamedTuple):
@@ -112,8 +108,7 @@ class LongLRMPP(nn.Module):
                 rgb, out = render_sh(g.means, g.quats, g.scales, g.opacities,
                                      g.features.reshape(g.features.shape[0], -1, 3),
                                      cam, k, height, width, cfg.splat, bg)
-                # Expected depth (gsplat "ED"): accumulated camera z over accumulated alpha.
-                depth = out.depth / jnp.maximum(1.0 - out.transmittance, COLOR_DEPTH_MIN_ALPHA)
+                depth = expected_depth(out)  # gsplat "ED": accumulated camera z / accumulated alpha
                 return {"rgb": rgb, "depth": depth[..., None]}, out.stats.num_dropped
 
             images, dropped = per_target(one)(gaussians, c2w, intrinsics)

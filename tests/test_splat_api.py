@@ -110,3 +110,22 @@ def test_eager_render_fits_its_buffer_to_the_scene(rng):
     jitted = jax.jit(render_features, static_argnums=(7, 8))(*scene, H, W)
     assert int(jitted.stats.capacity) == SplatConfig().capacity(N, H, W)
     assert_render_close(out[:3], jitted[:3], atol=1e-12)
+
+
+def test_expected_depth_is_the_oracles_depth_over_alpha(rng):
+    """gsplat's "ED" mode against the float64 oracle: accumulated z / accumulated alpha where
+    anything was drawn (alpha >= 1/255 there), 0 elsewhere; part of the canvas left empty."""
+    from llrmpp_jax.splat import expected_depth
+
+    n = 20  # small Gaussians in front of an identity camera: most of the canvas stays empty
+    z = rng.uniform(2.0, 4.0, n)
+    means = np.stack([rng.uniform(-0.4, 0.4, n) * z, rng.uniform(-0.3, 0.3, n) * z, z], -1)
+    scene = [means, rng.normal(size=(n, 4)), rng.uniform(0.02, 0.06, (n, 3)), rng.uniform(0.05, 1.0, n),
+             rng.normal(size=(n, F)), np.eye(4), np.array([40.0, 40.0, W / 2, H / 2])]
+    out = render_features(*scene, H, W)
+    _, trans, depth = oracle_render(*scene, H, W)
+    alpha = 1.0 - trans
+    drawn = alpha > 0
+    assert 0 < drawn.mean() < 1 and alpha[drawn].min() >= 1.0 / 255.0 - 1e-12
+    want = np.where(drawn, depth / np.where(drawn, alpha, 1.0), 0.0)
+    np.testing.assert_allclose(np.asarray(expected_depth(out)), want, rtol=1e-9, atol=1e-9)

@@ -99,11 +99,12 @@ def test_default_capacity_holds_at_paper_density(rng):
 @pytest.mark.parametrize("ties", [False, True])
 def test_depth_order_is_a_stable_argsort_with_undrawn_last(rng, ties):
     """Against NumPy's stable lexsort (drawn first, then depth, then index), alone and under
-    vmap; with ties the key sort's result is refused and the stable sort used."""
+    vmap; with ties (a group of 41 equal depths and many pairs) ranked by index."""
     n = 2000
     depths = rng.uniform(0.02, 50.0, (3, n)).astype(np.float32)
     if ties:
         depths[:, 100:140] = depths[:, 7:8]
+        depths[:, 1000:1500:2] = depths[:, 1001:1501:2]
     drawn = rng.uniform(size=(3, n)) < 0.8
 
     def oracle(d, m):

@@ -33,7 +33,7 @@ from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import render
-from llrmpp_jax.splat import render_features
+from llrmpp_jax.splat import expected_depth, render_features
 
 PATHS = ("targets", "inputs", "spline", "orbit")
 
@@ -114,8 +114,7 @@ def _render_rgb(params, cfg: ModelConfig, g: Gaussians, c2w, k, height: int, wid
 def _render_depth(g: Gaussians, cfg: ModelConfig, c2w, k, height: int, width: int):
     ones = jnp.ones((g.means.shape[0], 1), g.means.dtype)
     out = render_features(g.means, g.quats, g.scales, g.opacities, ones, c2w, k, height, width, cfg.splat)
-    alpha = 1.0 - out.transmittance
-    return jnp.where(alpha > 1e-4, out.depth / jnp.maximum(alpha, 1e-4), 0.0)
+    return expected_depth(out)
 
 
 def render_views(

@@ -59,6 +59,20 @@ class SplatOutput(NamedTuple):
     stats: SplatStats
 
 
+# gsplat's "ED" clamp of the accumulated alpha. A drawn pixel's alpha is at least
+# SplatConfig.alpha_min (1/255): any clamp below that gives the same depths.
+EXPECTED_DEPTH_MIN_ALPHA = 1e-10
+
+
+def expected_depth(out: SplatOutput) -> Float[Array, "*S H W"]:
+    """gsplat's "ED" render mode: accumulated camera z over accumulated alpha
+    (``out.depth / (1 - out.transmittance)``), 0 where nothing was drawn. The one
+    definition used by the model's depth, the depth loss, ``llrmpp render --depth`` and
+    the viewer."""
+    alpha = 1.0 - out.transmittance
+    return jnp.where(alpha > 0, out.depth / jnp.maximum(alpha, EXPECTED_DEPTH_MIN_ALPHA), 0.0)
+
+
 def _compute_dtype(means: Array) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if means.dtype == jnp.float64 else jnp.dtype(jnp.float32)
 

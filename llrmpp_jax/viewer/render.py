@@ -32,7 +32,7 @@ from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import ModelConfig, replace
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import render
-from llrmpp_jax.splat import render_features
+from llrmpp_jax.splat import expected_depth, render_features
 
 OUTPUTS = ("rgb", "depth")
 
@@ -103,9 +103,7 @@ def render_view(
     no_features = jnp.zeros((g.means.shape[0], 1), g.means.dtype)
     out = render_features(g.means, g.quats, g.scales, g.opacities, no_features, c2w, intrinsics, height, width,
                           cfg.splat)
-    alpha = 1.0 - out.transmittance
-    depth = jnp.where(alpha > 1e-6, out.depth / jnp.maximum(alpha, 1e-6), 0.0)
-    return depth[:, :, None]
+    return expected_depth(out)[:, :, None]
 
 
 def display_image(image: Float[np.ndarray, "H W C"], output: str) -> np.ndarray:
