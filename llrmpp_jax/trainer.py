@@ -14,6 +14,7 @@ grids in ``workdir/tb``, periodic evaluation on held-out scenes.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -37,6 +38,7 @@ from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
+from llrmpp_jax.train.workdir_lock import workdir_lock
 
 EVAL_EVERY = 8  # real held-out scenes: targets every 8th frame (the paper's protocol, :func:`eval_split`)
 
@@ -251,10 +253,14 @@ def train(
     optimizer instead of a random init; a stage with a checkpoint in ``workdir`` resumes from
     it as always. ``train_log.json`` records ``init``.
 
+    The workdir is locked for the run (:mod:`llrmpp_jax.train.workdir_lock`): a second
+    ``train`` on it raises ``WorkdirBusyError`` naming the holder's PID and host.
+
     SIGINT (Ctrl-C) or SIGTERM stops the run after the current step with a checkpoint
     (``result["stopped_by"]`` names the signal); the same call resumes from it. A second
     Ctrl-C interrupts at once."""
-    with T.stop_on_signals() as stop:
+    lock = workdir_lock(workdir) if jax.process_index() == 0 else contextlib.nullcontext()
+    with lock, T.stop_on_signals() as stop:
         return _train_stages(exp, workdir, stop, max_minutes=max_minutes, use_pmap=use_pmap, progress=progress,
                              init=init)
 
