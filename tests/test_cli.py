@@ -77,6 +77,15 @@ def test_bad_input_is_one_clear_line(args, message):
     assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
 
 
+def test_an_empty_checkpoint_folder_is_one_line_and_nothing_after(tmp_path):
+    """orbax's start-up clean-up thread is joined, so no traceback follows the error at exit."""
+    res = _run_cli("eval", "--config", "experiments/demo.py", "--checkpoint", str(tmp_path), "--out",
+                   str(tmp_path / "ev"))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        f"llrmpp: error: no checkpoint in {tmp_path} (expected a params folder or a training workdir)"]
+
+
 def test_wrong_vgg19_file_is_one_line_naming_the_first_mismatching_key(tmp_path):
     """A VGG16 state_dict (here its first 8 convolutions) given as VGG19: VGG19 has conv3_4
     at index 16, where VGG16 has a pooling layer."""

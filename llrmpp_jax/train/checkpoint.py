@@ -14,11 +14,13 @@ Saving is synchronous: the manifest can only be computed from complete files.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -61,13 +63,23 @@ def _leaf_name(i: int) -> str:
     return f"leaf_{i:05d}"
 
 
-def _manager(directory: Path) -> ocp.CheckpointManager:
+@contextlib.contextmanager
+def _manager(directory: Path) -> Iterator[ocp.CheckpointManager]:
+    """An orbax manager of ``directory`` that has finished its start-up clean-up.
+
+    With ``cleanup_tmp_directories`` orbax deletes unfinished steps of an earlier run in a
+    background thread that ``close()`` does not join; a command that stops right after (a
+    one-line user error) would then print that thread's traceback at interpreter exit. So
+    the clean-up is awaited here, before the manager is used.
+    """
     options = ocp.CheckpointManagerOptions(
         enable_async_checkpointing=False,
         cleanup_tmp_directories=True,
         create=True,
     )
-    return ocp.CheckpointManager(directory, options=options)
+    with ocp.CheckpointManager(directory, options=options) as mngr:
+        mngr._maybe_await_cleanup_tmp_directory()  # orbax has no public way to wait for it
+        yield mngr
 
 
 def _file_digest(path: Path) -> str:
