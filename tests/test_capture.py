@@ -92,6 +92,8 @@ def test_select_views():
     np.testing.assert_array_equal(tgs, [0, 16])
     with pytest.raises(ValueError, match="index 20 is out of range"):
         select_views(scene, 4, [1, 20])
+    with pytest.raises(ValueError, match=r"^--num-inputs must be >= 1, got 0$"):
+        select_views(scene, 0)
 
 
 def test_view_size_keeps_portrait():

@@ -43,6 +43,8 @@ def select_views(
         if len(set(idx.tolist())) != idx.size:
             raise ValueError(f"--inputs: indices must be distinct, got {idx.tolist()}")
         return np.sort(idx), np.setdiff1d(every_nth(n, every), idx)
+    if num_inputs < 1:
+        raise ValueError(f"--num-inputs must be >= 1, got {num_inputs}")
     targets = every_nth(n, every)
     rest = np.setdiff1d(np.arange(n), targets)
     if len(rest) < num_inputs:
