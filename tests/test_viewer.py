@@ -186,6 +186,9 @@ def test_port_in_use_names_it_and_a_free_one():
             check_port("127.0.0.1", taken)
         suggested = int(str(e.value).rsplit(" ", 1)[1])
         check_port("127.0.0.1", suggested)  # free indeed
+    for bad in (-1, 65536, 99999):  # checked before the OS's bind() raises OverflowError
+        with pytest.raises(ValueError, match=rf"^--port must be in 0\.\.65535, got {bad}$"):
+            check_port("127.0.0.1", bad)
 
 
 # -- the page in a real browser -------------------------------------------------------------

@@ -75,7 +75,10 @@ def _bind_error(host: str, port: int) -> OSError | None:
 def check_port(host: str, port: int) -> None:
     """Raise if the page cannot be served on ``host:port`` (0 = any free port):
     :class:`PortInUseError` naming a free port nearby if it is taken, ``ValueError`` for
-    any other reason the bind fails (a privileged port, an unknown host)."""
+    any other reason the bind fails (a privileged port, an unknown host, a port outside
+    0..65535)."""
+    if not 0 <= port <= 65535:
+        raise ValueError(f"--port must be in 0..65535, got {port}")
     err = None if port == 0 else _bind_error(host, port)
     if err is None:
         return
