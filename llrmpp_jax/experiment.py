@@ -176,7 +176,10 @@ def load_experiment(path: str) -> ExperimentConfig:
         raise FileNotFoundError(f"config file not found: {path}")
     spec = importlib.util.spec_from_file_location(f"llrmpp_experiment_{abs(hash(path))}", path)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    try:
+        spec.loader.exec_module(module)
+    except SyntaxError as e:
+        raise ValueError(f"{path}:{e.lineno}: syntax error in the experiment file: {e.msg}") from None
     if not hasattr(module, "get_config"):
         raise ValueError(f"{path}: an experiment file must define get_config() -> ExperimentConfig")
     cfg = module.get_config()

@@ -77,6 +77,47 @@ def test_bad_input_is_one_clear_line(args, message):
     assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
 
 
+def _bad_files(tmp_path) -> list[tuple[list[str], str]]:
+    """Files that are not what they claim, each with the command that reads it and the start
+    of the one line it must give."""
+    from conftest import shared_path
+
+    golden = shared_path("golden", "long_lrm_tiny", "state_dict.npz")
+    data = open(golden, "rb").read()
+    npz_as_pt = tmp_path / "other_model.pt"  # an .npz of another (the tiny) model
+    npz_as_pt.write_bytes(data)
+    (tmp_path / "cut.npz").write_bytes(data[: len(data) // 3])
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 3])
+    subprocess.run([sys.executable, "-c", "import torch\nclass Cfg: pass\n"
+                    f"torch.save({{'model': {{'a': torch.ones(2)}}, 'cfg': Cfg()}}, {str(tmp_path / 'objects.pt')!r})"],
+                   check=True)
+    (tmp_path / "broken.py").write_text("def get_config(:\n    pass\n")
+    out = str(tmp_path / "out")
+    return [
+        (["convert", "--checkpoint", str(npz_as_pt), "--out", out], f"cannot convert {npz_as_pt}: "),
+        (["convert", "--checkpoint", str(tmp_path / "cut.npz"), "--out", out],
+         f"{tmp_path / 'cut.npz'}: not a .npz archive (not a zip file"),
+        (["convert", "--checkpoint", str(tmp_path / "cut.pt"), "--out", out],
+         f"{tmp_path / 'cut.pt'}: not a readable torch checkpoint or .npz archive"),
+        (["convert", "--checkpoint", str(tmp_path / "objects.pt"), "--out", out],
+         f"{tmp_path / 'objects.pt'}: holds Python objects other than tensors"),
+        (["train", "--config", str(tmp_path / "broken.py"), "--workdir", out],
+         f"{tmp_path / 'broken.py'}:1: syntax error in the experiment file"),
+    ]
+
+
+def test_files_that_are_not_what_they_claim_are_one_line(tmp_path):
+    """A renamed archive of another model, truncated archives, a pickle of Python objects, an
+    experiment file with a syntax error: exit 2, one line naming the file, no traceback."""
+    for args, start in _bad_files(tmp_path):
+        res = _run_cli(*args)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1, (args, res.stderr)
+        assert lines[0].startswith(f"llrmpp: error: {start}"), (args, lines[0])
+        assert len(lines[0]) < 600  # a long list is cut to its first entries and a count
+    assert not os.path.exists(tmp_path / "out")  # nothing half-written
+
+
 def test_an_empty_checkpoint_folder_is_one_line_and_nothing_after(tmp_path):
     """orbax's start-up clean-up thread is joined, so no traceback follows the error at exit."""
     res = _run_cli("eval", "--config", "experiments/demo.py", "--checkpoint", str(tmp_path), "--out",

@@ -10,7 +10,9 @@ must be produced with the expected shape. Errors list *all* offending keys at on
 
 from __future__ import annotations
 
+import pickle
 import re
+import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -102,17 +104,19 @@ def convert_state_dict(
     if expected is not None:
         want = flatten_dict(dict(expected), sep="/")
         for path in sorted(set(want) - set(flat)):
-            problems.append(f"parameter {path!r} {tuple(want[path].shape)} not provided by {source}")
+            problems.append(f"parameter {path!r} {tuple(want[path].shape)} missing")
         for path in sorted(set(flat) - set(want)):
-            problems.append(f"{source} provides {path!r} but the model has no such parameter")
+            problems.append(f"{path!r} given, but the model has no such parameter")
         for path in sorted(set(want) & set(flat)):
             if tuple(want[path].shape) != flat[path].shape:
                 problems.append(
-                    f"parameter {path!r}: model expects shape {tuple(want[path].shape)}, "
-                    f"{source} gives {flat[path].shape}"
+                    f"parameter {path!r}: the model's shape {tuple(want[path].shape)}, the file's "
+                    f"{flat[path].shape}"
                 )
     if problems:
-        raise ValueError(f"cannot convert {source}:\n  " + "\n  ".join(problems))
+        shown = "; ".join(problems[:3])
+        more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+        raise ValueError(f"cannot convert {source}: {len(problems)} problem(s): {shown}{more}")
     return unflatten_dict(flat, sep="/")
 
 
@@ -126,16 +130,36 @@ def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
 
     if not os.path.exists(path):
         raise FileNotFoundError(f"checkpoint file not found: {path}")
-    if path.endswith(".npz"):
-        with np.load(path) as z:
-            return {k: z[k] for k in z.files}
+    # The content decides, not the extension: both formats may be zip archives.
+    names = None
+    if zipfile.is_zipfile(path):
+        try:
+            with zipfile.ZipFile(path) as z:
+                names = z.namelist()
+        except (zipfile.BadZipFile, OSError) as e:
+            raise ValueError(f"{path}: a damaged zip archive ({e}); expected a .npz or a torch .pt") from None
+    if names is not None and any(n.endswith(".npy") for n in names):
+        try:
+            with np.load(path) as z:
+                return {k: z[k] for k in z.files}
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
+            raise ValueError(f"{path}: a damaged .npz archive ({e})") from None
+    if names is None and path.endswith(".npz"):
+        raise ValueError(f"{path}: not a .npz archive (not a zip file: truncated or another format)")
     try:
         import torch
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise ImportError(
             f"reading {path} needs torch: pip install 'llrmpp-jax[torch]'"
         ) from e
-    obj = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise ValueError(f"{path}: holds Python objects other than tensors, which torch will not unpickle safely "
+                         "(weights_only=True); save the weights alone with torch.save(model.state_dict(), path)") from None
+    except (RuntimeError, EOFError, OSError) as e:
+        first = (str(e).splitlines() or [type(e).__name__])[0]
+        raise ValueError(f"{path}: not a readable torch checkpoint or .npz archive ({first})") from None
     if isinstance(obj, Mapping) and "model" in obj and isinstance(obj["model"], Mapping):
         obj = obj["model"]
     if not isinstance(obj, Mapping):
