@@ -203,7 +203,7 @@ def cmd_render(args) -> int:
     from llrmpp_jax.capture.render import frame_photos, view_metrics, write_video
     from llrmpp_jax.data.image_io import write_depth, write_image
     from llrmpp_jax.metrics import load_lpips_params
-    from llrmpp_jax.params_io import check_params_fit
+    from llrmpp_jax.model import check_params_fit
 
     if args.gaussians:
         saved = load_gs(args.gaussians)
@@ -262,7 +262,7 @@ def cmd_export(args) -> int:
 
 def cmd_refine(args) -> int:
     from llrmpp_jax.capture import load_gs, refine_scene, save_gs
-    from llrmpp_jax.params_io import check_params_fit
+    from llrmpp_jax.model import check_params_fit
     from llrmpp_jax.perceptual import load_vgg16_lpips
 
     if args.steps < 1:
@@ -335,7 +335,7 @@ def cmd_view(args) -> int:
     if args.gaussians:
         from llrmpp_jax.capture import load_gs
         from llrmpp_jax.capture.render import frame_photos
-        from llrmpp_jax.params_io import check_params_fit
+        from llrmpp_jax.model import check_params_fit
 
         saved = load_gs(args.gaussians)
         cfg = saved.model

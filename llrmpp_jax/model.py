@@ -207,3 +207,30 @@ def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Fl
     if cfg.head.mode != "feature":
         raise ValueError(f"partition logits exist only in feature mode, the model is in {cfg.head.mode!r} mode")
     return LongLRMPP(cfg).apply({"params": params}, gaussians.features, method=lambda m, f: m.partition(f))
+
+
+def flatten_params(tree) -> dict[str, object]:
+    """``{'a/b/c': leaf}``: parameter paths joined by ``/``."""
+    return {"/".join(str(getattr(k, "key", k)) for k in path): leaf
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def expected_shapes(cfg: ModelConfig) -> dict:
+    """``jax.eval_shape`` of the parameters of ``cfg`` (they do not depend on image size
+    or view count, so the smallest valid input is used)."""
+    m = cfg.size_multiple
+    return jax.eval_shape(lambda k: init_params(k, cfg, 1, m, m), jax.random.key(0))
+
+
+def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
+    """``ValueError`` naming the first parameter path whose presence or shape differs
+    between ``params`` (arrays or shape structs) and the model of ``cfg``, with both shapes."""
+    want, got = flatten_params(expected_shapes(cfg)), flatten_params(params)
+    for path in sorted(set(want) | set(got)):
+        w = tuple(want[path].shape) if path in want else None
+        g = tuple(got[path].shape) if path in got else None
+        if w != g:
+            w_txt = "absent" if w is None else str(w)
+            g_txt = "absent" if g is None else str(g)
+            raise ValueError(f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
+                             f"model {w_txt}, checkpoint {g_txt} (another architecture? pass the matching --config)")

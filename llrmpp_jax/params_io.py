@@ -19,38 +19,11 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from llrmpp_jax.config import ModelConfig, from_dict
+from llrmpp_jax.model import check_params_fit, flatten_params
+from llrmpp_jax.pretrained import PREFIX, load_pretrained
 
 PARAMS_META = "llrmpp_params.json"
 _FORMAT = 1
-
-
-def flatten_params(tree) -> dict[str, object]:
-    """``{'a/b/c': leaf}``: parameter paths joined by ``/``."""
-    return {"/".join(str(getattr(k, "key", k)) for k in path): leaf
-            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
-
-
-def expected_shapes(cfg: ModelConfig) -> dict:
-    """``jax.eval_shape`` of the parameters of ``cfg`` (they do not depend on image size
-    or view count, so the smallest valid input is used)."""
-    from llrmpp_jax.model import init_params
-
-    m = cfg.size_multiple
-    return jax.eval_shape(lambda k: init_params(k, cfg, 1, m, m), jax.random.key(0))
-
-
-def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
-    """``ValueError`` naming the first parameter path whose presence or shape differs
-    between ``params`` (arrays or shape structs) and the model of ``cfg``, with both shapes."""
-    want, got = flatten_params(expected_shapes(cfg)), flatten_params(params)
-    for path in sorted(set(want) | set(got)):
-        w = tuple(want[path].shape) if path in want else None
-        g = tuple(got[path].shape) if path in got else None
-        if w != g:
-            w_txt = "absent" if w is None else str(w)
-            g_txt = "absent" if g is None else str(g)
-            raise ValueError(f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
-                             f"model {w_txt}, checkpoint {g_txt} (another architecture? pass the matching --config)")
 
 
 def save_params(path: str, params, cfg: ModelConfig) -> int:
@@ -136,8 +109,6 @@ def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelC
     workdir's checkpoint. Given: it must fit the saved shapes (``ValueError`` naming the
     first mismatching parameter path and both shapes), else its own config is used as is.
     """
-    from llrmpp_jax.pretrained import PREFIX, load_pretrained
-
     if path.startswith(PREFIX):
         return load_pretrained(path[len(PREFIX):], cfg)
     if not os.path.isdir(path):

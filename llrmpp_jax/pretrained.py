@@ -26,6 +26,10 @@ import numpy as np
 from flax.traverse_util import unflatten_dict
 
 from llrmpp_jax.config import ModelConfig, from_dict
+from llrmpp_jax.data import ProceduralConfig
+from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
+from llrmpp_jax.data.synthetic import procedural_scene
+from llrmpp_jax.model import check_params_fit, flatten_params, reconstruct, render
 
 WEIGHTS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights")
 PREFIX = "pretrained:"
@@ -104,8 +108,6 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
             raise ValueError(f"{npz_path}: weights are for another model config: {diff}")
     with np.load(npz_path) as z:
         params = unflatten_dict({k: z[k].astype(np.float32) for k in z.files}, sep="/")
-    from llrmpp_jax.params_io import check_params_fit
-
     check_params_fit(params, shipped_cfg, npz_path)
     return jax.tree.map(np.asarray, params), shipped_cfg
 
@@ -113,11 +115,6 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
 def reference_forward(params: dict, cfg: ModelConfig, ref: dict) -> np.ndarray:
     """RGB ``[H, W, 3]`` of the recorded forward pass ``ref`` (``NAME.json``'s "reference":
     procedural scene seed, size, frame count, input and target frames)."""
-    from llrmpp_jax.data import ProceduralConfig
-    from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
-    from llrmpp_jax.data.synthetic import procedural_scene
-    from llrmpp_jax.model import reconstruct, render
-
     h, w = ref["height"], ref["width"]
     scene = procedural_scene(ref["seed"], ProceduralConfig(height=h, width=w, num_frames=ref["num_frames"]))
     geom = ViewGeometry(resize_h=h, multiple=cfg.size_multiple, square_crop=True)
@@ -137,8 +134,6 @@ def export_pretrained(params: dict, cfg: ModelConfig, name: str, record: dict, r
     its ``NAME.json`` record. ``record`` adds provenance (experiment, commit, steps,
     metrics); ``reference`` is the forward pass to record (see :func:`reference_forward`).
     The reference output is computed from the float16-rounded parameters, as they load."""
-    from llrmpp_jax.params_io import check_params_fit, flatten_params
-
     check_params_fit(params, cfg, f"export_pretrained({name!r})")
     os.makedirs(weights_dir, exist_ok=True)
     npz_path, meta_path, ref_path = _paths(name, weights_dir)

@@ -28,7 +28,8 @@ from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.geometry import validate_cameras
 from llrmpp_jax.model import init_params
-from llrmpp_jax.params_io import check_params_fit, load_params, save_params
+from llrmpp_jax.model import check_params_fit
+from llrmpp_jax.params_io import load_params, save_params
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,8 @@ import pytest
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.model import init_params
-from llrmpp_jax.params_io import flatten_params, load_params
+from llrmpp_jax.model import flatten_params
+from llrmpp_jax.params_io import load_params
 from llrmpp_jax.pretrained import WEIGHTS_DIR, export_pretrained, load_pretrained, reference_forward
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

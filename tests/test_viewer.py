@@ -327,7 +327,8 @@ def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):
     checkpoint do not fit its model config: exit status 2 and one line each."""
     from llrmpp_jax.capture import save_gs
     from llrmpp_jax.cli import main
-    from llrmpp_jax.params_io import expected_shapes, save_params
+    from llrmpp_jax.model import expected_shapes
+    from llrmpp_jax.params_io import save_params
 
     cfg = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
 
