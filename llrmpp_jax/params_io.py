@@ -19,7 +19,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from llrmpp_jax.config import ModelConfig, from_dict
-from llrmpp_jax.model import check_params_fit, flatten_params
+from llrmpp_jax.model import check_params_fit, expected_shapes, flatten_params
 from llrmpp_jax.pretrained import PREFIX, load_pretrained
 
 PARAMS_META = "llrmpp_params.json"
