@@ -20,7 +20,8 @@ import argparse
 import json
 import os
 
-from llrmpp_jax.bench import attention_benchmark, environment
+from llrmpp_jax.bench import attention_benchmark
+from llrmpp_jax.bench_measure import environment
 
 
 def main() -> None:

@@ -1,9 +1,12 @@
 """The paper's stage-4 training step *executed* on one accelerator: compile time, XLA's
-memory analysis, the device's peak memory and the step time, per attention kernel.
+memory analysis, the device's peak memory, the step time and its FLOPs, per attention
+kernel; or (``--profile``) a per-op profile of one smaller step.
 
 Run (one GPU or TPU):
     python experiments/bench_paper_step.py --out experiments/results/bench_paper_step.json
     python experiments/bench_paper_step.py --impls blockwise --steps 1     # the portable kernel only
+    python experiments/bench_paper_step.py --profile --views 8,8 --out runs/profile_step.json   # stage 3's shapes
+    python experiments/bench_paper_step.py --scale cpu                     # config.tiny(), 2 + 1 views: seconds
 
 ``experiments/bench_train.py`` can only *compile* this step on a CPU (XLA's memory analysis,
 no run). Here it runs: ``experiments/dl3dv.py`` stage 4 (32 inputs + 8 targets at 544x960,
@@ -12,20 +15,32 @@ one scene per device as in the paper's 64-GPU run, bf16 compute, remat everywher
 VGG19 perceptual term with random weights of its shapes unless the file names weights: the
 cost does not depend on the weights), with the project's own step
 (``trainer.make_loss_fn`` -> ``train.make_train_step`` -> ``train.pmap_train_step``, donated
-state) and the model's parameters initialised as for training.
+state) and the model's parameters initialised as for training (on the host CPU:
+``bench_paper.host_init_params``; the init's own XLA:GPU compile took 52 s on an H200).
+``--scale cpu`` swaps in ``config.tiny()`` (same stage, bf16, VGG19 term and code paths)
+with 2 inputs + 1 target at 64x96 and the blockwise kernel.
 
-The batch is synthetic: uniform-noise images (content changes nothing in a step whose shapes
-and capacities are static) seen from an orbit of 40 cameras around the origin (radius 2-3 m,
-horizontal field of view 50-70 degrees), targets every fifth view, so the Gaussians project
-into the targets as in a real capture. Each kernel (``--impls``: ``cudnn`` on NVIDIA GPUs,
+The batch is synthetic (``bench_paper.synthetic_batch``): uniform-noise images (content
+changes nothing in a step whose shapes and capacities are static) seen from an orbit of
+40 cameras around the origin, targets spread along it, so the Gaussians project into the
+targets as in a real capture. Each kernel (``--impls``: ``cudnn`` on NVIDIA GPUs,
 ``blockwise`` anywhere, ``xla`` is only there to show it does not fit) is measured in its own
 process, so its peak memory is its own. Reported per kernel: the first call's seconds
 (compile + one step) and the compile's share, ``memory_analysis()`` (as ``bench_train.py``,
 from a separate ahead-of-time compile, ``aot_compile_s``), the device's ``peak_bytes_in_use``, the median
 of ``--steps`` synced step times after the first call, the last step's loss and splat
-overflow (``splat_dropped``), and how many steps the trainer's guard skipped (``skipped_total``).
+overflow (``splat_dropped``), and how many steps the trainer's guard skipped (``skipped_total``);
+``xla_flops`` (XLA's cost analysis of that compiled step: a loop body counted once, cuDNN
+calls not at all) and ``model_flops`` (``bench_paper.train_step_model_flops``: the matrix
+products of the loss's forward and backward, no recomputation), with ``tflops_per_s`` and
+``peak_fraction`` of the card's dense bf16 peak from ``model_flops`` and the median step.
 Set ``JAX_COMPILATION_CACHE_DIR`` (with ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``) and
 the AOT compile loads the step's executable from the cache (0.4 s on an H200, not 80 s).
+
+``--profile``: ``llrmpp_jax.profiling.profile_program`` of one step (not donated: the same
+state runs three times) at ``--views`` (default 8,8: stage 3's 8 inputs + 8 targets at
+544x960), with the first kernel of ``--impls``; writes the per-phase and top-30 per-op
+milliseconds as JSON and prints them as Markdown.
 """
 
 from __future__ import annotations
@@ -42,8 +57,10 @@ import numpy as np
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
-from llrmpp_jax.data.camera_paths import orbit_path, pinhole_intrinsics
-from llrmpp_jax.model import init_params
+from llrmpp_jax.bench_measure import environment, throughput, xla_cost
+from llrmpp_jax.bench_paper import (
+    PAPER_A100, check_case, host_init_params, profile_markdown, synthetic_batch, train_step_model_flops,
+)
 from llrmpp_jax.nn.attention import ATTENTION_IMPLEMENTATIONS
 from llrmpp_jax.nn.backbone import count_params
 
@@ -55,48 +72,39 @@ from bench_train import (  # noqa: E402
 GIB = 2.0**30
 
 
-def synthetic_batch(b: int, v: int, t: int, h: int, w: int, seed: int = 0) -> dict[str, np.ndarray]:
-    """``b`` scenes of ``v`` inputs and ``t`` targets, ``h`` x ``w``: noise images on an orbit
-    of ``v + t`` cameras (every ``(v + t) // t``-th view a target). Shapes as the trainer's
-    batches (``[b, views, ...]``, float32)."""
-    rng = np.random.default_rng(seed)
-    n = v + t
-    is_target = np.zeros(n, bool)
-    is_target[np.linspace(0, n - 1, t).round().astype(int)] = True
-    out: dict[str, list] = {k: [] for k in ("input_images", "input_c2w", "input_intrinsics",
-                                            "target_images", "target_c2w", "target_intrinsics")}
-    for _ in range(b):
-        c2w = orbit_path(rng, n, np.zeros(3), 2.0, 3.0).astype(np.float32)
-        intr = pinhole_intrinsics(rng, n, h, w, (50.0, 70.0)).astype(np.float32)
-        images = rng.uniform(0, 1, (n, h, w, 3)).astype(np.float32)
-        for role, sel in (("input", ~is_target), ("target", is_target)):
-            out[f"{role}_images"].append(images[sel])
-            out[f"{role}_c2w"].append(c2w[sel])
-            out[f"{role}_intrinsics"].append(intr[sel])
-    return {k: np.stack(x) for k, x in out.items()}
-
-
 def progress(line: str) -> None:
     """One progress line on stderr, which the parent passes through: a kernel that runs out
     of time shows how far it got (on an H200 both kernels ran past 165 s with no trace)."""
     print(f"[{time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
 
-def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: tuple[int, int] | None = None,
-            block: tuple[int, int] | None = None) -> dict:
-    """Compile and run stage 4 with ``impl`` in every global-attention block (own process);
-    ``views`` (inputs, targets), ``size`` (h, w) and ``block`` (the blockwise kernel's query
-    and key block) replace the stage's (32, 8), 544x960 and the config's (512, 512)."""
+# scale -> (views (inputs, targets), size (h, w), default kernels); paper: stage 4 of dl3dv.py.
+SCALES = {"paper": ((32, 8), (544, 960), "cudnn,blockwise"), "cpu": ((2, 1), (64, 96), "blockwise")}
+
+
+def experiment(scale: str, impl: str, block: tuple[int, int] | None = None):
+    """``(experiment, stage)``: ``dl3dv.py`` stage 4 with ``impl`` (and the blockwise kernel's
+    ``block``) in every global-attention block; at ``scale="cpu"`` with ``config.tiny()``."""
     exp, stage = paper_stage4_experiment()
-    model = C.with_attention(exp.model, impl, block)
-    exp = C.replace(exp, model=model)
+    model = exp.model if scale == "paper" else C.for_accelerators(C.tiny())
+    return C.replace(exp, model=C.with_attention(model, impl, block)), stage
+
+
+def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int],
+            block: tuple[int, int] | None = None, scale: str = "paper") -> dict:
+    """Compile and run stage 4 with ``impl`` in every global-attention block (own process);
+    ``views`` (inputs, targets) and ``size`` (h, w) of every view, ``block`` (the blockwise
+    kernel's query and key block) replacing the config's (512, 512)."""
+    exp, stage = experiment(scale, impl, block)
+    model = exp.model
     b = stage.global_batch // PAPER_STAGE4_DEVICES
-    h, w = size or (-(-stage.resize_h // model.size_multiple) * model.size_multiple, 960)  # 540 -> 544
-    v, t = views or (stage.num_inputs, stage.num_targets)
-    step_fn, optimizer = make_step(exp, stage, perceptual_for_compile(exp))
-    params = init_params(jax.random.key(0), model, 2, 32, 32)
+    (v, t), (h, w) = views, size
+    vgg = perceptual_for_compile(exp)
+    step_fn, optimizer = make_step(exp, stage, vgg)
+    params = host_init_params(model)
     state = T.replicate_for_pmap(T.init_train_state(params, optimizer, jax.random.key(1)))
-    batches = [T.shard_for_pmap(synthetic_batch(b, v, t, h, w, seed=i)) for i in range(2)]
+    host_batches = [synthetic_batch(b, v, t, h, w, seed=i) for i in range(2)]
+    batches = [T.shard_for_pmap(x) for x in host_batches]
     # Steps run through the jitted pmap, not an AOT executable: on jax 0.10.2 (CPU) the
     # executable from ``lower().compile()`` of this donated step returned NaN perceptual
     # losses (the VGG params it closes over came back as garbage) where the jitted call
@@ -118,62 +126,108 @@ def measure(impl: str, steps: int, views: tuple[int, int] | None = None, size: t
     stats = jax.local_devices()[0].memory_stats() or {}
     peak, limit = stats.get("peak_bytes_in_use"), stats.get("bytes_limit")
     t0 = time.perf_counter()
-    memory = memory_analysis_bytes(step.lower(state, batches[0]).compile())
+    compiled = step.lower(state, batches[0]).compile()
     aot_compile_s = time.perf_counter() - t0
+    step_s = float(np.median(times))
+    flops = train_step_model_flops(exp, vgg, host_batches[0])
     return {
         "attention_impl": impl, "attention_block": [model.backbone.transformer.attention_block_q,
                                                     model.backbone.transformer.attention_block_k],
+        "model": "paper_dl3dv" if scale == "paper" else "tiny",
         "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w],
         "params": count_params(params), "bf16": exp.bf16, "perceptual_weight": exp.perceptual_weight,
-        "first_call_s": first_s, "compile_s": first_s - float(np.median(times)),
-        "aot_compile_s": aot_compile_s, "memory_analysis": memory,
+        "first_call_s": first_s, "compile_s": first_s - step_s,
+        "aot_compile_s": aot_compile_s, "memory_analysis": memory_analysis_bytes(compiled),
         "device_peak_bytes_in_use": peak, "device_bytes_limit": limit,
-        "step_s_median": float(np.median(times)), "step_s_all": times,
+        "step_s_median": step_s, "step_s_all": times,
+        "xla_flops": xla_cost(compiled)["flops"], "model_flops": flops,
+        **throughput(flops, step_s, jax.devices()[0].device_kind),
         "loss": float(np.asarray(metrics["loss"])[0]),
         "splat_dropped": float(np.asarray(metrics["splat_dropped"])[0]),
         "skipped_total": float(np.asarray(metrics["skipped_total"])[0]),  # non-finite or guarded steps
     }
 
 
+def profile_step(impl: str, views: tuple[int, int], size: tuple[int, int], block: tuple[int, int] | None = None,
+                 scale: str = "paper") -> dict:
+    """``profile_program`` of one undonated step of :func:`measure`'s program at ``views``
+    and ``size`` (one repeat: each traced call of a paper-sized step is seconds and
+    hundreds of MB of trace)."""
+    from llrmpp_jax.profiling import profile_program
+
+    exp, stage = experiment(scale, impl, block)
+    b = stage.global_batch // PAPER_STAGE4_DEVICES
+    (v, t), (h, w) = views, size
+    step_fn, optimizer = make_step(exp, stage, perceptual_for_compile(exp))
+    state = T.replicate_for_pmap(T.init_train_state(host_init_params(exp.model), optimizer, jax.random.key(1)))
+    batch = T.shard_for_pmap(synthetic_batch(b, v, t, h, w))
+    prof = profile_program(T.pmap_train_step(step_fn), (state, batch), repeats=1)
+    return {"program": "train_step", "attention_impl": impl, "model": "paper_dl3dv" if scale == "paper" else "tiny",
+            "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w], "environment": environment(),
+            "profile": prof.to_json()}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
                                                   "bench_paper_step.json"), help="JSON file written")
-    ap.add_argument("--impls", default="cudnn,blockwise",
-                    help=f"comma-separated attention kernels, each of {ATTENTION_IMPLEMENTATIONS}")
+    ap.add_argument("--scale", default="paper", help=f"one of {sorted(SCALES)}: the paper model, or config.tiny()")
+    ap.add_argument("--impls", default=None,
+                    help=f"comma-separated attention kernels, each of {ATTENTION_IMPLEMENTATIONS} "
+                         f"(default: the scale's, {SCALES['paper'][2]} at paper scale)")
     ap.add_argument("--steps", type=int, default=2, help="timed steps per kernel (after one warm-up step)")
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per kernel (compile and steps)")
-    ap.add_argument("--views", default="32,8", help="inputs,targets per scene (stage 4: 32,8)")
-    ap.add_argument("--size", default="544x960", help="HxW of every view (stage 4: 544x960)")
+    ap.add_argument("--views", default="", help="inputs,targets per scene (default: the scale's, stage 4: 32,8; "
+                                                "--profile: 8,8)")
+    ap.add_argument("--size", default="", help="HxW of every view (default: the scale's, stage 4: 544x960)")
     ap.add_argument("--block", default="", help="Q,K: the blockwise kernel's query and key block (config: 512,512)")
+    ap.add_argument("--profile", action="store_true", help="profile one step of the first kernel instead of timing")
     ap.add_argument("--_impl", help=argparse.SUPPRESS)  # internal: one kernel, in its own process
     args = ap.parse_args()
+    if args.scale not in SCALES:
+        raise SystemExit(f"--scale: unknown scale {args.scale!r}, expected one of {sorted(SCALES)}")
+    scale_views, scale_size, scale_impls = SCALES[args.scale]
     if args.steps < 1:
         raise SystemExit(f"--steps: expected >= 1, got {args.steps}")
-    impls = [s for s in args.impls.split(",") if s]
+    impls = [s for s in (args.impls or scale_impls).split(",") if s]
     for impl in impls:
         if impl not in ATTENTION_IMPLEMENTATIONS:
             raise SystemExit(f"--impls: unknown attention kernel {impl!r}, expected one of {ATTENTION_IMPLEMENTATIONS}")
     try:
-        views = tuple(int(x) for x in args.views.split(","))
-        size = tuple(int(x) for x in args.size.lower().split("x"))
+        views = tuple(int(x) for x in args.views.split(",")) if args.views else \
+            ((8, 8) if args.profile and args.scale == "paper" else scale_views)
+        size = tuple(int(x) for x in args.size.lower().split("x")) if args.size else scale_size
         block = tuple(int(x) for x in args.block.split(",")) if args.block else None
         assert len(views) == 2 and len(size) == 2 and min(views + size) >= 1
         assert block is None or (len(block) == 2 and min(block) >= 1)
     except (ValueError, AssertionError):
         raise SystemExit(f"--views/--size/--block: expected 'inputs,targets', 'HxW' and 'Q,K' of positive "
                          f"integers, got {args.views!r}, {args.size!r} and {args.block!r}") from None
+    try:
+        check_case(C.paper_dl3dv() if args.scale == "paper" else C.tiny(), views, *size)
+    except ValueError as e:
+        raise SystemExit(f"--views/--size: {e}") from None
     if args._impl:
-        print(json.dumps(measure(args._impl, args.steps, views, size, block)))
+        print(json.dumps(measure(args._impl, args.steps, views, size, block, args.scale)))
+        return
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    if args.profile:
+        result = profile_step(impls[0], views, size, block, args.scale)
+        print(profile_markdown(result["profile"]))
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+        print("wrote", args.out)
         return
     dev = jax.devices()[0]
-    result = {"benchmark": "paper_step", "device": str(dev), "device_kind": dev.device_kind,
+    result = {"benchmark": "paper_step", "scale": args.scale, "device": str(dev), "device_kind": dev.device_kind,
               "platform": dev.platform, "jax_version": jax.__version__,
               "xla_flags": os.environ.get("XLA_FLAGS", ""),
-              "compilation_cache_dir": os.environ.get("JAX_COMPILATION_CACHE_DIR", ""), "cases": {}}
+              "compilation_cache_dir": os.environ.get("JAX_COMPILATION_CACHE_DIR", ""),
+              "paper_a100_step_s": PAPER_A100["train_step_s"], "cases": {}}
     for impl in impls:
         cmd = [sys.executable, os.path.abspath(__file__), "--_impl", impl, "--steps", str(args.steps),
-               "--views", args.views, "--size", args.size, "--block", args.block]
+               "--scale", args.scale, "--views", ",".join(map(str, views)), "--size", f"{size[0]}x{size[1]}",
+               "--block", args.block]
         t0 = time.time()
         try:
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=args.timeout)  # stderr: through
@@ -186,7 +240,6 @@ def main() -> None:
         case["wall_s"] = time.time() - t0
         result["cases"][impl] = case
         print(impl, json.dumps(case), flush=True)
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         with open(args.out, "w") as f:  # after every kernel: a later timeout loses nothing
             json.dump(result, f, indent=2)
     print("wrote", args.out)

@@ -6,10 +6,15 @@ do not colour the next):
 * ``attention`` -- :func:`attention_benchmark` (here, entry ``experiments/bench_attention.py``):
   XLA's memory analysis of one global-attention forward+backward, plain (``"xla"``) vs
   ``"blockwise"``, compile only, and compile / run times of the blockwise kernel.
-* ``scan``, ``splat``, ``model`` -- ``experiments/bench_{scan,splat,model}.py``.
+* ``scan``, ``splat`` -- ``experiments/bench_{scan,splat}.py``.
+* ``model`` -- the paper's Table-1 reconstruction and render cases
+  (:mod:`llrmpp_jax.bench_paper`, entry ``experiments/bench_model.py``).
+* ``paper_step`` -- the stage-4 training step executed (``experiments/bench_paper_step.py``).
 
 Each entry gets the scale's arguments (:data:`SCALES`), syncs with ``block_until_ready``
-and reports compile time apart from run time.
+and reports compile time apart from run time; the measuring tools (synced timing, XLA's
+cost analysis, traced FLOP counts, fractions of the card's bf16 peak) are in
+:mod:`llrmpp_jax.bench_measure`.
 
 The summary JSON (``<out>/bench.json``) records the device, library versions, load
 average before and after, and each benchmark's own JSON (also written beside it).
@@ -17,17 +22,16 @@ average before and after, and each benchmark's own JSON (also written beside it)
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
 
+from llrmpp_jax.bench_measure import environment, timed
 from llrmpp_jax.experiment import EXPERIMENTS_DIR as EXPERIMENTS
 
-BENCHMARKS = ("attention", "scan", "splat", "model")
+BENCHMARKS = ("attention", "scan", "splat", "model", "paper_step")
 
 # scale -> benchmark -> command-line arguments of experiments/bench_<benchmark>.py.
 SCALES: dict[str, dict[str, list[str]]] = {
@@ -36,7 +40,8 @@ SCALES: dict[str, dict[str, list[str]]] = {
         "attention": ["--lengths", "8192", "32768", "131072", "--run-lengths", "4096", "8192"],
         "scan": ["--preset", "cpu"],
         "splat": ["--quick", "--repeats", "2"],
-        "model": ["--configs", "tiny", "--views", "4", "--size", "64", "--repeats", "3", "--skip-flops"],
+        "model": ["--scale", "cpu"],
+        "paper_step": ["--scale", "cpu"],
     },
     # One accelerator: the paper's sequence lengths run.
     "paper": {
@@ -44,51 +49,11 @@ SCALES: dict[str, dict[str, list[str]]] = {
                       "--dtype", "bfloat16"],
         "scan": ["--preset", "full"],
         "splat": [],
-        "model": [],
+        "model": ["--scale", "paper"],
+        # cuDNN only: the blockwise kernel's step (67 s on an H200) would double the part's time.
+        "paper_step": ["--scale", "paper", "--impls", "cudnn", "--steps", "1", "--timeout", "480"],
     },
 }
-
-
-def environment() -> dict:
-    """Device, platform, library versions, matmul precision and the 1/5/15-min load average."""
-    import jax
-
-    versions = {}
-    for pkg in ("jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy"):  # None: not installed
-        try:
-            versions[pkg] = importlib.metadata.version(pkg)
-        except importlib.metadata.PackageNotFoundError:
-            versions[pkg] = None
-    dev = jax.devices()[0]
-    return {
-        "backend": jax.default_backend(), "device": str(dev), "device_kind": dev.device_kind,
-        "device_count": jax.device_count(), "host": platform.machine(), "cpu_count": os.cpu_count(),
-        "versions": versions,
-        "default_matmul_precision": jax.config.jax_default_matmul_precision or "default (backend's own)",
-        "load_average": list(os.getloadavg()),
-    }
-
-
-def timed(fn, *args, repeats: int = 3) -> dict:
-    """Compile ``jit(fn)`` for ``args`` and time ``repeats`` synced calls after a warm-up.
-
-    Returns ``compile_s`` (lower + compile), ``run_s_median`` / ``run_s_min`` (seconds per
-    call, ``block_until_ready``) and XLA's ``temp_bytes`` of the compiled program.
-    """
-    import jax
-
-    t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - t0
-    jax.block_until_ready(compiled(*args))
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        runs.append(time.perf_counter() - t0)
-    runs.sort()
-    return {"compile_s": compile_s, "run_s_median": runs[len(runs) // 2], "run_s_min": runs[0],
-            "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes)}
 
 
 def attention_fwd_bwd(implementation: str, block: int = 512):
@@ -159,27 +124,45 @@ def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192),
             "runs": runs}
 
 
-def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS) -> dict:
+def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS,
+                   views: tuple[int, ...] | None = None, size: tuple[int, int] | None = None) -> dict:
     """Run the ``only`` benchmarks at ``scale`` (a key of :data:`SCALES`); write
-    ``<out_dir>/bench_<name>.json`` for each and ``<out_dir>/bench.json`` (the summary)."""
+    ``<out_dir>/bench_<name>.json`` for each and ``<out_dir>/bench.json`` (the summary).
+    ``views`` (input view counts) and ``size`` (H, W) replace the ``model`` benchmark's
+    (:mod:`llrmpp_jax.bench_paper`). Bad input is a one-line ``ValueError`` before anything runs."""
     if scale not in SCALES:
         raise ValueError(f"bench: unknown scale {scale!r}, expected one of {sorted(SCALES)}")
     unknown = [b for b in only if b not in BENCHMARKS]
     if unknown:
         raise ValueError(f"bench: unknown benchmark(s) {unknown}, expected a subset of {list(BENCHMARKS)}")
+    model_args: list[str] = []
+    if views is not None or size is not None:
+        from llrmpp_jax.bench_paper import bench_scale, check_case
+
+        if "model" not in only:
+            raise ValueError(f"bench: --views/--size set the model benchmark's cases, which --only {','.join(only)} "
+                             "leaves out")
+        s = bench_scale(scale)
+        views, size = views or s.views, size or (s.height, s.width)
+        check_case(s.model, views, *size)
+        model_args = ["--views", ",".join(map(str, views)), "--size", f"{size[0]}x{size[1]}"]
     os.makedirs(out_dir, exist_ok=True)
     summary = {"scale": scale, "environment_at_start": environment(), "benchmarks": {}}
     for name in only:
         out = os.path.join(out_dir, f"bench_{name}.json")
-        cmd = [sys.executable, os.path.join(EXPERIMENTS, f"bench_{name}.py"), *SCALES[scale][name], "--out", out]
+        cmd = [sys.executable, os.path.join(EXPERIMENTS, f"bench_{name}.py"), *SCALES[scale][name],
+               *(model_args if name == "model" else []), "--out", out]
         t0 = time.perf_counter()
-        proc = subprocess.run(cmd, capture_output=True, text=True)
+        # Output passes through: a benchmark stopped from outside (a time limit) leaves its
+        # progress lines where the caller can see how far it got.
+        sys.stdout.flush()
+        proc = subprocess.run(cmd)
         entry = {"command": cmd, "wall_s": time.perf_counter() - t0, "exit": proc.returncode}
         if proc.returncode == 0 and os.path.exists(out):
             with open(out) as f:
                 entry["result"] = json.load(f)
         else:
-            entry["error"] = (proc.stderr.strip().splitlines() or ["(no output)"])[-1]
+            entry["error"] = f"exit {proc.returncode}, no {out} (its error is in the output above)"
         summary["benchmarks"][name] = entry
         print(f"bench {name}: exit {proc.returncode} in {entry['wall_s']:.0f} s -> {out}", flush=True)
     summary["load_average_at_end"] = list(os.getloadavg())

@@ -312,9 +312,12 @@ def cmd_demo(args) -> int:
 
 def cmd_bench(args) -> int:
     from llrmpp_jax.bench import BENCHMARKS, run_benchmarks
+    from llrmpp_jax.bench_paper import parse_hw, parse_views
 
     only = tuple(args.only.split(",")) if args.only else BENCHMARKS
-    run_benchmarks(args.scale, args.out, only)
+    views = parse_views(args.views) if args.views else None
+    size = parse_hw(args.size) if args.size else None
+    run_benchmarks(args.scale, args.out, only, views, size)
     print(f"wrote {os.path.join(args.out, 'bench.json')}")
     return 0
 
@@ -507,10 +510,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--steps", type=int, default=None, help="override the number of training steps")
     d.set_defaults(fn=cmd_demo)
 
-    b = sub.add_parser("bench", help="attention, scan, splat and model benchmarks at one scale, as JSON")
+    b = sub.add_parser("bench", help="attention, scan, splat, model (the paper's Table 1: reconstruct and render) "
+                                     "and stage-4 training-step benchmarks at one scale, as JSON")
     b.add_argument("--scale", required=True, help="cpu (a small CPU box, minutes) or paper (one accelerator)")
     b.add_argument("--out", default="runs/bench", help="folder for bench.json and one JSON per benchmark")
-    b.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model")
+    b.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model,paper_step")
+    b.add_argument("--views", default=None, help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)")
+    b.add_argument("--size", default=None, help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)")
     b.set_defaults(fn=cmd_bench)
 
     g = sub.add_parser("doctor", help="versions and devices, then kernel-vs-reference checks on this device")

@@ -115,8 +115,12 @@ def profile_program(fn: Callable, args: tuple, repeats: int = 3, top: int = 30) 
         count: collections.Counter = collections.Counter()
         for plane in data.planes:
             for line in plane.lines:
-                for ev in line.events:
-                    if ev.name in phases:
+                # Events nest on a line: a control-flow op (while, conditional, call) spans
+                # the ops of its body, which are counted themselves, so only innermost
+                # events count (else a loop's time counts twice).
+                evs = sorted((ev for ev in line.events if ev.name in phases), key=lambda ev: ev.start_ns)
+                for ev, nxt in zip(evs, evs[1:] + [None]):
+                    if nxt is None or nxt.start_ns >= ev.end_ns:
                         total[ev.name] += ev.duration_ns
                         count[ev.name] += 1
     per_phase: collections.Counter = collections.Counter()
