@@ -24,8 +24,9 @@ stopped. A chunk is evaluated as ``[group, chunk, pix]`` arrays:
 
 Gradients: a ``custom_vjp`` (the transmittance chain is not differentiated by autodiff,
 which would store every chunk's state). The backward pass walks each group's chunks back
-to front, recovers ``T`` before each entry from the pixel's transmittance after the chunk
-and a reverse cumulative sum of ``log(1 - alpha)``, and carries
+to front, recovers ``T`` before each entry by dividing the pixel's transmittance after the
+chunk by a reverse cumulative product of ``1 - alpha`` (``1 - alpha >= 1 - alpha_max``), and
+carries
 ``S = sum_{j later} w_j (f_j . g) + g_T T_final``, which gives
 ``dL/dalpha_i = T_i (f_i . g) - S_i / (1 - alpha_i)`` without cancellation (gsplat's
 backward, which also keeps no per-pixel history). Memory of the backward pass is
@@ -46,7 +47,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import lax
 
 from llrmpp_jax.array_typing import Array, Bool, Float, Int
