@@ -147,8 +147,9 @@ def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> I
         wins = ~placed & (smallest[first] == iota)
         return k + 1, jnp.where(wins, first + k, rank), placed | wins
 
-    _, rank, _ = lax.while_loop(lambda s: ~jnp.all(s[2]), round_,
-                                (jnp.int32(0), first, jnp.zeros((n,), bool)))
+    # ``first < 0`` is all False, built from the inputs so that under ``shard_map`` it has
+    # the same (device-varying) type as the loop body's output.
+    _, rank, _ = lax.while_loop(lambda s: ~jnp.all(s[2]), round_, (jnp.int32(0), first, first < 0))
     return jnp.zeros((n,), jnp.int32).at[rank].set(iota)
 
 
