@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.splat import SplatConfig, count_intersections, render_features
+from llrmpp_jax.splat import SplatConfig, count_intersections, fitted_capacity, render_features
 from llrmpp_jax.splat.reference import render_features_reference
 
 
@@ -102,8 +102,6 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
     rng = np.random.default_rng(seed)
     means, quats, scales, opac, feats, c2w, intr = make_scene(rng, n, f, height, width)
     if fitted:
-        from llrmpp_jax.splat.render import fitted_capacity
-
         needed = int(count_intersections(means, quats, scales, c2w, intr, height, width, cfg, opacities=opac))
         cfg = dataclasses.replace(cfg, max_intersections=fitted_capacity(needed))
     cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((height, width, f), (height, width), (height, width))]
