@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One accelerator's checks for issue 50 in under 9 minutes, compiles included: `llrmpp doctor`,
+# One accelerator's speed checks in under 9 minutes, compiles included: `llrmpp doctor`,
 # the paper's Table-1 cases (reconstruct at 16/32/64 inputs and render at 544x960,
 # llrmpp_jax/bench_paper.py), the stage-4 training step (cuDNN attention,
 # experiments/bench_paper_step.py), then profiles of scaled-down programs (one reconstruct +
@@ -53,7 +53,7 @@ limit_of() {  # limit_of PART: its time limit (LIMIT_<PART> or the default above
   esac
 }
 
-# The measured figures beside the paper's A100 figures and the issue's goals (argument: OUT_DIR).
+# The measured figures beside the paper's A100 figures and the per-chip goals (argument: OUT_DIR).
 read -r -d '' summary_py <<'EOF'
 import json, os, sys
 from llrmpp_jax.bench_paper import paper_comparison
