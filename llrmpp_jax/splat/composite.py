@@ -193,7 +193,8 @@ def _forward_group(
         stop = ch.active & (t_in * om <= cfg.t_min)
         incl = ch.active & ~stop & ~done[:, None, :]
         w = jnp.where(incl, a * t_in, 0.0)
-        acc = acc + jnp.einsum("gkp,gkc->gpc", w, features[ch.gid], precision=_HIGHEST)
+        # Channel-major accumulator: XLA:CPU runs this contraction ~1.4x faster than "->gpc".
+        acc = acc + jnp.einsum("gkp,gkc->gcp", w, features[ch.gid], precision=_HIGHEST)
         trans = trans * jnp.prod(jnp.where(incl, om, 1.0), axis=1)
         done = done | jnp.any(stop, axis=1)
         used = jnp.max(jnp.where(incl, karange, 0), axis=1)
@@ -205,11 +206,11 @@ def _forward_group(
         jnp.zeros((), jnp.int32),
         jnp.ones((g, p), dtype) + zero,
         ~live | (zero != 0),
-        jnp.zeros((g, p, features.shape[1]), dtype) + zero,
+        jnp.zeros((g, features.shape[1], p), dtype) + zero,
         jnp.zeros((g, p), jnp.int32) + zero.astype(jnp.int32),
     )
     _, trans, _, acc, last = lax.while_loop(cond, body, init)
-    return acc, trans, last
+    return jnp.swapaxes(acc, 1, 2), trans, last
 
 
 def _backward_group(
@@ -220,7 +221,7 @@ def _backward_group(
     group: tuple[Int[Array, "group"], Int[Array, "group"], Int[Array, "group"]],
     trans_final: Float[Array, "group pix"],
     last: Int[Array, "group pix"],
-    g_feat: Float[Array, "group pix C"],
+    g_feat: Float[Array, "group C pix"],
     g_trans: Float[Array, "group pix"],
     grads: tuple[Float[Array, "N 5"], Float[Array, "N"], Float[Array, "N C"]],
     height: int,
@@ -245,7 +246,7 @@ def _backward_group(
         t_in = t_end[:, None, :] / _cumulative(om, jnp.multiply, 1.0, reverse=True)
         w = a * t_in
         f = features[ch.gid]
-        fg = jnp.einsum("gkc,gpc->gkp", f, g_feat, precision=_HIGHEST)
+        fg = jnp.einsum("gkc,gcp->gkp", f, g_feat, precision=_HIGHEST)
         wfg = w * fg
         later = _cumulative(wfg, jnp.add, 0.0, exclusive=True, reverse=True)
         d_alpha = jnp.where(incl, t_in * fg - (s_after[:, None, :] + later) / om, 0.0)
@@ -265,7 +266,7 @@ def _backward_group(
             ],
             axis=-1,
         )
-        d_feat_chunk = jnp.einsum("gkp,gpc->gkc", w, g_feat, precision=_HIGHEST)
+        d_feat_chunk = jnp.einsum("gkp,gcp->gkc", w, g_feat, precision=_HIGHEST)
         idx = jnp.where(ch.valid, ch.gid, n).reshape(-1)
         d_geo = d_geo.at[idx].add(d_geo_chunk.reshape(-1, 5), mode="drop")
         d_op = d_op.at[idx].add(d_opacity.reshape(-1), mode="drop")
@@ -329,6 +330,7 @@ def _backward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
     def backward(geometry, opacities, features, gaussian_ids, groups, trans, last, g_feat, g_trans):
         flat_ids = groups.tile_ids.reshape(-1)
         gf = _from_canvas(g_feat, height, width, cfg)[flat_ids].reshape(trans.shape + g_feat.shape[-1:])
+        gf = jnp.swapaxes(gf, -1, -2)  # channel-major, as the forward's accumulator
         gt = _from_canvas(g_trans, height, width, cfg)[flat_ids].reshape(trans.shape)
 
         def step(grads, xs):
