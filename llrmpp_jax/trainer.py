@@ -15,11 +15,9 @@ grids in ``workdir/tb``, periodic evaluation on held-out scenes.
 from __future__ import annotations
 
 import contextlib
-import functools
 import json
 import os
 import time
-from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
@@ -27,146 +25,17 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from llrmpp_jax import train as T
-from llrmpp_jax.data import BatchConfig, BatchIterator, FileSource, ProceduralSource, ViewGeometry, make_sample
-from llrmpp_jax.data import formats
-from llrmpp_jax.data.batching import SceneSource
-from llrmpp_jax.data.scene import Scene
-from llrmpp_jax.data.selection import checked_inputs, eval_views, every_nth, training_views
+from llrmpp_jax.data import BatchIterator
+from llrmpp_jax.data.held_out import eval_samples
+from llrmpp_jax.data.sources import EVAL_EVERY, scene_source
+from llrmpp_jax.data.stage_batches import batch_config
 from llrmpp_jax.evaluate import evaluate, picture_grid
-from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 from llrmpp_jax.train.workdir_lock import workdir_lock
-
-EVAL_EVERY = 8  # real held-out scenes: targets every 8th frame (the paper's protocol, :func:`eval_split`)
-
-
-def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
-    """Training scenes, or with ``held_out`` those :func:`eval_samples` reads. Real training
-    data that is also the held-out data (``DataConfig.eval_reads_training_scenes``) loses the
-    evaluation's target frames (:class:`_WithoutEvalTargets`)."""
-    if data.kind == "procedural":
-        return _OffsetSource(ProceduralSource(data.procedural), data.eval_seed_offset if held_out else 0)
-    path = data.eval_path if held_out and data.eval_path else data.path
-    files = FileSource(formats.dataset_scenes(path, data.kind), functools.partial(formats.read_scene, kind=data.kind))
-    if held_out or not data.eval_reads_training_scenes:
-        return files
-    return _WithoutEvalTargets(files, data.num_eval_scenes, data.eval_max_frames)
-
-
-@dataclass(frozen=True)
-class _WithoutEvalTargets:
-    """Training scenes of a dataset the held-out evaluation also reads: its first
-    ``num_eval`` scenes (those :func:`eval_samples` takes) lose the frames the evaluation
-    targets, every 8th of the first ``max_frames`` (:func:`eval_split`), so their scores are
-    on views never trained on. The scenes' other frames, the evaluation's inputs among them,
-    are trained on."""
-
-    base: FileSource
-    num_eval: int
-    max_frames: int | None
-
-    def __len__(self) -> int:
-        return len(self.base)
-
-    def load(self, index: int) -> Scene:
-        scene = self.base.load(index)
-        if index >= self.num_eval:
-            return scene
-        n = len(scene) if self.max_frames is None else min(self.max_frames, len(scene))
-        return scene.subset(np.setdiff1d(np.arange(len(scene)), every_nth(n, EVAL_EVERY)))
-
-
-@dataclass(frozen=True)
-class _OffsetSource:
-    """Procedural scenes from seed ``offset`` on (held-out seeds never meet training ones)."""
-
-    base: ProceduralSource
-    offset: int
-
-    def __len__(self) -> int:
-        return len(self.base) - self.offset
-
-    def load(self, index: int):
-        return self.base.load(self.offset + index)
-
-
-def view_geometry(stage: StageConfig, multiple: int, train: bool = True) -> ViewGeometry:
-    return ViewGeometry(resize_h=stage.resize_h, resize_w=stage.resize_w, multiple=multiple,
-                        square_crop=stage.square_crop, zoom_min=stage.zoom_min if train else 1.0)
-
-
-def needs_depth(exp: ExperimentConfig) -> bool:
-    """Whether batches carry ground-truth target depth (a depth output or the Gaussian depth term)."""
-    return "depth" in exp.model.outputs or exp.gaussian_depth_weight > 0
-
-
-def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
-    return BatchConfig(
-        global_batch=stage.global_batch, num_inputs=stage.num_inputs, num_targets=stage.num_targets,
-        geometry=view_geometry(stage, exp.model.size_multiple), min_span=stage.min_span,
-        max_span=stage.max_span, input_weight=stage.input_weight,
-        reverse_prob=stage.reverse_prob, shuffle_prob=stage.shuffle_prob,
-        with_depth=needs_depth(exp),
-    )
-
-
-def eval_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None = None,
-               index: dict[str, dict] | None = None, every: int = EVAL_EVERY) -> tuple[np.ndarray, np.ndarray, str]:
-    """The paper's evaluation split of one real held-out scene: ``(inputs, targets, how)``,
-    ``how`` a line saying what was used (see :class:`~llrmpp_jax.experiment.DataConfig`).
-    k-means inputs come from, in this order: the scene's Long-LRM JSON at ``path``, the
-    entry of ``scene.name`` in ``index`` (:func:`~llrmpp_jax.data.formats.read_kmeans_index`),
-    else Long-LRM's k-means computed here."""
-    n, limit = len(scene), data.eval_max_frames
-    if data.eval_inputs == "uniform":
-        inputs, targets = eval_views(scene.c2w, num_inputs, every, limit, inputs="uniform")
-        first = limit is not None and n >= limit
-        used = limit if first else n
-        how = (f"targets every {every}th of {'the first' if first else 'all'} {used} frames, "
-               f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}")
-        if limit is not None and n < limit:
-            how = f"only {n} frames, fewer than {limit}: {how}"
-        return inputs, targets, how
-    key = f"fold_{every}_kmeans_{num_inputs}_input"
-    if limit is None and data.kind == "long_lrm" and path is not None:
-        cached = formats.cached_kmeans_inputs(path, every, num_inputs, n)
-        if cached is not None:
-            return cached, every_nth(n, every), f"inputs: the scene JSON's cached '{key}'"
-    if limit is None and index is not None and key in index.get(scene.name, {}):
-        inputs = checked_inputs(index[scene.name][key], n, num_inputs, f"{data.eval_index}: {scene.name} '{key}'")
-        return inputs, every_nth(n, every), f"inputs: '{key}' of {data.eval_index}"
-    inputs, targets = eval_views(scene.c2w, num_inputs, every, limit)
-    return inputs, targets, "inputs: Long-LRM's k-means (scikit-learn KMeans, random_state=0, n_init='auto')"
-
-
-def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict], list[str]]:
-    """Held-out samples, deterministic. Real data: the paper protocol (:func:`eval_split`,
-    printing per scene what it used). Procedural: the training view sampler with a fixed
-    seed per scene (procedural scenes are short paths, so every-8th targets would be too
-    sparse)."""
-    source = scene_source(exp.data, held_out=True)
-    geom = view_geometry(stage, exp.model.size_multiple, train=False)
-    with_depth = needs_depth(exp)
-    index = formats.read_kmeans_index(exp.data.eval_index) if exp.data.eval_index else None
-    samples, names = [], []
-    for i in range(min(exp.data.num_eval_scenes, len(source))):
-        scene = source.load(i)
-        if exp.data.kind == "procedural":
-            rng = np.random.default_rng([exp.seed, 7, i])
-            inputs, targets = training_views(rng, len(scene), stage.num_inputs, stage.num_targets,
-                                             exp.data.eval_span, exp.data.eval_span, input_weight=0.0)
-        else:
-            inputs, targets, how = eval_split(exp.data, stage.num_inputs, scene, source.paths[i], index)
-        samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth))
-        if exp.data.kind != "procedural":
-            h, w = samples[-1]["input_images"].shape[-3:-1]
-            print(f"eval scene {scene.name}: {len(inputs)} inputs, {len(targets)} targets, views {h}x{w} (HxW); {how}")
-        names.append(scene.name)
-    return samples, names
-
 
 def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None, stage: StageConfig | None = None) -> T.step.LossFn:
     """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard, with

@@ -414,7 +414,7 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
 def eval_samples(scale: Scale, depth: bool) -> list[dict[str, np.ndarray]]:
     """Held-out procedural scenes (seeds ``EVAL_SEED + i``). With ``scale.eval_span`` None,
     each is split as the paper evaluates (every 8th frame a target, k-means inputs over the
-    rest); otherwise, as :func:`llrmpp_jax.trainer.eval_samples` does for procedural data,
+    rest); otherwise, as :func:`llrmpp_jax.data.held_out.eval_samples` does for procedural data,
     the training view sampler draws the views from a window of ``eval_span`` frames with a
     fixed seed per scene (on short paths, every-8th targets are far from every input). One
     sample per scene, with a leading batch axis of 1."""

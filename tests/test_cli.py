@@ -293,7 +293,7 @@ def test_train_data_reads_any_capture_through_read_scene():
     """``train --data PATH --format auto``: the trainer's scenes come from read_scene, so a
     COLMAP folder and a nerfstudio folder both load (the old COLMAP image_dir crash)."""
     from conftest import shared_path
-    from llrmpp_jax.trainer import scene_source
+    from llrmpp_jax.data.sources import scene_source
 
     for name, frames in (("beer", 71), ("fox", 50)):
         data = DataConfig(kind="auto", path=shared_path("data", name))
@@ -318,8 +318,9 @@ def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
     training scene holds the other 62, camera for camera, and none of the targets."""
     from conftest import shared_path
     from llrmpp_jax.data.formats import read_scene
+    from llrmpp_jax.data.held_out import eval_samples
+    from llrmpp_jax.data.sources import scene_source
     from llrmpp_jax.experiment import ExperimentConfig
-    from llrmpp_jax.trainer import eval_samples, scene_source
 
     data = DataConfig(kind="auto", path=shared_path("data", "beer"), num_eval_scenes=1)
     full = read_scene(data.path, "auto")

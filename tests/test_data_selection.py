@@ -16,10 +16,10 @@ from sklearn.cluster import KMeans
 
 from llrmpp_jax.data.camera_paths import look_at
 from llrmpp_jax.data.formats import read_colmap_scene, read_long_lrm_scene, read_nerfstudio_scene, write_long_lrm_scene
+from llrmpp_jax.data.held_out import eval_split
 from llrmpp_jax.data.scene import in_memory_scene
 from llrmpp_jax.data.selection import eval_views, every_nth, kmeans_inputs, training_views, uniform_inputs
 from llrmpp_jax.experiment import DataConfig
-from llrmpp_jax.trainer import eval_split
 
 
 def cameras_from_features(pos, fwd):
