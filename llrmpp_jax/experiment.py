@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.synthetic import ProceduralConfig
+from llrmpp_jax.errors import MissingInputError, UserError
 
 # The repository's experiment files (demo.py, small.py, the paper's curricula).
 EXPERIMENTS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
@@ -63,11 +64,11 @@ class DataConfig:
 
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
-            raise ValueError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")
+            raise UserError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")
         if self.eval_inputs not in ("kmeans", "uniform"):
-            raise ValueError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
+            raise UserError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
         if self.kind != "procedural" and not self.path:
-            raise ValueError(f"DataConfig: kind={self.kind!r} needs a dataset path")
+            raise UserError(f"DataConfig: kind={self.kind!r} needs a dataset path")
 
 
 @dataclass(frozen=True)
@@ -107,9 +108,9 @@ class StageConfig:
 
     def __post_init__(self) -> None:
         if self.perceptual_weight is not None and self.perceptual_weight < 0:
-            raise ValueError(f"stage {self.name!r}: perceptual_weight must be >= 0, got {self.perceptual_weight}")
+            raise UserError(f"stage {self.name!r}: perceptual_weight must be >= 0, got {self.perceptual_weight}")
         if self.steps < 1 or self.global_batch < 1 or self.num_inputs < 1 or self.num_targets < 1:
-            raise ValueError(f"stage {self.name!r}: steps, global_batch, num_inputs, num_targets must be >= 1")
+            raise UserError(f"stage {self.name!r}: steps, global_batch, num_inputs, num_targets must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -143,12 +144,12 @@ class ExperimentConfig:
 
     def __post_init__(self) -> None:
         if not self.stages:
-            raise ValueError(f"experiment {self.name!r}: no training stages")
+            raise UserError(f"experiment {self.name!r}: no training stages")
         names = [s.name for s in self.stages]
         if len(set(names)) != len(names):
-            raise ValueError(f"experiment {self.name!r}: stage names must be unique, got {names}")
+            raise UserError(f"experiment {self.name!r}: stage names must be unique, got {names}")
         if self.perceptual_net not in ("vgg16", "vgg19"):
-            raise ValueError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
+            raise UserError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
                              f"got {self.perceptual_net!r}")
 
     def perceptual_weight_of(self, stage: StageConfig) -> float:
@@ -160,7 +161,7 @@ class ExperimentConfig:
         any compile)."""
         for s in self.stages:
             if s.global_batch % num_devices:
-                raise ValueError(
+                raise UserError(
                     f"experiment {self.name!r}, stage {s.name!r}: global_batch={s.global_batch} does not "
                     f"split over {num_devices} devices"
                 )
@@ -173,16 +174,16 @@ def replace(cfg, **changes):
 def load_experiment(path: str) -> ExperimentConfig:
     """Import ``path`` (a Python file with ``get_config()``) and return its config."""
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"config file not found: {path}")
+        raise MissingInputError(f"config file not found: {path}")
     spec = importlib.util.spec_from_file_location(f"llrmpp_experiment_{abs(hash(path))}", path)
     module = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(module)
     except SyntaxError as e:
-        raise ValueError(f"{path}:{e.lineno}: syntax error in the experiment file: {e.msg}") from None
+        raise UserError(f"{path}:{e.lineno}: syntax error in the experiment file: {e.msg}") from None
     if not hasattr(module, "get_config"):
-        raise ValueError(f"{path}: an experiment file must define get_config() -> ExperimentConfig")
+        raise UserError(f"{path}: an experiment file must define get_config() -> ExperimentConfig")
     cfg = module.get_config()
     if not isinstance(cfg, ExperimentConfig):
-        raise ValueError(f"{path}: get_config() returned {type(cfg).__name__}, expected ExperimentConfig")
+        raise UserError(f"{path}: get_config() returned {type(cfg).__name__}, expected ExperimentConfig")
     return cfg

@@ -49,6 +49,7 @@ import plyfile
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.formats.colmap import rotmat_to_qvec
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.splat.sh import num_sh_bases, sh_basis
 
@@ -90,18 +91,18 @@ def split_similarity(world_from_scene: Float[np.ndarray, "4 4"]) -> tuple[float,
     """``(s, R, t)`` of a similarity ``[[s R, t], [0, 1]]``; ValueError if it is not one."""
     m = np.asarray(world_from_scene, np.float64)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise ValueError(f"world_from_scene must be a finite 4x4 matrix, got shape {m.shape}")
+        raise UserError(f"world_from_scene must be a finite 4x4 matrix, got shape {m.shape}")
     if not np.allclose(m[3], [0, 0, 0, 1], atol=_SIMILARITY_TOL):
-        raise ValueError(f"world_from_scene: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
+        raise UserError(f"world_from_scene: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
     det = np.linalg.det(m[:3, :3])
     if det <= 0:
-        raise ValueError(f"world_from_scene: the 3x3 part has determinant {det:.3g}; need a rotation "
+        raise UserError(f"world_from_scene: the 3x3 part has determinant {det:.3g}; need a rotation "
                          "times a positive scale (reflections cannot be expressed by quaternions)")
     s = float(np.cbrt(det))
     rot = m[:3, :3] / s
     err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
     if err > _SIMILARITY_TOL:
-        raise ValueError(f"world_from_scene is not rotation x uniform scale: |R^T R - I| = {err:.3g}")
+        raise UserError(f"world_from_scene is not rotation x uniform scale: |R^T R - I| = {err:.3g}")
     return s, rot, m[:3, 3]
 
 
@@ -137,20 +138,20 @@ def _unbatched(gaussians: Gaussians) -> Gaussians:
     g = Gaussians(*(np.asarray(a) for a in gaussians))
     if g.means.ndim == 3:
         if g.means.shape[0] != 1:
-            raise ValueError(f"export_ply writes one scene; got a batch of {g.means.shape[0]} (means {g.means.shape})")
+            raise UserError(f"export_ply writes one scene; got a batch of {g.means.shape[0]} (means {g.means.shape})")
         g = Gaussians(*(a[0] for a in g))
     n = g.means.shape[0]
     want = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
     for name, shape in want.items():
         if getattr(g, name).shape != shape:
-            raise ValueError(f"Gaussians.{name}: expected shape {shape} (or with a batch of 1), got "
+            raise UserError(f"Gaussians.{name}: expected shape {shape} (or with a batch of 1), got "
                              f"{getattr(g, name).shape}")
     if g.features.ndim != 2 or g.features.shape[0] != n:
-        raise ValueError(f"Gaussians.features: expected shape ({n}, F), got {g.features.shape}")
+        raise UserError(f"Gaussians.features: expected shape ({n}, F), got {g.features.shape}")
     for name, a in zip(Gaussians._fields, g, strict=True):
         bad = int(np.sum(~np.all(np.isfinite(a.reshape(n, -1)), axis=-1)))
         if bad:
-            raise ValueError(f"Gaussians.{name}: {bad} of {n} Gaussians have non-finite values")
+            raise UserError(f"Gaussians.{name}: {bad} of {n} Gaussians have non-finite values")
     return g
 
 
@@ -182,7 +183,7 @@ def ply_fields(
     if cfg.head.mode == "color":
         m = num_sh_bases(cfg.head.sh_degree)
         if g.features.shape[1] != 3 * m:
-            raise ValueError(f"Gaussians.features: colour mode with sh_degree {cfg.head.sh_degree} needs "
+            raise UserError(f"Gaussians.features: colour mode with sh_degree {cfg.head.sh_degree} needs "
                              f"{3 * m} SH values per Gaussian, got {g.features.shape[1]}")
         sh = np.einsum("km,nmc->nkc", sh_rotation(rot, cfg.head.sh_degree), f64(g.features).reshape(n, m, 3))
         cols.update({f"f_dc_{c}": sh[:, 0, c] for c in range(3)})
@@ -190,11 +191,11 @@ def ply_fields(
         cols.update({f"f_rest_{i}": rest[:, i] for i in range(rest.shape[1])})
     else:
         if partition_logits is None:
-            raise ValueError("export_ply: feature mode needs partition_logits "
+            raise UserError("export_ply: feature mode needs partition_logits "
                              "(model.partition_logits(params, cfg, gaussians))")
         logits = np.asarray(partition_logits).reshape(-1, np.shape(partition_logits)[-1])
         if logits.shape != (n, cfg.decoder.partitions):
-            raise ValueError(f"partition_logits: expected shape ({n}, {cfg.decoder.partitions}), got "
+            raise UserError(f"partition_logits: expected shape ({n}, {cfg.decoder.partitions}), got "
                              f"{np.shape(partition_logits)}")
         cols.update({f"f_feat_{i}": g.features[:, i] for i in range(g.features.shape[1])})
         cols.update({f"partition_{i}": logits[:, i] for i in range(logits.shape[1])})
@@ -246,7 +247,7 @@ def read_ply(path: str) -> PlyGaussians:
     """
     data = plyfile.PlyData.read(path)
     if "vertex" not in data:
-        raise ValueError(f"{path}: no 'vertex' element")
+        raise UserError(f"{path}: no 'vertex' element")
     v = data["vertex"].data
     names = set(v.dtype.names)
     header_mode, wfs = _header(list(data.comments))
@@ -261,7 +262,7 @@ def read_ply(path: str) -> PlyGaussians:
         want = feature_fields(f, s)
     missing = [k for k in want if k not in names]
     if missing:
-        raise ValueError(f"{path}: {mode}-mode PLY lacks property {missing[0]!r} ({len(missing)} missing)")
+        raise UserError(f"{path}: {mode}-mode PLY lacks property {missing[0]!r} ({len(missing)} missing)")
     col = lambda *ks: np.stack([np.asarray(v[k], np.float32) for k in ks], axis=-1)  # noqa: E731
     n = len(v)
     if mode == "color":

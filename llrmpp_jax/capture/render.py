@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import render
 from llrmpp_jax.splat import expected_depth, render_features
@@ -42,7 +43,7 @@ def spline_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarra
     """``frames`` poses through the ``V >= 2`` poses ``c2w`` in order (see the module doc)."""
     v = c2w.shape[0]
     if v < 2 or frames < 2:
-        raise ValueError(f"spline path needs >= 2 input cameras and >= 2 frames, got {v} and {frames}")
+        raise UserError(f"spline path needs >= 2 input cameras and >= 2 frames, got {v} and {frames}")
     t = np.arange(v, dtype=np.float64)
     tq = np.linspace(0.0, v - 1.0, frames)
     out = np.tile(np.eye(4), (frames, 1, 1))
@@ -81,11 +82,11 @@ def path_cameras(
     """``(c2w, intrinsics, names, frame indices or None)`` of path ``kind`` (module doc);
     names are the source photos' file stems for ``targets``/``inputs``."""
     if kind not in PATHS:
-        raise ValueError(f"--path must be one of {PATHS}, got {kind!r}")
+        raise UserError(f"--path must be one of {PATHS}, got {kind!r}")
     if kind in ("targets", "inputs"):
         idx = saved.targets if kind == "targets" else saved.inputs
         if len(idx) == 0:
-            raise ValueError(f"the scene has no {kind} to render")
+            raise UserError(f"the scene has no {kind} to render")
         names = [os.path.splitext(os.path.basename(saved.frame_names[i]))[0] for i in idx]
         return saved.c2w[idx], saved.intrinsics[idx], names, np.asarray(idx)
     make = spline_path if kind == "spline" else orbit_path
@@ -173,7 +174,7 @@ def frame_photos(saved: SavedScene, frames: np.ndarray, scene_path: str | None =
         scene = read_scene(scene_path or saved.scene_path, saved.scene_format)
     base = lambda names: [os.path.basename(n) for n in names]  # noqa: E731  the folder may have moved
     if base(scene.frame_names) != base(saved.frame_names):
-        raise ValueError(f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
+        raise UserError(f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
                          f"({len(saved.frame_names)}); reconstruct again")
     return load_views(scene, frames, saved.resized_hw, saved.crop_box, None, False)[0]
 

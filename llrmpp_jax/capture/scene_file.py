@@ -23,6 +23,7 @@ import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.config import ModelConfig, from_dict
+from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.gaussians import Gaussians
 
 GS_FORMAT = "llrmpp-gaussians"
@@ -84,14 +85,14 @@ def load_gs(path: str) -> SavedScene:
         with np.load(path, allow_pickle=False) as z:
             header = json.loads(bytes(z["header"]).decode())
             if header.get("format") != GS_FORMAT:
-                raise ValueError(f"{path}: not an llrmpp .gs file (format {header.get('format')!r})")
+                raise UserError(f"{path}: not an llrmpp .gs file (format {header.get('format')!r})")
             if header.get("version") != GS_VERSION:
-                raise ValueError(f"{path}: .gs version {header.get('version')}, this llrmpp reads version {GS_VERSION}")
+                raise UserError(f"{path}: .gs version {header.get('version')}, this llrmpp reads version {GS_VERSION}")
             arrays = {k: z[k] for k in _ARRAYS}
     except FileNotFoundError:
-        raise FileNotFoundError(f".gs file not found: {path}") from None
+        raise MissingInputError(f".gs file not found: {path}") from None
     except (zipfile.BadZipFile, EOFError, KeyError, OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: truncated or corrupt .gs file ({type(e).__name__}: {e})") from None
+        raise UserError(f"{path}: truncated or corrupt .gs file ({type(e).__name__}: {e})") from None
     return SavedScene(
         gaussians=Gaussians(**{k: arrays[k] for k in Gaussians._fields}),
         model=from_dict(ModelConfig, header["model"]),

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.convert.table import Rule, conv1d_depthwise, conv2d, convert_state_dict, identity, linear
+from llrmpp_jax.errors import UserError
 
 
 def mamba2_block_rules(prefix: str = "", target: str = "") -> list[Rule]:
@@ -108,7 +109,7 @@ def convert_long_lrm(state_dict, cfg, *, dtype=np.float32, source: str = "state_
     from llrmpp_jax.model import init_params
 
     if cfg.head.mode != "color":
-        raise ValueError("convert_long_lrm: Long-LRM checkpoints need a colour-mode ModelConfig")
+        raise UserError("convert_long_lrm: Long-LRM checkpoints need a colour-mode ModelConfig")
     m = cfg.size_multiple
     expected = jax.eval_shape(lambda k: init_params(k, cfg, 1, m, m), jax.random.key(0))
     return convert_state_dict(state_dict, long_lrm_rules(), expected=expected,
@@ -131,7 +132,7 @@ def convert_checkpoint(path: str, out: str, cfg, *, allow_unused: bool = False) 
     unused = unused_keys(state_dict)
     if unused and not allow_unused:
         more = " ..." if len(unused) > 5 else ""
-        raise ValueError(f"{path}: {len(unused)} key(s) outside the model's prefixes {MODEL_PREFIXES}: "
+        raise UserError(f"{path}: {len(unused)} key(s) outside the model's prefixes {MODEL_PREFIXES}: "
                          f"{', '.join(unused[:5])}{more} (pass --allow-unused to convert anyway)")
     params = convert_long_lrm(state_dict, cfg, source=path)
     return save_params(out, params, cfg), unused

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
+from llrmpp_jax.errors import MissingInputError, UserError
+
 Transform = Callable[[np.ndarray], np.ndarray]
 
 
@@ -116,7 +118,7 @@ def convert_state_dict(
     if problems:
         shown = "; ".join(problems[:3])
         more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
-        raise ValueError(f"cannot convert {source}: {len(problems)} problem(s): {shown}{more}")
+        raise UserError(f"cannot convert {source}: {len(problems)} problem(s): {shown}{more}")
     return unflatten_dict(flat, sep="/")
 
 
@@ -129,7 +131,7 @@ def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
     import os
 
     if not os.path.exists(path):
-        raise FileNotFoundError(f"checkpoint file not found: {path}")
+        raise MissingInputError(f"checkpoint file not found: {path}")
     # The content decides, not the extension: both formats may be zip archives.
     names = None
     if zipfile.is_zipfile(path):
@@ -137,15 +139,15 @@ def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
             with zipfile.ZipFile(path) as z:
                 names = z.namelist()
         except (zipfile.BadZipFile, OSError) as e:
-            raise ValueError(f"{path}: a damaged zip archive ({e}); expected a .npz or a torch .pt") from None
+            raise UserError(f"{path}: a damaged zip archive ({e}); expected a .npz or a torch .pt") from None
     if names is not None and any(n.endswith(".npy") for n in names):
         try:
             with np.load(path) as z:
                 return {k: z[k] for k in z.files}
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
-            raise ValueError(f"{path}: a damaged .npz archive ({e})") from None
+            raise UserError(f"{path}: a damaged .npz archive ({e})") from None
     if names is None and path.endswith(".npz"):
-        raise ValueError(f"{path}: not a .npz archive (not a zip file: truncated or another format)")
+        raise UserError(f"{path}: not a .npz archive (not a zip file: truncated or another format)")
     try:
         import torch
     except ImportError as e:  # pragma: no cover - depends on the environment
@@ -155,13 +157,13 @@ def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
-        raise ValueError(f"{path}: holds Python objects other than tensors, which torch will not unpickle safely "
+        raise UserError(f"{path}: holds Python objects other than tensors, which torch will not unpickle safely "
                          "(weights_only=True); save the weights alone with torch.save(model.state_dict(), path)") from None
     except (RuntimeError, EOFError, OSError) as e:
         first = (str(e).splitlines() or [type(e).__name__])[0]
-        raise ValueError(f"{path}: not a readable torch checkpoint or .npz archive ({first})") from None
+        raise UserError(f"{path}: not a readable torch checkpoint or .npz archive ({first})") from None
     if isinstance(obj, Mapping) and "model" in obj and isinstance(obj["model"], Mapping):
         obj = obj["model"]
     if not isinstance(obj, Mapping):
-        raise ValueError(f"{path}: expected a state_dict (mapping of tensors), got {type(obj).__name__}")
+        raise UserError(f"{path}: expected a state_dict (mapping of tensors), got {type(obj).__name__}")
     return {k: v.detach().cpu().numpy() for k, v in obj.items() if hasattr(v, "detach")}

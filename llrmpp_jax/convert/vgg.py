@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from llrmpp_jax.convert.table import Rule, conv2d, convert_state_dict
+from llrmpp_jax.errors import UserError
 
 # Output channels per block and convolutions per block.
 _WIDTHS = (64, 128, 256, 512, 512)
@@ -38,7 +39,7 @@ def vgg_layers(arch: str) -> list[tuple[str, int, int, int]]:
     and pools: VGG19 -> 0, 2, 5, 7, 10, 12, 14, 16, 19, ...
     """
     if arch not in _DEPTHS:
-        raise ValueError(f"arch={arch!r}, expected one of {sorted(_DEPTHS)}")
+        raise UserError(f"arch={arch!r}, expected one of {sorted(_DEPTHS)}")
     layers, idx, cin = [], 0, 3
     for block, (width, depth) in enumerate(zip(_WIDTHS, _DEPTHS[arch]), start=1):
         for i in range(1, depth + 1):
@@ -114,13 +115,13 @@ def convert_vgg(
     prefixes = ("features.", "perceptual_loss.blocks.")
     n_weights = sum(1 for k in state_dict if k.startswith(prefixes) and k.endswith(".weight"))
     if n_weights == 0:
-        raise ValueError(
+        raise UserError(
             f"{source}: no VGG convolution weights (keys 'features.{{idx}}.weight' or "
             f"'perceptual_loss.blocks.{{k}}.0.{{idx}}.weight'); got keys {sorted(state_dict)[:8]}..."
         )
     mismatch = first_mismatch(state_dict, arch)
     if mismatch is not None:
-        raise ValueError(f"{source}: not a {arch} state_dict; first mismatching key {mismatch}")
+        raise UserError(f"{source}: not a {arch} state_dict; first mismatching key {mismatch}")
     # Zero-stride views: only ``.shape`` is read, nothing is allocated.
     expected = {
         name: {

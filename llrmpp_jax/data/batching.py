@@ -47,6 +47,7 @@ from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.selection import training_views
 from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
+from llrmpp_jax.errors import UserError
 
 
 class SceneSource(Protocol):
@@ -164,7 +165,7 @@ def shard(batch: dict[str, np.ndarray], num_devices: int) -> dict[str, np.ndarra
     """Split the leading batch axis over devices: ``[B, ...] -> [num_devices, B / num_devices, ...]``."""
     b = next(iter(batch.values())).shape[0]
     if b % num_devices:
-        raise ValueError(f"shard: batch of {b} does not split evenly over {num_devices} devices")
+        raise UserError(f"shard: batch of {b} does not split evenly over {num_devices} devices")
     return {k: v.reshape((num_devices, b // num_devices) + v.shape[1:]) for k, v in batch.items()}
 
 
@@ -197,15 +198,15 @@ class BatchIterator:
         worker_processes: bool = False,
     ):
         if cfg.global_batch % process_count:
-            raise ValueError(f"global_batch {cfg.global_batch} does not split over {process_count} processes")
+            raise UserError(f"global_batch {cfg.global_batch} does not split over {process_count} processes")
         local = cfg.global_batch // process_count
         if local % num_devices:
-            raise ValueError(f"local batch {local} (global {cfg.global_batch} / {process_count} processes) "
+            raise UserError(f"local batch {local} (global {cfg.global_batch} / {process_count} processes) "
                              f"does not split over {num_devices} devices")
         if len(source) < 1:
-            raise ValueError("BatchIterator: the scene source is empty")
+            raise UserError("BatchIterator: the scene source is empty")
         if seed < 0 or start_step < 0:
-            raise ValueError(f"BatchIterator: seed and start_step must be >= 0, got {seed}, {start_step}")
+            raise UserError(f"BatchIterator: seed and start_step must be >= 0, got {seed}, {start_step}")
         self.source, self.cfg, self.seed = source, cfg, int(seed)
         self.local_batch = local
         self.offset = process_index * local

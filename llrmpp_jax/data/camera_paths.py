@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from llrmpp_jax.array_typing import Float
+from llrmpp_jax.errors import UserError
 
 PATH_KINDS = ("orbit", "walk", "sweep")
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -29,7 +30,7 @@ def look_at(
     right = np.cross(fwd, WORLD_UP[None, :])
     norm = np.linalg.norm(right, axis=-1, keepdims=True)
     if (norm < 1e-6).any():
-        raise ValueError("look_at: viewing direction is parallel to world up; choose another target")
+        raise UserError("look_at: viewing direction is parallel to world up; choose another target")
     right /= norm
     down = np.cross(fwd, right)
     if roll is not None:

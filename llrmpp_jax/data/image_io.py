@@ -16,6 +16,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from llrmpp_jax.array_typing import Float
+from llrmpp_jax.errors import MissingInputError, UserError
 
 _INT_RANGES = {"uint8": 255.0, "uint16": 65535.0}
 
@@ -25,8 +26,8 @@ def _open(path: str) -> oiio.ImageInput:
     if inp is None:
         err = oiio.geterror()
         if not os.path.exists(path):
-            raise FileNotFoundError(f"image file not found: {path}")
-        raise ValueError(f"cannot open image file {path}: {err}")
+            raise MissingInputError(f"image file not found: {path}")
+        raise UserError(f"cannot open image file {path}: {err}")
     return inp
 
 
@@ -39,7 +40,7 @@ def _read(path: str) -> tuple[np.ndarray, str]:
         fmt = kind if kind in _INT_RANGES else "float"
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if pixels is None or inp.has_error:
-            raise ValueError(f"cannot decode image file {path} (corrupt or truncated): {inp.geterror()}")
+            raise UserError(f"cannot decode image file {path} (corrupt or truncated): {inp.geterror()}")
     finally:
         inp.close()
     if pixels.ndim == 2:
@@ -65,7 +66,7 @@ def read_image(path: str) -> Float[np.ndarray, "H W 3"]:
     else:
         pixels = pixels.astype(np.float32)
         if not np.isfinite(pixels).all():
-            raise ValueError(f"image file {path} has non-finite pixel values")
+            raise UserError(f"image file {path} has non-finite pixel values")
     channels = pixels.shape[2]
     if channels in (1, 2):  # grey or grey + alpha
         return np.repeat(pixels[:, :, :1], 3, axis=2)
@@ -77,7 +78,7 @@ def read_depth(path: str, scale: float = 1e-3) -> Float[np.ndarray, "H W"]:
     Non-finite and negative values become 0 (invalid)."""
     pixels, fmt = _read(path)
     if fmt == "uint8":
-        raise ValueError(f"depth file {path}: 8-bit depth is not supported (expected 16-bit PNG or float EXR)")
+        raise UserError(f"depth file {path}: 8-bit depth is not supported (expected 16-bit PNG or float EXR)")
     depth = pixels[:, :, 0].astype(np.float64)
     if fmt == "uint16":
         depth = depth * scale
@@ -90,7 +91,7 @@ def _write(path: str, pixels: np.ndarray, fmt: str, attributes: dict[str, str] |
     h, w, c = pixels.shape
     out = oiio.ImageOutput.create(str(path))
     if out is None:
-        raise ValueError(f"cannot write image file {path}: {oiio.geterror()}")
+        raise UserError(f"cannot write image file {path}: {oiio.geterror()}")
     spec = oiio.ImageSpec(w, h, c, {"uint8": oiio.UINT8, "uint16": oiio.UINT16, "float": oiio.FLOAT}[fmt])
     if str(path).lower().endswith((".jpg", ".jpeg")):
         spec.attribute("Compression", "jpeg:95")
@@ -100,7 +101,7 @@ def _write(path: str, pixels: np.ndarray, fmt: str, attributes: dict[str, str] |
     err = out.geterror()
     out.close()
     if not ok:
-        raise ValueError(f"cannot write image file {path}: {err}")
+        raise UserError(f"cannot write image file {path}: {err}")
 
 
 def write_image(path: str, image: Float[np.ndarray, "H W 3"], bits: int = 8) -> None:
@@ -108,7 +109,7 @@ def write_image(path: str, image: Float[np.ndarray, "H W 3"], bits: int = 8) -> 
     clipped); 32 writes float (EXR, lossless). JPEG supports 8 only."""
     image = np.asarray(image, dtype=np.float32)
     if image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"write_image {path}: image must have shape [H, W, 3], got {image.shape}")
+        raise UserError(f"write_image {path}: image must have shape [H, W, 3], got {image.shape}")
     if bits == 32:
         _write(path, image, "float")
     elif bits in (8, 16):
@@ -116,7 +117,7 @@ def write_image(path: str, image: Float[np.ndarray, "H W 3"], bits: int = 8) -> 
         q = np.rint(np.clip(image, 0.0, 1.0) * top)
         _write(path, q.astype(np.uint8 if bits == 8 else np.uint16), "uint8" if bits == 8 else "uint16")
     else:
-        raise ValueError(f"write_image {path}: bits must be 8, 16 or 32, got {bits}")
+        raise UserError(f"write_image {path}: bits must be 8, 16 or 32, got {bits}")
 
 
 def write_depth(path: str, depth: Float[np.ndarray, "H W"], scale: float | None = 1e-3,
@@ -126,13 +127,13 @@ def write_depth(path: str, depth: Float[np.ndarray, "H W"], scale: float | None 
     ``attributes``: metadata written into the file's header (e.g. what the values mean)."""
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
-        raise ValueError(f"write_depth {path}: depth must have shape [H, W], got {depth.shape}")
+        raise UserError(f"write_depth {path}: depth must have shape [H, W], got {depth.shape}")
     if scale is None:
         _write(path, depth[:, :, None], "float", attributes)
         return
     units = np.rint(depth.astype(np.float64) / scale)
     if units.max(initial=0.0) > 65535:
-        raise ValueError(
+        raise UserError(
             f"write_depth {path}: depth {float(depth.max())} m exceeds the 16-bit range at scale {scale} m/unit"
         )
     _write(path, units.astype(np.uint16)[:, :, None], "uint16", attributes)

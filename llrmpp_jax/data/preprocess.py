@@ -33,6 +33,7 @@ import numpy as np
 from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.data.resample import remap
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.geometry import crop_intrinsics, normalize_scene, resize_intrinsics
 
 
@@ -51,7 +52,7 @@ class ViewGeometry:
 
     def __post_init__(self) -> None:
         if self.multiple < 1 or not 0.0 < self.zoom_min <= 1.0:
-            raise ValueError(f"ViewGeometry: need multiple >= 1 and 0 < zoom_min <= 1, got {self}")
+            raise UserError(f"ViewGeometry: need multiple >= 1 and 0 < zoom_min <= 1, got {self}")
 
 
 def resized_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
@@ -67,7 +68,7 @@ def resized_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
     m = geom.multiple
     out = (int(round(rh / m)) * m, int(round(rw / m)) * m)
     if min(out) <= 0:
-        raise ValueError(f"resized size {out} from {hw} with {geom} is empty; choose a larger resize or smaller multiple")
+        raise UserError(f"resized size {out} from {hw} with {geom} is empty; choose a larger resize or smaller multiple")
     return out
 
 
@@ -167,7 +168,7 @@ def make_sample(
     without the batch axis), normalised from the input cameras
     (:func:`~llrmpp_jax.geometry.normalize_scene` with ``scene_scale`` and ``rescale``)."""
     if with_depth and not scene.has_depth:
-        raise ValueError(f"scene {scene.name!r}: depth requested but the scene has no depth maps")
+        raise UserError(f"scene {scene.name!r}: depth requested but the scene has no depth maps")
     resized = resized_size(tuple(scene.hw[inputs[0]]), geom)
     box = crop_box(resized, geom)
     zoom = draw_zoom(geom, rng)

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.ndimage
 
 from llrmpp_jax.array_typing import Float
+from llrmpp_jax.errors import UserError
 
 
 def _box_reduce(x: np.ndarray, factor: int, axis: int) -> np.ndarray:
@@ -60,9 +61,9 @@ def resize_image(image: Float[np.ndarray, "H W C"], hw: tuple[int, int]) -> Floa
     """Resize ``[H, W, C]`` float32 to ``hw`` (anti-aliased when shrinking)."""
     h, w = int(hw[0]), int(hw[1])
     if image.ndim != 3:
-        raise ValueError(f"resize_image: image must have shape [H, W, C], got {image.shape}")
+        raise UserError(f"resize_image: image must have shape [H, W, C], got {image.shape}")
     if h <= 0 or w <= 0:
-        raise ValueError(f"resize_image: target size must be positive, got {hw}")
+        raise UserError(f"resize_image: target size must be positive, got {hw}")
     out = np.asarray(image, dtype=np.float32)
     # Shrink the larger reduction first so the second pass filters fewer pixels.
     axes = sorted([(0, h), (1, w)], key=lambda a: out.shape[a[0]] / a[1], reverse=True)
@@ -74,7 +75,7 @@ def resize_image(image: Float[np.ndarray, "H W C"], hw: tuple[int, int]) -> Floa
 def resize_depth(depth: Float[np.ndarray, "H W"], hw: tuple[int, int]) -> Float[np.ndarray, "h w"]:
     """Nearest-sample resize of a ``[H, W]`` depth map to ``hw`` (pixel centres map exactly)."""
     if depth.ndim != 2:
-        raise ValueError(f"resize_depth: depth must have shape [H, W], got {depth.shape}")
+        raise UserError(f"resize_depth: depth must have shape [H, W], got {depth.shape}")
     h0, w0 = depth.shape
     h, w = int(hw[0]), int(hw[1])
     rows = np.minimum(((np.arange(h) + 0.5) * (h0 / h)).astype(np.int64), h0 - 1)

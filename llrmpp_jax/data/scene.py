@@ -23,6 +23,7 @@ import numpy as np
 from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.data.distortion import undistort_image
 from llrmpp_jax.data.resample import resize_depth, resize_image
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.geometry import resize_intrinsics, validate_cameras
 
 ImageLoader = Callable[[int], np.ndarray]  # frame index -> [H, W, 3] float32 in [0, 1]
@@ -60,16 +61,16 @@ class Scene:
         hw = np.asarray(self.hw, dtype=np.int64)
         n = c2w.shape[0] if c2w.ndim == 3 else -1
         if n == 0:
-            raise ValueError(f"scene {self.name!r}: empty scene (no usable frames)")
+            raise UserError(f"scene {self.name!r}: empty scene (no usable frames)")
         validate_cameras(c2w, intrinsics, name=f"scene {self.name!r}", frame_names=self.frame_names)
         if hw.shape != (n, 2) or (hw <= 0).any():
-            raise ValueError(f"scene {self.name!r}: hw must be positive [N={n}, 2] (H, W), got {hw.shape}")
+            raise UserError(f"scene {self.name!r}: hw must be positive [N={n}, 2] (H, W), got {hw.shape}")
         if len(self.frame_names) != n:
-            raise ValueError(f"scene {self.name!r}: frame_names has {len(self.frame_names)} entries, expected {n}")
+            raise UserError(f"scene {self.name!r}: frame_names has {len(self.frame_names)} entries, expected {n}")
         if self.distortion is not None:
             distortion = np.asarray(self.distortion, dtype=np.float64)
             if distortion.shape != (n, 5) or not np.isfinite(distortion).all():
-                raise ValueError(
+                raise UserError(
                     f"scene {self.name!r}: distortion must be finite [N={n}, 5] (k1, k2, p1, p2, k3), "
                     f"got shape {distortion.shape}"
                 )
@@ -93,7 +94,7 @@ class Scene:
         img = self.image_fn(int(i))
         h, w = (int(v) for v in self.hw[i])
         if img.shape != (h, w, 3):
-            raise ValueError(
+            raise UserError(
                 f"scene {self.name!r}, frame {i} ({self.frame_names[i]}): image has shape {img.shape}, "
                 f"expected [{h}, {w}, 3] from the frame's recorded size"
             )
@@ -106,11 +107,11 @@ class Scene:
     def depth(self, i: int, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W"]:
         """Frame i's z-depth ``[H, W]`` float32 metres (0 = invalid), nearest-resized to ``hw``."""
         if self.depth_fn is None:
-            raise ValueError(f"scene {self.name!r} has no depth maps")
+            raise UserError(f"scene {self.name!r} has no depth maps")
         depth = self.depth_fn(int(i))
         h, w = (int(v) for v in self.hw[i])
         if depth.shape != (h, w):
-            raise ValueError(
+            raise UserError(
                 f"scene {self.name!r}, frame {i} ({self.frame_names[i]}): depth map has shape {depth.shape}, "
                 f"expected [{h}, {w}] (the size of its image)"
             )
@@ -127,7 +128,7 @@ class Scene:
         """The scene restricted to ``indices`` (in that order); loaders are re-indexed."""
         idx = np.asarray(indices, dtype=np.int64)
         if idx.ndim != 1 or idx.size == 0 or (idx < 0).any() or (idx >= len(self)).any():
-            raise ValueError(f"scene {self.name!r}: subset indices must be a non-empty list in [0, {len(self)}), got {indices}")
+            raise UserError(f"scene {self.name!r}: subset indices must be a non-empty list in [0, {len(self)}), got {indices}")
         image_fn, depth_fn = self.image_fn, self.depth_fn
         return dataclasses.replace(
             self,
@@ -151,12 +152,12 @@ def in_memory_scene(
     """A ``Scene`` over arrays already in memory (procedural scenes, tests)."""
     images = np.asarray(images, dtype=np.float32)
     if images.ndim != 4 or images.shape[-1] != 3:
-        raise ValueError(f"images: expected shape [N, H, W, 3], got {images.shape}")
+        raise UserError(f"images: expected shape [N, H, W, 3], got {images.shape}")
     n, h, w, _ = images.shape
     if depth is not None:
         depth = np.asarray(depth, dtype=np.float32)
         if depth.shape != (n, h, w):
-            raise ValueError(f"depth: expected shape [{n}, {h}, {w}] (same as images), got {depth.shape}")
+            raise UserError(f"depth: expected shape [{n}, {h}, {w}] (same as images), got {depth.shape}")
     return Scene(
         name=name,
         c2w=c2w,

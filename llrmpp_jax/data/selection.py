@@ -20,12 +20,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
+from llrmpp_jax.errors import UserError
 
 
 def every_nth(num_frames: int, every: int = 8) -> Int[np.ndarray, "T"]:
     """Frame indices ``0, every, 2*every, ...`` below ``num_frames``."""
     if every < 1 or num_frames < 1:
-        raise ValueError(f"every_nth: need num_frames >= 1 and every >= 1, got {num_frames}, {every}")
+        raise UserError(f"every_nth: need num_frames >= 1 and every >= 1, got {num_frames}, {every}")
     return np.arange(0, num_frames, every, dtype=np.int64)
 
 
@@ -41,7 +42,7 @@ def kmeans_inputs(
 
     candidates = np.asarray(candidates, dtype=np.int64)
     if len(candidates) < num_inputs:
-        raise ValueError(
+        raise UserError(
             f"kmeans_inputs: {num_inputs} input views requested but only {len(candidates)} candidate frames"
         )
     feats = np.concatenate([c2w[candidates, :3, 3], c2w[candidates, :3, 2]], axis=1)
@@ -62,14 +63,14 @@ def eval_views(
     :func:`kmeans_inputs` (``inputs="kmeans"``, DL3DV) or :func:`uniform_inputs`
     (``"uniform"``, ScanNetv2 with ``max_frames=1280``)."""
     if inputs not in ("kmeans", "uniform"):
-        raise ValueError(f"eval_views: inputs must be 'kmeans' or 'uniform', got {inputs!r}")
+        raise UserError(f"eval_views: inputs must be 'kmeans' or 'uniform', got {inputs!r}")
     n = c2w.shape[0] if max_frames is None else min(max_frames, c2w.shape[0])
     targets = every_nth(n, every)
     rest = np.setdiff1d(np.arange(n), targets)
     if inputs == "kmeans":
         return kmeans_inputs(c2w, rest, num_inputs), targets
     if len(rest) < num_inputs:
-        raise ValueError(f"eval_views: {num_inputs} input views requested but only {len(rest)} non-target frames")
+        raise UserError(f"eval_views: {num_inputs} input views requested but only {len(rest)} non-target frames")
     return rest[uniform_inputs(len(rest), num_inputs)], targets
 
 
@@ -81,10 +82,10 @@ def checked_inputs(
     ``[0, num_frames)``."""
     idx = np.asarray(indices)
     if idx.shape != (num_inputs,) or not np.issubdtype(idx.dtype, np.integer):
-        raise ValueError(f"{source} must be {num_inputs} integer frame indices, got {list(np.ravel(idx))[:6]}...")
+        raise UserError(f"{source} must be {num_inputs} integer frame indices, got {list(np.ravel(idx))[:6]}...")
     bad = idx[(idx < 0) | (idx >= num_frames)]
     if bad.size:
-        raise ValueError(f"{source} holds frame index {int(bad[0])}, out of range for a scene of {num_frames} frames")
+        raise UserError(f"{source} holds frame index {int(bad[0])}, out of range for a scene of {num_frames} frames")
     return np.sort(idx.astype(np.int64))
 
 
@@ -93,7 +94,7 @@ def uniform_inputs(num_frames: int, num_inputs: int) -> Int[np.ndarray, "V"]:
     truncated like Long-LRM's ``np.linspace(..., dtype=int)``), as the ScanNet protocol
     takes its 128 inputs."""
     if not 1 <= num_inputs <= num_frames:
-        raise ValueError(f"uniform_inputs: {num_inputs} views requested from {num_frames} frames")
+        raise UserError(f"uniform_inputs: {num_inputs} views requested from {num_frames} frames")
     return np.linspace(0, num_frames - 1, num_inputs).astype(np.int64)
 
 
@@ -115,10 +116,10 @@ def training_views(
     1 for the rest (so targets mostly avoid inputs but may include them).
     """
     if num_inputs < 1 or num_targets < 1:
-        raise ValueError(f"training_views: need at least one input and one target, got {num_inputs}, {num_targets}")
+        raise UserError(f"training_views: need at least one input and one target, got {num_inputs}, {num_targets}")
     need = max(num_inputs, num_targets)
     if num_frames < need:
-        raise ValueError(
+        raise UserError(
             f"training_views: scene has {num_frames} usable frames, fewer than the {need} views requested "
             f"({num_inputs} inputs, {num_targets} targets)"
         )

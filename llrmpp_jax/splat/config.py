@@ -51,6 +51,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from llrmpp_jax.errors import UserError
+
 
 @dataclass(frozen=True)
 class SplatConfig:
@@ -73,32 +75,32 @@ class SplatConfig:
     def __post_init__(self) -> None:
         for name in ("tile_size", "composite_tile", "chunk_size", "tiles_per_group"):
             if int(getattr(self, name)) < 1:
-                raise ValueError(f"SplatConfig.{name} must be >= 1, got {getattr(self, name)}")
+                raise UserError(f"SplatConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.tile_size % self.composite_tile:
-            raise ValueError(
+            raise UserError(
                 f"SplatConfig.composite_tile must divide tile_size, got composite_tile="
                 f"{self.composite_tile}, tile_size={self.tile_size}"
             )
         if not 0.0 < self.near < self.far:
-            raise ValueError(f"SplatConfig: need 0 < near < far, got near={self.near}, far={self.far}")
+            raise UserError(f"SplatConfig: need 0 < near < far, got near={self.near}, far={self.far}")
         if not 0.0 < self.alpha_min <= self.alpha_max < 1.0:
-            raise ValueError(
+            raise UserError(
                 "SplatConfig: need 0 < alpha_min <= alpha_max < 1, got "
                 f"alpha_min={self.alpha_min}, alpha_max={self.alpha_max}"
             )
         if not 0.0 <= self.t_min < 1.0:
-            raise ValueError(f"SplatConfig.t_min must be in [0, 1), got {self.t_min}")
+            raise UserError(f"SplatConfig.t_min must be in [0, 1), got {self.t_min}")
         if self.eps2d < 0.0 or self.radius_sigmas <= 0.0:
-            raise ValueError(
+            raise UserError(
                 f"SplatConfig: need eps2d >= 0 and radius_sigmas > 0, got eps2d={self.eps2d}, "
                 f"radius_sigmas={self.radius_sigmas}"
             )
         if self.max_intersections is not None and not 1 <= self.max_intersections < 2**30:
-            raise ValueError(
+            raise UserError(
                 f"SplatConfig.max_intersections must be in [1, 2**30), got {self.max_intersections}"
             )
         if self.intersections_per_gaussian <= 0.0:
-            raise ValueError(
+            raise UserError(
                 "SplatConfig.intersections_per_gaussian must be > 0, got "
                 f"{self.intersections_per_gaussian}"
             )

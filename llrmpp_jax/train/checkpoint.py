@@ -16,9 +16,15 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import hashlib
 import json
+import logging
 import os
+import re
+import shutil
+import sys
+import threading
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,6 +35,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from jax.experimental import multihost_utils
 
+from llrmpp_jax.errors import OutOfSpaceError, UserError
 from llrmpp_jax.train.state import TrainState
 
 MANIFEST = "llrmpp_manifest.json"
@@ -142,7 +149,7 @@ def _config_json(config: Any) -> Any:
     try:
         return json.loads(json.dumps(data))
     except TypeError as err:
-        raise ValueError(f"save_checkpoint: config is not JSON-serialisable ({err})") from None
+        raise UserError(f"save_checkpoint: config is not JSON-serialisable ({err})") from None
 
 
 def save_checkpoint(
@@ -185,15 +192,33 @@ def save_checkpoint(
     with _manager(directory) as mngr:
         if step in mngr.all_steps():
             mngr.delete(step)
-        mngr.save(
-            step,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardSave(items), meta=ocp.args.JsonSave(meta)
-            ),
-        )
-        mngr.wait_until_finished()
-        if jax.process_index() == 0:
-            _write_manifest(step_dir)
+        try:
+            with _failed_writes_reported_once():
+                mngr.save(
+                    step,
+                    args=ocp.args.Composite(
+                        state=ocp.args.StandardSave(items), meta=ocp.args.JsonSave(meta)
+                    ),
+                )
+                mngr.wait_until_finished()
+                if jax.process_index() == 0:
+                    _write_manifest(step_dir)
+        except Exception as e:
+            code = _out_of_space_errno(e)
+            if code is None:
+                raise
+            # Orbax renames a step into place only when complete: what is left is its
+            # temporary folder (and maybe a manifest-less step, which restore rejects).
+            for partial in directory.glob(f"{step}.orbax-checkpoint-tmp*"):
+                shutil.rmtree(partial, ignore_errors=True)
+            if not (step_dir / MANIFEST).exists():
+                shutil.rmtree(step_dir, ignore_errors=True)
+            earlier = sorted(s for s in mngr.all_steps() if s != step)
+            kept = f"the newest complete checkpoint (step {earlier[-1]}) is intact" if earlier else "no earlier checkpoint"
+            raise OutOfSpaceError(
+                f"checkpoint step {step} not saved in {directory}: {os.strerror(code)} ({_SPACE[code]}); "
+                f"{kept}; free space and run the same command again to resume"
+            ) from None
         if jax.process_count() > 1:
             multihost_utils.sync_global_devices(f"llrmpp_manifest_{step}")
         # Prune only now that the new step is verifiable (orbax's own max_to_keep would
@@ -201,6 +226,67 @@ def save_checkpoint(
         for old in sorted(mngr.all_steps(), reverse=True)[keep:]:
             mngr.delete(old)
     return step_dir
+
+
+# Write failures that mean the disk (or a limit on it) is full, and what to tell the user.
+_SPACE = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is used up",
+          errno.EFBIG: "a file-size limit was reached"}
+# Orbax writes through tensorstore, whose errors are ValueErrors with the OS error code in
+# their text.
+_TENSORSTORE_ERRNO = re.compile(r"os_error_code='(\d+)'")
+
+
+def _out_of_space_errno(e: BaseException | None) -> int | None:
+    """The errno of ``e`` (or of an exception in its cause chain) if it is a write that ran
+    out of space, else None."""
+    while e is not None:
+        code = e.errno if isinstance(e, OSError) else None
+        match = _TENSORSTORE_ERRNO.search(str(e))
+        code = int(match.group(1)) if code is None and match else code
+        if code in _SPACE:
+            return code
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def _is_closed_loop_echo(unraisable) -> bool:
+    return isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"
+
+
+@contextlib.contextmanager
+def _failed_writes_reported_once() -> Iterator[None]:
+    """Around a save: when one write fails, every orbax worker thread of the save logs the
+    failure again (an absl ERROR with its traceback) and tensorstore's late callbacks into
+    the closed event loop raise "Event loop is closed" as unraisable exceptions, some after
+    the save has returned. :func:`save_checkpoint` reports the failure itself, once. So
+    while saving, absl's ERROR records are held back and replayed only if the save
+    succeeds; on failure the save's threads are joined first (so nothing of it runs on),
+    and from then on those closed-loop echoes, and only they, are dropped."""
+    absl_logger = logging.getLogger("absl")
+    held: list[logging.LogRecord] = []
+
+    class _Hold(logging.Filter):
+        def filter(self, record: logging.LogRecord) -> bool:
+            held.append(record)
+            return False
+
+    hold = _Hold()
+    before = set(threading.enumerate())
+    absl_logger.addFilter(hold)
+    try:
+        yield
+    except BaseException:
+        for t in set(threading.enumerate()) - before:
+            if t is not threading.current_thread() and not t.daemon:
+                t.join(timeout=60)
+        previous = sys.unraisablehook
+        sys.unraisablehook = lambda u: None if _is_closed_loop_echo(u) else previous(u)
+        raise
+    else:
+        for record in held:
+            absl_logger.handle(record)
+    finally:
+        absl_logger.removeFilter(hold)
 
 
 def _check_compatible(step_dir: Path, saved: list, paths: list[str], leaves: list) -> None:
@@ -263,7 +349,7 @@ def restore_checkpoint(
         steps = sorted(mngr.all_steps(), reverse=True)
         if step is not None:
             if step not in steps:
-                raise ValueError(
+                raise UserError(
                     f"restore_checkpoint: no step {step} in {directory} (steps: {sorted(steps)})"
                 )
             verify_checkpoint(directory, step)

@@ -23,6 +23,7 @@ import numpy as np
 import optax
 
 from llrmpp_jax.array_typing import Array, ArrayLike, Float, Int
+from llrmpp_jax.errors import UserError
 
 
 @dataclass(frozen=True)
@@ -46,18 +47,18 @@ class OptimizerConfig:
 
     def __post_init__(self) -> None:
         if self.warmup_steps < 0:
-            raise ValueError(f"OptimizerConfig: warmup_steps={self.warmup_steps} must be >= 0")
+            raise UserError(f"OptimizerConfig: warmup_steps={self.warmup_steps} must be >= 0")
         if self.total_steps < max(self.warmup_steps, 1):
-            raise ValueError(
+            raise UserError(
                 f"OptimizerConfig: total_steps={self.total_steps} must be >= max(1, "
                 f"warmup_steps={self.warmup_steps})"
             )
         if self.grad_clip_norm is not None and self.grad_clip_norm <= 0:
-            raise ValueError(
+            raise UserError(
                 f"OptimizerConfig: grad_clip_norm={self.grad_clip_norm} must be > 0 or None"
             )
         if isinstance(self.no_decay_names, str):
-            raise ValueError(
+            raise UserError(
                 f"OptimizerConfig: no_decay_names must be a tuple of names, got the string "
                 f"{self.no_decay_names!r}"
             )

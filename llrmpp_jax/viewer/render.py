@@ -30,6 +30,7 @@ import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import ModelConfig, replace
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import render
 from llrmpp_jax.splat import expected_depth, render_features
@@ -47,9 +48,9 @@ def viewport_camera(fov_y: float, aspect: float, height: int, multiple: int) -> 
     the viewport (pixels are then very slightly non-square).
     """
     if not 0.0 < fov_y < math.pi or not aspect > 0.0:
-        raise ValueError(f"viewport_camera: need 0 < fov_y < pi and aspect > 0, got fov_y={fov_y}, aspect={aspect}")
+        raise UserError(f"viewport_camera: need 0 < fov_y < pi and aspect > 0, got fov_y={fov_y}, aspect={aspect}")
     if height <= 0 or height % multiple:
-        raise ValueError(f"viewport_camera: height {height} must be a positive multiple of {multiple}")
+        raise UserError(f"viewport_camera: height {height} must be a positive multiple of {multiple}")
     width = max(multiple, round(height * aspect / multiple) * multiple)
     t = math.tan(fov_y / 2.0)
     intrinsics = np.array([width / (2.0 * aspect * t), height / (2.0 * t), width / 2.0, height / 2.0], np.float32)
@@ -58,10 +59,10 @@ def viewport_camera(fov_y: float, aspect: float, height: int, multiple: int) -> 
 
 def _check_view(cfg: ModelConfig, output: str, partitions: int) -> None:
     if output not in OUTPUTS:
-        raise ValueError(f"output must be one of {OUTPUTS}, got {output!r}")
+        raise UserError(f"output must be one of {OUTPUTS}, got {output!r}")
     most = cfg.decoder.partitions if cfg.head.mode == "feature" else 1
     if not 1 <= partitions <= most:
-        raise ValueError(f"partitions must be in [1, {most}] for this {cfg.head.mode}-mode model, got {partitions}")
+        raise UserError(f"partitions must be in [1, {most}] for this {cfg.head.mode}-mode model, got {partitions}")
 
 
 def _with_partitions(params: dict, cfg: ModelConfig, s: int) -> tuple[dict, ModelConfig]:
@@ -94,7 +95,7 @@ def render_view(
     s = cfg.decoder.partitions if partitions is None else partitions
     _check_view(cfg, output, s)
     if gaussians.means.shape[0] != 1:
-        raise ValueError(f"render_view: gaussians must hold one scene (batch 1), got batch {gaussians.means.shape[0]}")
+        raise UserError(f"render_view: gaussians must hold one scene (batch 1), got batch {gaussians.means.shape[0]}")
     if output == "rgb" or "depth" in cfg.outputs:
         p, c = _with_partitions(params, cfg, s)
         out = render(p, c, gaussians, c2w[None, None], intrinsics[None, None], height, width, (output,))

@@ -22,6 +22,7 @@ from llrmpp_jax.array_typing import Float
 from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data import ProceduralConfig, ViewGeometry, make_sample, procedural_scene, uniform_inputs
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import reconstruct
 from llrmpp_jax.splat.sh import num_sh_bases
@@ -49,7 +50,7 @@ def check_gaussians(cfg: ModelConfig, gaussians: Gaussians, source: str) -> None
     want = {"means": (1, n, 3), "quats": (1, n, 4), "scales": (1, n, 3), "opacities": (1, n)}
     for name, shape in want.items():
         if shapes[name] != shape:
-            raise ValueError(f"{source}: Gaussian field {name!r} has shape {shapes[name]}, expected {shape} "
+            raise UserError(f"{source}: Gaussian field {name!r} has shape {shapes[name]}, expected {shape} "
                              f"(one scene of N={n} Gaussians)")
     f = shapes["features"]
     if cfg.head.mode == "feature":
@@ -58,7 +59,7 @@ def check_gaussians(cfg: ModelConfig, gaussians: Gaussians, source: str) -> None
         want_f = 3 * num_sh_bases(cfg.head.sh_degree)
         what = f"{want_f} SH coefficients of degree {cfg.head.sh_degree} (colour mode)"
     if f != (1, n, want_f):
-        raise ValueError(f"{source}: Gaussians carry {f[-1]} values per Gaussian but the model config expects "
+        raise UserError(f"{source}: Gaussians carry {f[-1]} values per Gaussian but the model config expects "
                          f"{what}; the scene was made with another model")
 
 
@@ -84,7 +85,7 @@ def procedural_view_scene(params: dict, cfg: ModelConfig, seed: int, num_inputs:
     """Reconstruct procedural scene ``seed`` (``size x size``, ``num_frames`` frames) from
     ``num_inputs`` evenly spread frames with the model ``(params, cfg)``."""
     if size % cfg.size_multiple:
-        raise ValueError(f"procedural scene size {size} must be a multiple of {cfg.size_multiple}")
+        raise UserError(f"procedural scene size {size} must be a multiple of {cfg.size_multiple}")
     scene = procedural_scene(seed, ProceduralConfig(height=size, width=size, num_frames=num_frames))
     inputs = uniform_inputs(num_frames, num_inputs)
     sample = make_sample(scene, inputs, inputs[:1], ViewGeometry(resize_h=size, multiple=cfg.size_multiple))

@@ -31,6 +31,7 @@ import numpy as np
 import viser
 import viser.transforms as vtf
 
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.viewer.render import OUTPUTS, Frame, ViewKey, ViewRenderer, display_image, viewport_camera
 from llrmpp_jax.viewer.scene import ViewerScene, gaussian_centres
 
@@ -78,14 +79,14 @@ def check_port(host: str, port: int) -> None:
     any other reason the bind fails (a privileged port, an unknown host, a port outside
     0..65535)."""
     if not 0 <= port <= 65535:
-        raise ValueError(f"--port must be in 0..65535, got {port}")
+        raise UserError(f"--port must be in 0..65535, got {port}")
     err = None if port == 0 else _bind_error(host, port)
     if err is None:
         return
     if err.errno == errno.EADDRINUSE:
         free = next((p for p in range(port + 1, min(port + 100, 65536)) if _bind_error(host, p) is None), None)
         raise PortInUseError(f"port {port} on {host} is already in use" + (f"; try --port {free}" if free else ""))
-    raise ValueError(f"cannot serve on {host}:{port}: {err.strerror or err}")
+    raise UserError(f"cannot serve on {host}:{port}: {err.strerror or err}")
 
 
 def camera_c2w(wxyz: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -159,10 +160,10 @@ class Viewer:
                  settings: ViewerSettings = ViewerSettings()):
         m, most = renderer.cfg.size_multiple, renderer.max_partitions
         if settings.height <= 0 or settings.moving_height <= 0 or settings.height % m or settings.moving_height % m:
-            raise ValueError(f"viewer heights must be positive multiples of {m}, got {settings.height} and "
+            raise UserError(f"viewer heights must be positive multiples of {m}, got {settings.height} and "
                              f"{settings.moving_height}")
         if settings.output not in OUTPUTS or not 1 <= (settings.partitions or most) <= most:
-            raise ValueError(f"viewer output must be one of {OUTPUTS} and partitions in [1, {most}], got "
+            raise UserError(f"viewer output must be one of {OUTPUTS} and partitions in [1, {most}], got "
                              f"{settings.output!r} and {settings.partitions}")
         check_port(host, port)
         self.renderer, self.scene, self.settings = renderer, scene, settings

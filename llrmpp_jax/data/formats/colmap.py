@@ -18,6 +18,7 @@ import numpy as np
 from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.data.formats.common import Missing, files_scene, write_frames
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import MissingInputError, UserError
 
 # model id -> (name, number of params)
 _MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5), 4: ("OPENCV", 8)}
@@ -111,7 +112,7 @@ class _Reader:
     def take(self, fmt: str) -> tuple:
         size = struct.calcsize(fmt)
         if self.pos + size > len(self.buf):
-            raise ValueError(f"{self.path}: file is truncated (needed {size} bytes at offset {self.pos})")
+            raise UserError(f"{self.path}: file is truncated (needed {size} bytes at offset {self.pos})")
         out = struct.unpack_from(fmt, self.buf, self.pos)
         self.pos += size
         return out
@@ -119,7 +120,7 @@ class _Reader:
     def name(self) -> str:
         end = self.buf.find(b"\x00", self.pos)
         if end < 0:
-            raise ValueError(f"{self.path}: file is truncated inside an image name")
+            raise UserError(f"{self.path}: file is truncated inside an image name")
         out = self.buf[self.pos : end].decode("utf-8")
         self.pos = end + 1
         return out
@@ -128,10 +129,10 @@ class _Reader:
 def _model(path: str, camera_id: int, model_id: int | str) -> tuple[str, int]:
     if isinstance(model_id, str):
         if model_id not in _MODEL_IDS:
-            raise ValueError(f"{path}: camera {camera_id} has unsupported model {model_id!r} (supported: {list(_MODEL_IDS)})")
+            raise UserError(f"{path}: camera {camera_id} has unsupported model {model_id!r} (supported: {list(_MODEL_IDS)})")
         return model_id, _MODEL_IDS[model_id][1]
     if model_id not in _MODELS:
-        raise ValueError(f"{path}: camera {camera_id} has unsupported model id {model_id} (supported: {_MODELS})")
+        raise UserError(f"{path}: camera {camera_id} has unsupported model id {model_id} (supported: {_MODELS})")
     return _MODELS[model_id]
 
 
@@ -180,7 +181,7 @@ def _read_cameras_txt(path: str) -> dict[int, ColmapCamera]:
         cid = int(el[0])
         name, npar = _model(path, cid, el[1])
         if len(el) != 4 + npar:
-            raise ValueError(f"{path}: camera {cid} ({name}) needs {npar} params, got {len(el) - 4}")
+            raise UserError(f"{path}: camera {cid} ({name}) needs {npar} params, got {len(el) - 4}")
         cams[cid] = ColmapCamera(cid, name, int(el[2]), int(el[3]), np.array(el[4:], dtype=np.float64))
     return cams
 
@@ -225,7 +226,7 @@ def read_colmap_model(
     paths = {key: os.path.join(sparse_dir, key + ext) for key in ("cameras", "images", "points3D")}
     for key in ("cameras", "images") + (("points3D",) if with_points else ()):
         if not os.path.exists(paths[key]):
-            raise FileNotFoundError(f"COLMAP model file not found: {paths[key]}")
+            raise MissingInputError(f"COLMAP model file not found: {paths[key]}")
     try:
         if binary:
             cams, imgs = _read_cameras_bin(paths["cameras"]), _read_images_bin(paths["images"])
@@ -234,7 +235,7 @@ def read_colmap_model(
             cams, imgs = _read_cameras_txt(paths["cameras"]), _read_images_txt(paths["images"])
             pts = _read_points_txt(paths["points3D"]) if with_points else {}
     except (IndexError, UnicodeDecodeError, struct.error) as e:
-        raise ValueError(f"{sparse_dir}: malformed COLMAP model ({type(e).__name__}: {e})") from None
+        raise UserError(f"{sparse_dir}: malformed COLMAP model ({type(e).__name__}: {e})") from None
     return cams, imgs, pts
 
 
@@ -248,7 +249,7 @@ def read_colmap_scene(
     intr, dist, hw = [], [], []
     for im in order:
         if im.camera_id not in cams:
-            raise ValueError(f"{sparse_dir}: image {im.name!r} refers to camera {im.camera_id}, which is not in the model")
+            raise UserError(f"{sparse_dir}: image {im.name!r} refers to camera {im.camera_id}, which is not in the model")
         cam = cams[im.camera_id]
         k, d = cam.pinhole_and_distortion()
         intr.append(k)

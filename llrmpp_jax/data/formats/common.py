@@ -13,6 +13,7 @@ import numpy as np
 
 from llrmpp_jax.data.image_io import image_size, read_depth, read_image, write_depth, write_image
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.geometry import validate_cameras
 
 Missing = Literal["skip", "error"]
@@ -30,7 +31,7 @@ def present_mask(paths: Sequence[str], what: str, source: str, missing: Missing)
     if not keep.all():
         absent = [p for p, k in zip(paths, keep) if not k]
         if missing == "error":
-            raise FileNotFoundError(f"{source}: {len(absent)} {what} file(s) not found, first: {absent[0]}")
+            raise MissingInputError(f"{source}: {len(absent)} {what} file(s) not found, first: {absent[0]}")
         names = ", ".join(os.path.basename(p) for p in absent[:10]) + (" ..." if len(absent) > 10 else "")
         warnings.warn(
             f"{source}: skipped {len(absent)} of {len(paths)} frames whose {what} file is missing ({names})",
@@ -44,7 +45,7 @@ def check_frames(
 ) -> None:
     """``validate_cameras`` with the source file in the message (before any image is read)."""
     if len(frame_names) == 0:
-        raise ValueError(f"{source}: empty scene (no frames with an image on disk)")
+        raise UserError(f"{source}: empty scene (no frames with an image on disk)")
     validate_cameras(c2w, intrinsics, name=source, frame_names=frame_names)
 
 
@@ -89,7 +90,7 @@ def files_scene(
         bad = np.abs(sx / sy - 1.0) > 0.01
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(
+            raise UserError(
                 f"{source}: image {image_paths[i]} is {hw[i, 1]}x{hw[i, 0]} (WxH) but its intrinsics are "
                 f"declared for {declared[i, 1]:g}x{declared[i, 0]:g}; the aspect ratios differ"
             )

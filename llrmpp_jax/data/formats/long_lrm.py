@@ -19,6 +19,7 @@ import numpy as np
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.selection import checked_inputs
+from llrmpp_jax.errors import MissingInputError, UserError
 
 SCENE_JSON = "opencv_cameras.json"
 
@@ -28,9 +29,9 @@ def _read_json(path: str, what: str):
         with open(path) as f:
             return json.load(f)
     except FileNotFoundError:
-        raise FileNotFoundError(f"{what} not found: {path}") from None
+        raise MissingInputError(f"{what} not found: {path}") from None
     except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
+        raise UserError(f"{path}: not valid JSON ({e})") from None
 
 
 def _load(path: str) -> dict:
@@ -38,7 +39,7 @@ def _load(path: str) -> dict:
     if isinstance(data, list):  # LaCT: bare list of frames
         data = {"scene_name": os.path.basename(os.path.dirname(os.path.abspath(path))), "frames": data}
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
-        raise ValueError(f"{path}: expected an object with a 'frames' list")
+        raise UserError(f"{path}: expected an object with a 'frames' list")
     return data
 
 
@@ -64,9 +65,9 @@ def read_long_lrm_scene(json_path: str, missing: Missing = "skip", depth_scale: 
         try:
             w2c = np.asarray(fr["w2c"], dtype=np.float64)
             if w2c.shape != (4, 4):
-                raise ValueError(f"w2c must be 4x4, got shape {w2c.shape}")
+                raise UserError(f"w2c must be 4x4, got shape {w2c.shape}")
             if not np.isfinite(w2c).all():
-                raise ValueError(f"w2c has non-finite values: {w2c.tolist()}")
+                raise UserError(f"w2c has non-finite values: {w2c.tolist()}")
             c2w.append(np.linalg.inv(w2c))
             intr.append([float(fr[key]) for key in ("fx", "fy", "cx", "cy")])
             hw.append([float(fr["h"]), float(fr["w"])])
@@ -75,9 +76,9 @@ def read_long_lrm_scene(json_path: str, missing: Missing = "skip", depth_scale: 
                 depths.append(resolve(base, fr["depth_path"]))
         except (KeyError, TypeError, ValueError, np.linalg.LinAlgError) as e:
             field = e.args[0] if isinstance(e, KeyError) else "w2c/intrinsics"
-            raise ValueError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
+            raise UserError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
     if depths and len(depths) != len(images):
-        raise ValueError(f"{json_path}: 'depth_path' is given for {len(depths)} of {len(images)} frames; expected all or none")
+        raise UserError(f"{json_path}: 'depth_path' is given for {len(depths)} of {len(images)} frames; expected all or none")
     return files_scene(
         name=str(data.get("scene_name", os.path.basename(base))),
         source=json_path,
@@ -105,7 +106,7 @@ def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int, num_frames
     if key not in data:
         return None
     if len(data["frames"]) != num_frames:
-        raise ValueError(
+        raise UserError(
             f"{json_path}: '{key}' indexes the JSON's {len(data['frames'])} frames but {num_frames} were read "
             f"(frames without images are skipped); restore the images or delete the key to recompute it"
         )
@@ -117,7 +118,7 @@ def read_kmeans_index(path: str) -> dict[str, dict]:
     a list of ``{"scene_name", "fold_8_kmeans_<n>_input": [...]}``) keyed by scene name."""
     entries = _read_json(path, "k-means index file")
     if not isinstance(entries, list) or not all(isinstance(e, dict) and "scene_name" in e for e in entries):
-        raise ValueError(f"{path}: expected a list of objects with a 'scene_name' (Long-LRM's k-means index)")
+        raise UserError(f"{path}: expected a list of objects with a 'scene_name' (Long-LRM's k-means index)")
     return {e["scene_name"]: e for e in entries}
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.image_io import image_size
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.geometry import opencv_to_opengl, opengl_to_opencv
 
 TRANSFORMS_JSON = "transforms.json"
@@ -58,16 +59,16 @@ def read_nerfstudio_scene(
         with open(json_path) as f:
             top = json.load(f)
     except FileNotFoundError:
-        raise FileNotFoundError(f"nerfstudio transforms file not found: {json_path}") from None
+        raise MissingInputError(f"nerfstudio transforms file not found: {json_path}") from None
     except json.JSONDecodeError as e:
-        raise ValueError(f"{json_path}: not valid JSON ({e})") from None
+        raise UserError(f"{json_path}: not valid JSON ({e})") from None
     base = os.path.dirname(os.path.abspath(json_path))
     model = str(top.get("camera_model", "OPENCV")).upper()
     if model not in _PINHOLE_MODELS:
-        raise ValueError(f"{json_path}: camera_model {model!r} is not supported (expected one of {_PINHOLE_MODELS})")
+        raise UserError(f"{json_path}: camera_model {model!r} is not supported (expected one of {_PINHOLE_MODELS})")
     frames = top.get("frames")
     if not isinstance(frames, list):
-        raise ValueError(f"{json_path}: missing 'frames' list")
+        raise UserError(f"{json_path}: missing 'frames' list")
 
     c2w, intr, hw, dist, images, depths = [], [], [], [], [], []
     for k, fr in enumerate(frames):
@@ -84,7 +85,7 @@ def read_nerfstudio_scene(
             if m.shape == (3, 4):
                 m = np.concatenate([m, [[0.0, 0.0, 0.0, 1.0]]], axis=0)
             if m.shape != (4, 4):
-                raise ValueError(f"transform_matrix must be 4x4, got shape {m.shape}")
+                raise UserError(f"transform_matrix must be 4x4, got shape {m.shape}")
             c2w.append(m)
             w, h = _frame_value(fr, top, "w"), _frame_value(fr, top, "h")
             if w is None or h is None:
@@ -104,14 +105,14 @@ def read_nerfstudio_scene(
                 depths.append(resolve(base, str(fr["depth_file_path"])))
         except (KeyError, TypeError, ValueError) as e:
             field = e.args[0] if isinstance(e, KeyError) else "transform_matrix/intrinsics"
-            raise ValueError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
+            raise UserError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
     if depths and len(depths) != len(images):
-        raise ValueError(f"{json_path}: 'depth_file_path' is given for {len(depths)} of {len(images)} frames")
+        raise UserError(f"{json_path}: 'depth_file_path' is given for {len(depths)} of {len(images)} frames")
 
     c2w = np.asarray(c2w).reshape(-1, 4, 4)
     if not np.isfinite(c2w).all():
         k = int(np.argmax(~np.isfinite(c2w).reshape(len(c2w), -1).all(axis=1)))
-        raise ValueError(f"{json_path}, frame {k} ({images[k]}): transform_matrix has non-finite values")
+        raise UserError(f"{json_path}, frame {k} ({images[k]}): transform_matrix has non-finite values")
     c2w = opengl_to_opencv(c2w)
     if dl3dv_world_remap:
         c2w = _DL3DV_WORLD[None] @ c2w

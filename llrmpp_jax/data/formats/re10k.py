@@ -21,6 +21,7 @@ import numpy as np
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.image_io import image_size
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import MissingInputError, UserError
 
 Units = Literal["auto", "pixels", "normalized"]
 
@@ -31,13 +32,13 @@ def read_re10k_scene(json_path: str, intrinsics_units: Units = "auto", missing: 
         with open(json_path) as f:
             data = json.load(f)
     except FileNotFoundError:
-        raise FileNotFoundError(f"RE10K scene file not found: {json_path}") from None
+        raise MissingInputError(f"RE10K scene file not found: {json_path}") from None
     except json.JSONDecodeError as e:
-        raise ValueError(f"{json_path}: not valid JSON ({e})") from None
+        raise UserError(f"{json_path}: not valid JSON ({e})") from None
     base = os.path.dirname(os.path.abspath(json_path))
     frames = data.get("frames") if isinstance(data, dict) else None
     if not isinstance(frames, list):
-        raise ValueError(f"{json_path}: expected an object with a 'frames' list")
+        raise UserError(f"{json_path}: expected an object with a 'frames' list")
     c2w, intr, images = [], [], []
     for k, fr in enumerate(frames):
         try:
@@ -45,19 +46,19 @@ def read_re10k_scene(json_path: str, intrinsics_units: Units = "auto", missing: 
             if w2c.shape == (3, 4):
                 w2c = np.concatenate([w2c, [[0.0, 0.0, 0.0, 1.0]]], axis=0)
             if w2c.shape != (4, 4) or not np.isfinite(w2c).all():
-                raise ValueError(f"w2c must be a finite 4x4 (or 3x4) matrix, got {w2c.tolist()}")
+                raise UserError(f"w2c must be a finite 4x4 (or 3x4) matrix, got {w2c.tolist()}")
             c2w.append(np.linalg.inv(w2c))
             k4 = [float(v) for v in fr["fxfycxcy"]]
             if len(k4) != 4:
-                raise ValueError(f"fxfycxcy must have 4 values, got {len(k4)}")
+                raise UserError(f"fxfycxcy must have 4 values, got {len(k4)}")
             intr.append(k4)
             images.append(resolve(base, str(fr["image_path"])))
         except (KeyError, TypeError, ValueError, np.linalg.LinAlgError) as e:
             field = e.args[0] if isinstance(e, KeyError) else "w2c/fxfycxcy"
-            raise ValueError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
+            raise UserError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
     intr = np.asarray(intr, dtype=np.float64).reshape(-1, 4)
     if intrinsics_units not in ("auto", "pixels", "normalized"):
-        raise ValueError(f"intrinsics_units must be 'auto', 'pixels' or 'normalized', got {intrinsics_units!r}")
+        raise UserError(f"intrinsics_units must be 'auto', 'pixels' or 'normalized', got {intrinsics_units!r}")
     normalized = intrinsics_units == "normalized" or (
         intrinsics_units == "auto" and len(intr) > 0 and bool((intr[:, 2:] < 1.0).all())
     )

@@ -24,6 +24,7 @@ from llrmpp_jax.data.formats.nerfstudio import TRANSFORMS_JSON, read_nerfstudio_
 from llrmpp_jax.data.formats.re10k import read_re10k_scene
 from llrmpp_jax.data.formats.scannet import read_scannet_scene
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import MissingInputError, UserError
 
 LOOKED_FOR = (
     f"{TRANSFORMS_JSON} (nerfstudio), sparse/0/ or sparse/ or cameras.bin|txt (COLMAP), "
@@ -37,7 +38,7 @@ def colmap_model_dir(path: str) -> str | None:
     for d in (os.path.join(path, "sparse", "0"), os.path.join(path, "sparse"), path):
         if any(os.path.isfile(os.path.join(d, f"cameras{e}")) for e in (".bin", ".txt")):
             if not any(os.path.isfile(os.path.join(d, f"images{e}")) for e in (".bin", ".txt")):
-                raise ValueError(f"COLMAP model {d}: has cameras but no images.bin or images.txt")
+                raise UserError(f"COLMAP model {d}: has cameras but no images.bin or images.txt")
             return d
     return None
 
@@ -72,7 +73,7 @@ def detect_format(path: str) -> str:
     """The format of the scene at ``path`` (a folder or a metadata file); ``ValueError``
     listing what was looked for when none matches."""
     if not os.path.exists(path):
-        raise FileNotFoundError(f"scene not found: {path}")
+        raise MissingInputError(f"scene not found: {path}")
     if os.path.isfile(path):
         kind = _json_kind(path) if path.endswith(".json") else None
     elif os.path.isfile(os.path.join(path, TRANSFORMS_JSON)):
@@ -86,14 +87,14 @@ def detect_format(path: str) -> str:
     else:
         kind = None
     if kind is None:
-        raise ValueError(f"{path}: no known scene format (looked for {LOOKED_FOR})")
+        raise UserError(f"{path}: no known scene format (looked for {LOOKED_FOR})")
     return kind
 
 
 def _read_colmap(path: str, **kw) -> Scene:
     model = colmap_model_dir(path)
     if model is None:
-        raise ValueError(f"{path}: no COLMAP model (looked for cameras.bin|txt in sparse/0/, sparse/, the folder)")
+        raise UserError(f"{path}: no COLMAP model (looked for cameras.bin|txt in sparse/0/, sparse/, the folder)")
     return read_colmap_scene(model, _colmap_image_dir(path, model), **kw)
 
 
@@ -115,9 +116,9 @@ def read_scene(path: str, kind: str = "auto", **kwargs) -> Scene:
     """Read the scene at ``path`` with the reader of ``kind`` (``"auto"``: detected).
     ``kwargs`` go to the reader (e.g. ``missing="error"``)."""
     if kind not in FORMATS:
-        raise ValueError(f"format must be one of {FORMATS}, got {kind!r}")
+        raise UserError(f"format must be one of {FORMATS}, got {kind!r}")
     if not os.path.exists(path):
-        raise FileNotFoundError(f"scene not found: {path}")
+        raise MissingInputError(f"scene not found: {path}")
     return READERS[detect_format(path) if kind == "auto" else kind](path, **kwargs)
 
 
@@ -126,7 +127,7 @@ def dataset_scenes(path: str, kind: str = "auto") -> list[str]:
     when it is one scene (of format ``kind``, or any with ``"auto"``), else its sub-folders
     (sorted; each is read with :func:`read_scene`, so ``"auto"`` detects per scene)."""
     if not os.path.exists(path):
-        raise FileNotFoundError(f"dataset path does not exist: {path}")
+        raise MissingInputError(f"dataset path does not exist: {path}")
     if path.endswith(".txt"):
         return read_long_lrm_index(path)
     try:
@@ -138,5 +139,5 @@ def dataset_scenes(path: str, kind: str = "auto") -> list[str]:
     subs = sorted(os.path.join(path, d) for d in os.listdir(path) if os.path.isdir(os.path.join(path, d))) \
         if os.path.isdir(path) else []
     if not subs and kind == "auto":
-        raise ValueError(f"dataset {path} holds no scenes (looked for {LOOKED_FOR}, in it or its sub-folders)")
+        raise UserError(f"dataset {path} holds no scenes (looked for {LOOKED_FOR}, in it or its sub-folders)")
     return subs or [path]

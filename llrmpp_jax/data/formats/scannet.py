@@ -22,6 +22,7 @@ from llrmpp_jax.data.formats.common import Missing, check_frames, present_mask, 
 from llrmpp_jax.data.image_io import image_size, read_depth, read_image
 from llrmpp_jax.data.resample import remap, resize_image
 from llrmpp_jax.data.scene import Scene
+from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.geometry import resize_intrinsics
 
 
@@ -29,18 +30,18 @@ def _read_matrix(path: str, what: str) -> np.ndarray:
     try:
         m = np.loadtxt(path, dtype=np.float64)
     except FileNotFoundError:
-        raise FileNotFoundError(f"ScanNet {what} file not found: {path}") from None
+        raise MissingInputError(f"ScanNet {what} file not found: {path}") from None
     except ValueError as e:
-        raise ValueError(f"ScanNet {what} file {path}: not a 4x4 matrix of numbers ({e})") from None
+        raise UserError(f"ScanNet {what} file {path}: not a 4x4 matrix of numbers ({e})") from None
     if m.shape != (4, 4):
-        raise ValueError(f"ScanNet {what} file {path}: expected a 4x4 matrix, got shape {m.shape}")
+        raise UserError(f"ScanNet {what} file {path}: expected a 4x4 matrix, got shape {m.shape}")
     return m
 
 
 def _k_to_vec(k: np.ndarray, path: str) -> np.ndarray:
     out = np.array([k[0, 0], k[1, 1], k[0, 2], k[1, 2]])
     if not np.isfinite(out).all() or (out[:2] <= 0).any():
-        raise ValueError(f"ScanNet intrinsics file {path}: focal lengths must be finite and > 0, got {out.tolist()}")
+        raise UserError(f"ScanNet intrinsics file {path}: focal lengths must be finite and > 0, got {out.tolist()}")
     return out
 
 
@@ -61,10 +62,10 @@ def read_scannet_scene(
         warning) or raise. Frames with non-finite poses are always skipped, with a warning.
     """
     if resolution not in ("depth", "color"):
-        raise ValueError(f"resolution must be 'depth' or 'color', got {resolution!r}")
+        raise UserError(f"resolution must be 'depth' or 'color', got {resolution!r}")
     pose_dir = os.path.join(scene_dir, "pose")
     if not os.path.isdir(pose_dir):
-        raise FileNotFoundError(f"ScanNet pose folder not found: {pose_dir}")
+        raise MissingInputError(f"ScanNet pose folder not found: {pose_dir}")
     stems = sorted((f[:-4] for f in os.listdir(pose_dir) if f.endswith(".txt")), key=lambda s: (len(s), s))
     stems = stems[::frame_step]
     k_color_path = os.path.join(scene_dir, "intrinsic", "intrinsic_color.txt")
@@ -88,7 +89,7 @@ def read_scannet_scene(
     depth_paths = [depth_paths[i] for i in idx]
     poses = poses[idx]
     if not color_paths:
-        raise ValueError(f"{scene_dir}: empty scene (no frame with colour, depth and a valid pose)")
+        raise UserError(f"{scene_dir}: empty scene (no frame with colour, depth and a valid pose)")
 
     color_hw = image_size(color_paths[0])
     depth_hw = image_size(depth_paths[0])
@@ -106,13 +107,13 @@ def read_scannet_scene(
     def load_color(i: int) -> np.ndarray:
         img = read_image(color_paths[i])
         if img.shape[:2] != color_hw:
-            raise ValueError(f"ScanNet colour image {color_paths[i]} is {img.shape[:2]}, expected {color_hw} like the first frame")
+            raise UserError(f"ScanNet colour image {color_paths[i]} is {img.shape[:2]}, expected {color_hw} like the first frame")
         return resize_image(img, out_hw)
 
     def load_depth(i: int) -> np.ndarray:
         d = read_depth(depth_paths[i], 1e-3)
         if d.shape != depth_hw:
-            raise ValueError(f"ScanNet depth map {depth_paths[i]} is {d.shape}, expected {depth_hw} like the first frame")
+            raise UserError(f"ScanNet depth map {depth_paths[i]} is {d.shape}, expected {depth_hw} like the first frame")
         return remap(d, src, nearest=True)
 
     return Scene(
@@ -131,9 +132,9 @@ def write_scannet_scene(scene: Scene, out_dir: str, image_ext: str = ".png", bit
     a ScanNet export: colour (PNG 16-bit by default for a lossless round trip; ScanNet itself
     uses ``.jpg``), depth in millimetres, poses, and equal colour and depth intrinsics."""
     if not scene.has_depth:
-        raise ValueError(f"write_scannet_scene: scene {scene.name!r} has no depth maps")
+        raise UserError(f"write_scannet_scene: scene {scene.name!r} has no depth maps")
     if (scene.hw != scene.hw[:1]).any() or (scene.intrinsics != scene.intrinsics[:1]).any():
-        raise ValueError(f"write_scannet_scene: scene {scene.name!r} must have one image size and one set of intrinsics")
+        raise UserError(f"write_scannet_scene: scene {scene.name!r} must have one image size and one set of intrinsics")
     n = len(scene)
     write_frames(scene, out_dir, [f"color/{i}{image_ext}" for i in range(n)], [f"depth/{i}.png" for i in range(n)],
                  bits=bits, depth_scale=1e-3)

@@ -1,0 +1,87 @@
+"""The line between a user's mistake and a bug (``llrmpp_jax.errors``, ``cli.main``): a
+``UserError`` or an environment fault is one line and exit status 2; anything else keeps its
+traceback and exits 1."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from llrmpp_jax.errors import MissingInputError, OutOfSpaceError, UserError
+
+# Runs cli.main with the parser's command replaced by one that raises ``exc``.
+_RAISER = textwrap.dedent(
+    """
+    import errno, sys
+    from llrmpp_jax import cli
+    from llrmpp_jax.errors import UserError
+
+    def fail(args):
+        raise {exc}
+
+    build = cli.build_parser
+
+    class Parser:
+        def parse_args(self, argv):
+            args = build().parse_args(argv)
+            args.fn = fail
+            return args
+
+    cli.build_parser = Parser
+    sys.exit(cli.main(["doctor"]))
+    """
+)
+
+
+def _run(code: str, *args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_error_types_are_what_callers_already_catch():
+    assert issubclass(UserError, ValueError)
+    assert issubclass(MissingInputError, FileNotFoundError) and issubclass(MissingInputError, UserError)
+    assert issubclass(OutOfSpaceError, OSError) and issubclass(OutOfSpaceError, UserError)
+
+
+@pytest.mark.parametrize(
+    "exc, message",
+    [
+        ("UserError('--size: width 0 is not a positive multiple of 16')", "--size: width 0"),
+        ("OSError(errno.ENOSPC, 'No space left on device', '/runs/a/ckpt')", "No space left on device"),
+        ("OSError(errno.EFBIG, 'File too large', '/runs/a/ckpt')", "File too large"),
+        ("PermissionError(errno.EACCES, 'Permission denied', '/root/out')", "Permission denied"),
+    ],
+)
+def test_user_and_environment_errors_are_one_line_exit_2(exc, message):
+    res = _run(_RAISER.format(exc=exc))
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
+
+
+@pytest.mark.parametrize("exc", ["ValueError('shapes disagree inside the model')", "KeyError('params')",
+                                 "OSError(errno.EIO, 'Input/output error')"])
+def test_internal_errors_keep_their_traceback_exit_1(exc):
+    res = _run(_RAISER.format(exc=exc))
+    assert res.returncode == 1, res.stderr
+    assert "Traceback (most recent call last)" in res.stderr and "llrmpp: error:" not in res.stderr
+
+
+def test_a_library_check_reaches_the_user_as_one_line(tmp_path):
+    """A real command on a file that is not what it claims: the reader's ``UserError``."""
+    fake = tmp_path / "scene.gs"
+    np.savez(fake, means=np.random.default_rng(0).normal(size=(4, 3)))
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    res = subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "export", "--gaussians", str(fake), "--ply",
+                          str(tmp_path / "out.ply")], capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(fake) in lines[0], res.stderr
+    assert not (tmp_path / "out.ply").exists()
+

@@ -1,0 +1,79 @@
+"""A disk that fills during a checkpoint save (simulated with a file-size limit,
+``RLIMIT_FSIZE``): ``llrmpp train`` stops with one line and exit status 2, no traceback from
+orbax's threads; the previous checkpoint survives and the next run resumes exactly."""
+
+from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+
+from llrmpp_jax.params_io import load_params
+
+# A micro run (tiny model, 32x32 procedural scenes) that checkpoints every step.
+_CONFIG = textwrap.dedent(
+    """
+    from llrmpp_jax import config as C
+    from llrmpp_jax.data.synthetic import ProceduralConfig
+    from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+
+    def get_config():
+        model = C.replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8,
+                                                               max_dist=8.0, scale_bias=-2.5))
+        return ExperimentConfig(
+            name="micro", model=model,
+            stages=(StageConfig("s1", steps={steps}, global_batch=2, num_inputs=2, num_targets=1,
+                                resize_h=32, square_crop=True, lr=1e-3, warmup_steps=1),),
+            data=DataConfig(procedural=ProceduralConfig(height=32, width=32, num_frames=6),
+                            num_eval_scenes=1, workers=1),
+            perceptual_weight=0.0, log_every=1, eval_every=100, checkpoint_every=1,
+        )
+    """
+)
+
+
+def _train(tmp_path, workdir, steps: int, file_size_limit: int | None = None) -> subprocess.CompletedProcess:
+    config = tmp_path / f"micro_{steps}.py"
+    config.write_text(_CONFIG.format(steps=steps))
+
+    def limit():
+        if file_size_limit is not None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (file_size_limit, file_size_limit))
+
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    # Output through pipes: a file-size limit does not apply to them.
+    return subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", str(config),
+                           "--workdir", str(workdir)], capture_output=True, text=True, env=env,
+                          preexec_fn=limit, timeout=600)
+
+
+def _largest_checkpoint_file(workdir) -> int:
+    return max(p.stat().st_size for p in (workdir / "checkpoints").rglob("*") if p.is_file())
+
+
+def test_a_full_disk_during_a_save_is_one_line_and_the_run_resumes_exactly(tmp_path):
+    ref, run = tmp_path / "uninterrupted", tmp_path / "run"
+    assert _train(tmp_path, ref, 4).returncode == 0
+    assert _train(tmp_path, run, 2).returncode == 0
+
+    # Every file may grow to 60% of the largest checkpoint file: the log and TensorBoard
+    # files fit, the next checkpoint does not.
+    res = _train(tmp_path, run, 4, file_size_limit=int(0.6 * _largest_checkpoint_file(run)))
+    assert res.returncode == 2, res.stderr
+    assert "Traceback" not in res.stderr and "ERROR:absl" not in res.stderr, res.stderr
+    errors = [line for line in res.stderr.splitlines() if line.startswith("llrmpp: error:")]
+    assert len(errors) == 1, res.stderr
+    assert "checkpoint step 3 not saved" in errors[0] and "File too large" in errors[0], errors[0]
+    assert "the newest complete checkpoint (step 2) is intact" in errors[0], errors[0]
+    stage_dir = next((run / "checkpoints").iterdir())
+    assert sorted(p.name for p in stage_dir.iterdir()) == ["1", "2"]  # nothing half-written
+
+    assert _train(tmp_path, run, 4).returncode == 0
+    resumed, _ = load_params(str(run))
+    expected, _ = load_params(str(ref))
+    jax.tree.map(np.testing.assert_array_equal, resumed, expected)
