@@ -1,7 +1,7 @@
 """What a model's input-view re-render is made of: all views' Gaussians, the view's own, or one view alone.
 
 Run:  PYTHONPATH=. python experiments/bench_input_views.py --checkpoint pretrained:small
-      PYTHONPATH=. python experiments/bench_input_views.py --checkpoint ~/runs/small --config experiments/small.py --name small_6000
+      PYTHONPATH=. python experiments/bench_input_views.py --checkpoint ~/runs/small --config small --name small_6000
 
 On the experiment's held-out procedural scenes (``--config``, default the checkpoint's own
 ``small.py``), each input view is re-rendered three ways and scored (PSNR against the input):
@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.experiment import EXPERIMENTS_DIR, load_experiment
+from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.metrics import psnr
 from llrmpp_jax.model import reconstruct, render
 from llrmpp_jax.params_io import load_params
@@ -50,7 +50,7 @@ def score(a, b) -> float:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--checkpoint", default="pretrained:small", help="training workdir, params folder or pretrained:NAME")
-    p.add_argument("--config", default=os.path.join(EXPERIMENTS_DIR, "small.py"),
+    p.add_argument("--config", default="small",
                    help="experiment file whose held-out scenes and view counts are used")
     p.add_argument("--name", default=None, help="result name (default: the checkpoint's last path part)")
     args = p.parse_args()

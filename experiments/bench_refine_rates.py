@@ -65,8 +65,8 @@ def parse_variant(text: str) -> tuple[float, float, dict[str, float]]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--config", default=os.path.join(ROOT, "experiments", "small.py"),
-                   help="experiment file: its procedural data and last stage's views (default: small.py)")
+    p.add_argument("--config", default="small",
+                   help="recipe or experiment file: its procedural data and last stage's views (default: small)")
     p.add_argument("--checkpoint", default="pretrained:small",
                    help="training workdir, params folder or pretrained:NAME")
     p.add_argument("--scenes", type=int, default=8, help="validation scenes")

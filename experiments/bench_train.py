@@ -4,7 +4,7 @@ stage-4 step, written as JSON.
 1. **Measured cases** (this machine), each in a fresh subprocess so that the process's
    max RSS belongs to that case alone:
 
-   * ``demo`` -- ``experiments/demo.py`` as it trains (64x64, 4 inputs, 2 targets,
+   * ``demo`` -- the ``demo`` recipe as it trains (64x64, 4 inputs, 2 targets,
      global batch 2, float32, MSE only).
    * ``mid_<size>`` -- the paper architecture shrunk (``config.paper_dl3dv()`` with
      D = 256, d_state 64, 8 blocks ``{1T3M}x2``, decoder width 128; K = 16, F = 32, S = 2,
@@ -39,7 +39,7 @@ stage-4 step, written as JSON.
    median wall time of ``--steps`` steps after one untimed warm-up step, each on a new
    batch (prefetched, so data time is not included) with ``block_until_ready``.
 
-2. **Paper stage 4** (``experiments/dl3dv.py`` stage 4: 32 inputs + 8 targets at 544x960,
+2. **Paper stage 4** (the ``dl3dv`` recipe's stage 4: 32 inputs + 8 targets at 544x960,
    the paper's global batch 64 on 64 GPUs, so 1 scene per device; bf16 compute and
    backbone remat as the experiment file sets; the perceptual term as the file sets it,
    Long-LRM's VGG19, with random weights of its shapes unless the file names weights): the per-device step is lowered from
@@ -99,15 +99,15 @@ GIB = 2.0**30
 
 
 def demo_experiment() -> ExperimentConfig:
-    """``experiments/demo.py`` unchanged."""
-    return load_experiment(os.path.join(HERE, "demo.py"))
+    """The ``demo`` recipe unchanged."""
+    return load_experiment("demo")
 
 
 def mid_experiment(size: int = 256) -> ExperimentConfig:
     """DL3DV stage 1's views (8 inputs, ``size`` x ``size``; the stage's own is 256) on a
     D = 256, 8-block paper-shaped model, 4 targets, batch 1, float32, no perceptual term,
     procedural scenes."""
-    base = load_experiment(os.path.join(HERE, "dl3dv.py"))
+    base = load_experiment("dl3dv")
     paper = C.paper_dl3dv()
     model = C.replace(
         paper,
@@ -161,11 +161,11 @@ def _max_rss_bytes() -> int:
 
 
 def case_experiment(name: str) -> ExperimentConfig:
-    """``"demo"``, ``"small"`` (``experiments/small_cpu.py``) or ``"mid_<size>"``."""
+    """``"demo"``, ``"small"`` (the ``small`` recipe, the shipped model's) or ``"mid_<size>"``."""
     if name == "demo":
         return demo_experiment()
     if name == "small":
-        return load_experiment(os.path.join(HERE, "small_cpu.py"))
+        return load_experiment("small")
     if name.startswith("mid_") and name[4:].isdigit():
         return mid_experiment(int(name[4:]))
     raise ValueError(f"unknown case {name!r}, expected 'demo', 'small' or 'mid_<size>'")
@@ -225,8 +225,8 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
 
 
 def paper_stage4_experiment() -> tuple[ExperimentConfig, StageConfig]:
-    """``experiments/dl3dv.py`` and its stage 4 (32 inputs + 8 targets at 960x540)."""
-    exp = load_experiment(os.path.join(HERE, "dl3dv.py"))
+    """The ``dl3dv`` recipe and its stage 4 (32 inputs + 8 targets at 960x540)."""
+    exp = load_experiment("dl3dv")
     return exp, exp.stages[3]
 
 

@@ -48,7 +48,7 @@ def main() -> None:
     if args.checkpoint:
         params, cfg = load_params(args.checkpoint)
     else:
-        cfg = load_experiment(os.path.join(HERE, "demo.py")).model
+        cfg = load_experiment("demo").model
         params = init_params(jax.random.key(0), cfg, 1, cfg.size_multiple, cfg.size_multiple)
     m = cfg.size_multiple
     scene = procedural_view_scene(params, cfg, seed=0, num_inputs=args.inputs, size=args.input_size)
@@ -75,7 +75,7 @@ def main() -> None:
             print(json.dumps(row), flush=True)
     report = {
         "what": "per-frame render latency of the viewer (ViewRenderer.render, device-synced)",
-        "model": args.checkpoint or "experiments/demo.py model (config.tiny with the demo head), random init",
+        "model": args.checkpoint or "demo recipe model (config.tiny with the demo head), random init",
         "scene": f"procedural seed 0, {args.inputs} inputs at {args.input_size}x{args.input_size}",
         "num_gaussians": int(scene.gaussians.means.shape[1]),
         "repeats": args.repeats,

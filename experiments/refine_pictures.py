@@ -3,7 +3,7 @@
 Run:  python experiments/refine_pictures.py --steps 10 --scenes 3 --out experiments/results/small/refined_10.png
       python experiments/refine_pictures.py --steps 10 --data ../shared/data/beer --size 112x64 --out beer.png
 
-For the first ``--scenes`` held-out scenes of ``experiments/small.py`` (or of the captures at
+For the first ``--scenes`` held-out scenes of the ``small`` recipe (or of the captures at
 ``--data``, split as ``llrmpp eval --data`` splits them: k-means inputs, every 8th frame a
 target; ``--size`` as ``eval --size``, before the config's square crop), one row per target
 view: the target, the model's prediction, the prediction after its Gaussians were refined
@@ -15,14 +15,13 @@ view: the target, the model's prediction, the prediction after its Gaussians wer
 from __future__ import annotations
 
 import argparse
-import os
 
 import numpy as np
 
 from llrmpp_jax.cli import parse_size, with_data
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import baseline_predictions, predict, predict_refined
-from llrmpp_jax.experiment import EXPERIMENTS_DIR, load_experiment, replace
+from llrmpp_jax.experiment import load_experiment, replace
 from llrmpp_jax.pretrained import load_pretrained
 from llrmpp_jax.trainer import eval_samples
 
@@ -36,7 +35,7 @@ def main() -> None:
     ap.add_argument("--size", default=None, help="with --data: view size H or HxW before the square crop")
     ap.add_argument("--out", required=True, help="PNG to write")
     args = ap.parse_args()
-    exp = load_experiment(os.path.join(EXPERIMENTS_DIR, "small.py"))
+    exp = load_experiment("small")
     if args.data:
         exp = with_data(exp, args.data, "auto", args.scenes)
         if args.size:

@@ -1,6 +1,6 @@
 """Ship a trained model inside the package: evaluate it, write its pictures, pack its weights.
 
-Run:  python experiments/ship_weights.py --workdir ~/runs/small --config experiments/small.py --name small
+Run:  python experiments/ship_weights.py --workdir ~/runs/small --config small --name small
 
 Evaluates the newest checkpoint of ``--workdir`` on the experiment's held-out procedural
 scenes (the model beside both baselines, with the diagnostics), writes the picture grids and

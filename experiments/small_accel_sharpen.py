@@ -29,14 +29,12 @@ undo them), a 7-minute ``max_minutes`` per run (a checkpoint, then run again to 
 checkpoint kept (the packed workdir, 14.4 MB, is one file under a lease's 16 MiB limit).
 """
 
-import os
-
 from llrmpp_jax.experiment import load_experiment, replace
 
 
 def get_config():
     """``small.py``'s ``sharpen`` at batch 16 for 2,500 steps (start: ``--init pretrained:small``), 7 minutes per run."""
-    small = load_experiment(os.path.join(os.path.dirname(os.path.abspath(__file__)), "small.py"))
+    small = load_experiment("small")
     stage = replace(small.stages[-1], name="accel_sharpen", steps=2_500, global_batch=16)
     return replace(small, name="small_accel_sharpen", stages=(stage,), max_minutes=7.0, eval_every=500,
                    checkpoint_every=500, keep_checkpoints=1)

@@ -17,7 +17,6 @@ import signal
 import sys
 
 from llrmpp_jax.errors import UserError
-from llrmpp_jax.experiment import EXPERIMENTS_DIR as EXPERIMENTS
 
 
 def _experiment(path: str):
@@ -36,7 +35,7 @@ def _require_checkpoint(checkpoint: str, flag: str = "") -> None:
 
 def _load_params(checkpoint: str, config: str | None):
     """``(params, model config)`` from a training workdir, a params folder (detected) or a
-    shipped ``pretrained:NAME``; ``config`` (an experiment file) is needed only for a bare
+    shipped ``pretrained:NAME``; ``config`` (a recipe or experiment file) is needed only for a bare
     params folder."""
     from llrmpp_jax.params_io import load_params
 
@@ -293,7 +292,7 @@ def cmd_convert(args) -> int:
         return 0
     if not os.path.exists(args.checkpoint):
         raise UserError(f"checkpoint file not found: {args.checkpoint}")
-    cfg = _experiment(args.config or os.path.join(EXPERIMENTS, "long_lrm.py")).model
+    cfg = _experiment(args.config or "long_lrm").model
     count, unused = convert_checkpoint(args.checkpoint, args.out, cfg, allow_unused=args.allow_unused)
     if unused:
         print(f"ignored {len(unused)} key(s) outside the model: {', '.join(unused[:5])}" + (" ..." if len(unused) > 5 else ""))
@@ -365,7 +364,7 @@ def cmd_view(args) -> int:
 
             from llrmpp_jax.model import init_params
 
-            cfg = _experiment(args.config or os.path.join(EXPERIMENTS, "demo.py")).model
+            cfg = _experiment(args.config or "demo").model
             m = cfg.size_multiple
             params = init_params(jax.random.key(0), cfg, 1, m, m)
         else:
@@ -393,7 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     about = ("train an experiment (resumes from the workdir's checkpoints; Ctrl-C or SIGTERM stops after the "
              "current step with a checkpoint, exit status 128 + signal)")
     t = sub.add_parser("train", help=about, description=about)
-    t.add_argument("--config", required=True, help="experiment file, e.g. experiments/dl3dv.py")
+    t.add_argument("--config", required=True, help="recipe (small, demo, dl3dv, scannet, long_lrm) or experiment file")
     t.add_argument("--workdir", required=True, help="checkpoints, TensorBoard logs and train_log.json go here")
     t.add_argument("--init", default=None, metavar="CHECKPOINT",
                    help="fine-tune: start the first stage from these weights (a training workdir, a params folder "
@@ -412,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.set_defaults(fn=cmd_train)
 
     e = sub.add_parser("eval", help="metrics table over held-out scenes, per-scene CSV")
-    e.add_argument("--config", required=True, help="experiment file (its data, stages and model)")
+    e.add_argument("--config", required=True, help="recipe (e.g. small) or experiment file: its data, stages and model")
     e.add_argument("--checkpoint", required=True, help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
     e.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
     e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
@@ -437,7 +436,7 @@ def build_parser() -> argparse.ArgumentParser:
     def capture_args(q, required: bool) -> None:
         q.add_argument("--checkpoint", required=required, default=None,
                        help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
-        q.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+        q.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
         q.add_argument("--format", default="auto", choices=FORMATS, help="format of --scene (default: detected)")
         q.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
         q.add_argument("--inputs", default=None, help="input frame indices instead, e.g. 0,5,9")
@@ -473,12 +472,12 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct or refine")
     x.add_argument("--ply", required=True, help="the PLY file to write")
     x.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
-    x.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+    x.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
     x.set_defaults(fn=cmd_export)
 
     f = sub.add_parser("refine", help="optimise a .gs file's Gaussians against its input views (optimistix)")
     f.add_argument("--checkpoint", required=True, help="the model (a training workdir, a params folder or pretrained:small)")
-    f.add_argument("--config", default=None, help="experiment file; needed only with a bare params folder")
+    f.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
     f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
     f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
     f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
@@ -496,7 +495,7 @@ def build_parser() -> argparse.ArgumentParser:
     csrc = c.add_mutually_exclusive_group(required=True)
     csrc.add_argument("--checkpoint", help="official .pt/.pth or a .npz of the state_dict")
     csrc.add_argument("--vgg19", metavar="PATH", help="torchvision vgg19 state_dict or Long-LRM's matconvnet_vgg19.pt")
-    c.add_argument("--config", default=None, help="experiment whose model matches (default: experiments/long_lrm.py)")
+    c.add_argument("--config", default=None, help="recipe or experiment file whose model matches (default: long_lrm)")
     c.add_argument("--allow-unused", action="store_true", help="convert even if keys outside the model are present")
     c.add_argument("--out", required=True, help="params folder to write")
     c.set_defaults(fn=cmd_convert)

@@ -1,13 +1,13 @@
 """``llrmpp demo``: the project's two jobs on procedural scenes, in about ten minutes on a CPU.
 
 1. **Reconstruct** (:func:`reconstruct_with_shipped`): the shipped model (``pretrained:small``,
-   trained with ``experiments/small.py``) on its held-out procedural scenes (8 inputs -> 2
+   trained with the ``small`` recipe) on its held-out procedural scenes (8 inputs -> 2
    targets): the model beside both baselines (mean colour, nearest input view) with the
    diagnostics, picture grids (inputs, inputs re-rendered, per target the prediction, its
    error, the nearest view and the Gaussians' depth); then the first 4 scenes refined for 10
    steps (the paper's Table 1) against their inputs (:mod:`llrmpp_jax.refine`), held-out PSNR
    and LPIPS and input-view PSNR before and after.
-2. **Train** (:func:`train_from_scratch`): the tiny demo model (``experiments/demo.py``) from
+2. **Train** (:func:`train_from_scratch`): the tiny demo model (the ``demo`` recipe) from
    random weights for a few minutes: the training loss and the held-out PSNR at each
    evaluation, and its picture grids.
 
@@ -26,7 +26,7 @@ import numpy as np
 
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
-from llrmpp_jax.experiment import EXPERIMENTS_DIR, load_experiment, replace
+from llrmpp_jax.experiment import load_experiment, replace
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.pretrained import load_pretrained
 from llrmpp_jax.trainer import eval_samples, train
@@ -38,7 +38,7 @@ def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, r
     holding the first ``refine_scenes`` scenes' mean ``model`` and ``refined_<steps>`` rows
     (:func:`evaluate` with ``refine_steps``); writes ``out/grid_*.png`` and ``out/metrics.json``."""
     os.makedirs(out, exist_ok=True)
-    exp = load_experiment(os.path.join(EXPERIMENTS_DIR, f"{name}.py"))
+    exp = load_experiment(name)
     params, cfg = load_pretrained(name, exp.model)
     samples, names = eval_samples(exp, exp.stages[-1])
     lpips_params = load_lpips_params()
@@ -56,13 +56,13 @@ def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, r
 
 
 def train_from_scratch(out: str, steps: int | None = None, minutes: float | None = None) -> dict:
-    """Part 2 (module docstring): ``experiments/demo.py`` (``steps`` / ``minutes`` override its
+    """Part 2 (module docstring): the ``demo`` recipe (``steps`` / ``minutes`` override its
     budget). Returns ``{"summary", "evals", "loss_curve", "train_seconds"}``; writes
     ``out/grid_*.png``, ``out/metrics.json`` and the training workdir's files under ``out``.
     ``out`` is emptied first: the trainer resumes a workdir's checkpoints, so a second
     ``make demo`` would otherwise "train" no step and show no loss curve."""
     shutil.rmtree(out, ignore_errors=True)
-    exp = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py"))
+    exp = load_experiment("demo")
     if steps:
         exp = replace(exp, stages=tuple(replace(s, steps=steps) for s in exp.stages))
     t0 = time.time()

@@ -1,9 +1,10 @@
 """Experiment configs: model + data + training stages (curriculum) + logging.
 
-An experiment is a Python file in ``experiments/`` with a ``get_config()`` returning an
-:class:`ExperimentConfig` (big_vision style; the file's header gives the run command).
-:func:`load_experiment` imports such a file and validates it before any compile time is
-spent, so a bad config is one clear error line.
+An experiment is a Python file with a ``get_config()`` returning an :class:`ExperimentConfig`
+(big_vision style; the file's header gives the run command): a recipe shipped in
+:mod:`llrmpp_jax.recipes` (``demo``, ``small``, ``dl3dv``, ...), named, or a file of your own.
+:func:`load_experiment` imports one and validates it before any compile time is spent, so a
+bad config is one clear error line.
 """
 
 from __future__ import annotations
@@ -171,10 +172,15 @@ def replace(cfg, **changes):
     return dataclasses.replace(cfg, **changes)
 
 
-def load_experiment(path: str) -> ExperimentConfig:
-    """Import ``path`` (a Python file with ``get_config()``) and return its config."""
+def load_experiment(name_or_path: str) -> ExperimentConfig:
+    """The config of a shipped recipe (``"small"``, ``"demo"``, ...: :mod:`llrmpp_jax.recipes`)
+    or of a Python file with ``get_config()``. Neither: one line listing the recipes."""
+    from llrmpp_jax.recipes import recipe_names, recipe_path
+
+    path = recipe_path(name_or_path) or name_or_path
     if not os.path.isfile(path):
-        raise MissingInputError(f"config file not found: {path}")
+        raise MissingInputError(f"config file not found: {name_or_path} (a file, or a recipe: "
+                                f"{', '.join(recipe_names())})")
     spec = importlib.util.spec_from_file_location(f"llrmpp_experiment_{abs(hash(path))}", path)
     module = importlib.util.module_from_spec(spec)
     try:

@@ -8,7 +8,7 @@ the pixel position ``patch centre + offset``; ``offset = offset_scale * tanh(raw
 pixels (default: within one patch of its own), or ``raw * p`` unbounded with
 ``offset_scale=None`` (the paper's offsets "move freely"; it gives no bound).
 
-The bound does not matter, measured: the demo config (``experiments/demo.py``) trained
+The bound does not matter, measured: the demo config (the ``demo`` recipe) trained
 800 steps, seed 0, scored on its 16 held-out procedural scenes, gives 19.15 dB PSNR /
 0.362 SSIM with ``offset_scale=1`` and 19.18 dB / 0.362 unbounded (mean-colour baseline
 17.29 dB); the training PSNR, averaged per 100 steps, differs by at most 0.37 dB, with

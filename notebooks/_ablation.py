@@ -18,10 +18,10 @@ Three scales (:func:`make_scale`):
   The numbers only show that the pipeline runs. CI runs this scale.
   Both small scales keep the procedural rooms' world units (no per-window rescaling) with
   Gaussians that reach :data:`PROCEDURAL_MAX_DIST` along their rays.
-* ``"cpu"``: the demo model (``experiments/demo.py``: a 64-wide ``{4T}`` backbone, LeCun
+* ``"cpu"``: the demo model (the ``demo`` recipe: a 64-wide ``{4T}`` backbone, LeCun
   head and decoder init) with each table's K, F, canvas, decoder blocks and S, at 64x64 with
   4 input and 2 target views from windows of 6-10 frames of 16-frame paths (held out:
-  8-frame windows), as ``experiments/demo.py`` trains and evaluates, batch 2,
+  8-frame windows), as the ``demo`` recipe trains and evaluates, batch 2,
   :data:`CPU_STEPS` steps (Table 7: 800), 3 seeds (5 for Table 6), 16
   held-out scenes with LPIPS. The budget is the pilot's (``notebooks/_pilot.py``, figures in
   ``notebooks/README.md``). The trainings run
@@ -168,7 +168,7 @@ def smoke_base() -> C.ModelConfig:
 
 
 def cpu_base() -> C.ModelConfig:
-    """The demo model (``experiments/demo.py``), whose recipe was measured on this kind of
+    """The demo model (the ``demo`` recipe), whose recipe was measured on this kind of
     machine (``experiments/README.md``), with the paper's chosen rows: K = 16 Gaussians of
     F = 32 features per token (Table 4) and an ``LLGGG`` decoder of width 256 / 4 with S = 2
     partitions (Tables 5, 6). At 64x64 the K = 16 head gives one Gaussian per half-resolution
@@ -186,7 +186,7 @@ def cpu_base() -> C.ModelConfig:
     the Table 4 canvas-1.0 row (2 scenes x 2 targets x S = 2): 2.19 s with groups of 64,
     1.45 s with 4, 0.97 s with 2; the 32x32 canvas of the other rows gains ~10%. Outputs
     do not depend on it."""
-    base = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+    base = load_experiment("demo").model
     # The tables were run with the demo's earlier head start (every Gaussian at its patch
     # centre, scale_bias -2.5); the demo's grid start needs a square K, and Table 4 has K = 8, 32.
     head = C.replace(base.head, gaussians_per_token=16, feature_dim=32, anchors="centre", scale_bias=-2.5)

@@ -20,7 +20,6 @@ from llrmpp_jax.data.image_io import read_image
 from llrmpp_jax.export_ply import read_ply, standard_fields
 from llrmpp_jax.model import render
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 FOX, BEER = shared_path("data", "fox"), shared_path("data", "beer")
 
 
@@ -191,7 +190,7 @@ def _bad_cases(tmp_path, golden):
     cases["inputs out of range"] = (["--scene", ns, "--inputs", "1,9"], "--inputs: index 9 is out of range")
     cases["size not a multiple"] = (["--scene", ns, "--size", "40"], "--size: height 40 is not a positive multiple of")
     cases["too few frames"] = (["--scene", ns, "--num-inputs", "6"], "fewer than the 6 inputs requested")
-    cases["another architecture"] = (["--scene", ns, "--config", os.path.join(ROOT, "experiments", "demo.py")],
+    cases["another architecture"] = (["--scene", ns, "--config", "demo"],
                                      "first mismatch")
     return ns, params_dir, cases
 

@@ -24,7 +24,9 @@ def _is_experiment(path: str) -> bool:
         return "\ndef get_config(" in f.read()
 
 
-EXPERIMENT_FILES = sorted(p for p in glob.glob(os.path.join(ROOT, "experiments", "*.py")) if _is_experiment(p))
+# The recipes in the package and the experiment files kept in experiments/.
+EXPERIMENT_FILES = sorted(p for d in ("llrmpp_jax/recipes", "experiments")
+                          for p in glob.glob(os.path.join(ROOT, d, "*.py")) if _is_experiment(p))
 
 
 @pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=os.path.basename)
@@ -37,10 +39,10 @@ def test_experiment_files_load(path):
 
 def test_paper_stage_tables():
     """Tables 8 and 9 of the paper, written out by hand."""
-    dl3dv = load_experiment(os.path.join(ROOT, "experiments", "dl3dv.py"))
+    dl3dv = load_experiment("dl3dv")
     got = [(s.num_inputs, s.num_targets, s.resize_h, s.steps, s.global_batch) for s in dl3dv.stages]
     assert got == [(8, 8, 256, 60_000, 256), (8, 8, 512, 10_000, 64), (8, 8, 540, 10_000, 64), (32, 8, 540, 10_000, 64)]
-    scannet = load_experiment(os.path.join(ROOT, "experiments", "scannet.py"))
+    scannet = load_experiment("scannet")
     got = [(s.num_inputs, s.resize_h, s.resize_w, s.steps, s.global_batch) for s in scannet.stages]
     assert got == [(8, 256, None, 20_000, 128), (8, 336, 448, 5_000, 128), (128, 336, 448, 2_000, 64)]
     assert scannet.model.outputs == ("rgb", "depth")
@@ -55,18 +57,18 @@ def _run_cli(*args) -> subprocess.CompletedProcess:
     "args, message",
     [
         (["train", "--config", "no/such/file.py", "--workdir", "/tmp/x"], "config file not found"),
-        (["eval", "--config", "experiments/demo.py", "--checkpoint", "/no/such/dir", "--out", "/tmp/x"],
+        (["eval", "--config", "demo", "--checkpoint", "/no/such/dir", "--out", "/tmp/x"],
          "checkpoint folder not found"),
-        (["eval", "--config", "experiments/demo.py", "--checkpoint", "pretrained:nope", "--out", "/tmp/x"],
+        (["eval", "--config", "demo", "--checkpoint", "pretrained:nope", "--out", "/tmp/x"],
          "no shipped model 'nope'"),
-        (["render", "--config", "experiments/demo.py", "--checkpoint", "/tmp", "--scene", "/no/scene",
+        (["render", "--config", "demo", "--checkpoint", "/tmp", "--scene", "/no/scene",
           "--out", "/tmp/x"], "scene not found"),
         (["convert", "--checkpoint", "/no/such.pt", "--out", "/tmp/x"], "checkpoint file not found"),
-        (["train", "--config", "experiments/demo.py", "--workdir", "/tmp/x", "--init", "/no/such/dir"],
+        (["train", "--config", "demo", "--workdir", "/tmp/x", "--init", "/no/such/dir"],
          "--init: checkpoint folder not found"),
-        (["train", "--config", "experiments/dl3dv.py", "--workdir", "/tmp/x"],
+        (["train", "--config", "dl3dv", "--workdir", "/tmp/x"],
          "uses Long-LRM's VGG19 perceptual loss and needs its weights"),
-        (["train", "--config", "experiments/scannet.py", "--workdir", "/tmp/x", "--vgg16"],
+        (["train", "--config", "scannet", "--workdir", "/tmp/x", "--vgg16"],
          "dataset path does not exist"),  # VGG16 opted into: the next check speaks
     ],
 )
@@ -120,7 +122,7 @@ def test_files_that_are_not_what_they_claim_are_one_line(tmp_path):
 
 def test_an_empty_checkpoint_folder_is_one_line_and_nothing_after(tmp_path):
     """orbax's start-up clean-up thread is joined, so no traceback follows the error at exit."""
-    res = _run_cli("eval", "--config", "experiments/demo.py", "--checkpoint", str(tmp_path), "--out",
+    res = _run_cli("eval", "--config", "demo", "--checkpoint", str(tmp_path), "--out",
                    str(tmp_path / "ev"))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
@@ -424,7 +426,7 @@ def test_train_init_of_another_architecture_is_one_line(tmp_path):
 
 def test_workdir_params_come_from_the_curriculum_s_last_stage(tmp_path):
     """Stage ``a`` trained with a config naming only ``a``, then ``b`` with the curriculum
-    ``(a, b)`` (as experiments/small_accel.py, then small.py): a workdir loads ``b``'s params,
+    ``(a, b)`` (as the ``small`` recipe's first stage was, then the whole): a workdir loads ``b``'s params,
     though ``a``'s folder sorts first and its config does not know ``b``."""
     import dataclasses
 

@@ -87,11 +87,11 @@ def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
 
 @pytest.mark.slow
 def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
-    """The model in the package: checksum, the config of experiments/small.py, provenance
+    """The model in the package: checksum, the config of the ``small`` recipe, provenance
     (the experiment it was fine-tuned with, ``small_accel_sharpen.py``, run twice: it also made
     the weights it started from; all of that model),
     and its recorded forward pass reproduced <= 1e-5 (float32 from the float16 file)."""
-    exp = load_experiment(os.path.join(ROOT, "experiments", "small.py"))
+    exp = load_experiment("small")
     params, cfg = load_params("pretrained:small", exp.model)
     assert cfg == exp.model
     with open(os.path.join(WEIGHTS_DIR, "small.json")) as f:

@@ -48,7 +48,7 @@ def test_llrmpp_train_on_a_busy_workdir_is_one_line(tmp_path):
     proc = _holder(work)
     try:
         t0 = time.time()
-        res = subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", "experiments/demo.py",
+        res = subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", "demo",
                               "--workdir", work], capture_output=True, text=True, timeout=300,
                              cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     finally:

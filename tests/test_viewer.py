@@ -30,7 +30,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 @pytest.fixture(scope="module")
 def demo():
     """The demo's tiny model (random init) and procedural scene 3 reconstructed by it."""
-    cfg = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+    cfg = load_experiment("demo").model
     params = init_params(jax.random.key(7), cfg, 2, 32, 32)
     return params, cfg, procedural_view_scene(params, cfg, seed=3)
 
@@ -310,7 +310,7 @@ def _saved_scene(rng, cfg, feature_dim: int):
 
 
 def test_saved_view_scene(rng):
-    cfg = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+    cfg = load_experiment("demo").model
     saved = _saved_scene(rng, cfg, cfg.head.feature_dim)
     photos = rng.uniform(-0.1, 1.1, (2, 32, 32, 3)).astype(np.float32)
     scene = saved_view_scene(saved, photos)
@@ -330,7 +330,7 @@ def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):
     from llrmpp_jax.model import expected_shapes
     from llrmpp_jax.params_io import save_params
 
-    cfg = load_experiment(os.path.join(ROOT, "experiments", "demo.py")).model
+    cfg = load_experiment("demo").model
 
     def one_line(argv, pattern):
         assert main(argv) == 2

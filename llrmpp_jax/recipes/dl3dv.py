@@ -1,8 +1,8 @@
 """Long-LRM++ on DL3DV-10K: the paper's four-stage curriculum (paper Table 8).
 
-Run:  llrmpp train --config experiments/dl3dv.py --workdir runs/dl3dv --vgg19 vgg19.pth
-      (multi-host: add --distributed on every host; data path: edit DATA below)
-Eval: llrmpp eval --config experiments/dl3dv.py --checkpoint runs/dl3dv --out runs/dl3dv/eval
+Run:  llrmpp train --config dl3dv --workdir runs/dl3dv --vgg19 vgg19.pth
+      (multi-host: add --distributed on every host; data elsewhere: a copy of this file with DATA edited, as --config)
+Eval: llrmpp eval --config dl3dv --checkpoint runs/dl3dv --out runs/dl3dv/eval
 
 | stage | inputs | targets | resolution | steps | global batch | (paper: GPUs) |
 |-------|--------|---------|------------|-------|--------------|---------------|

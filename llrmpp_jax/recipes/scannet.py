@@ -1,7 +1,7 @@
 """Long-LRM++ on ScanNetv2, colour + depth: the paper's three-stage curriculum (Table 9).
 
-Run:  llrmpp train --config experiments/scannet.py --workdir runs/scannet --vgg19 vgg19.pth
-Eval: llrmpp eval --config experiments/scannet.py --checkpoint runs/scannet --format scannet \
+Run:  llrmpp train --config scannet --workdir runs/scannet --vgg19 vgg19.pth
+Eval: llrmpp eval --config scannet --checkpoint runs/scannet --format scannet \
           --data data/scannet/val --out runs/scannet/eval
 
 | stage | inputs | targets | resolution | steps | global batch | (paper: GPUs) |

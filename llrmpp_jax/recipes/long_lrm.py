@@ -3,7 +3,7 @@ checkpoint, so a PyTorch checkpoint converts and runs with no config of your own
 
 Convert:      llrmpp convert --checkpoint checkpoint_000010000.pt --out runs/long_lrm_params
 Reconstruct:  llrmpp reconstruct --checkpoint runs/long_lrm_params --scene data/fox --out fox.gs
-Train:        llrmpp train --config experiments/long_lrm.py --data PATH --workdir runs/long_lrm
+Train:        llrmpp train --config long_lrm --data PATH --workdir runs/long_lrm
 
 Architecture (reference facts §1.1, ``configs/7m1t_tm.yaml``): 24 blocks ``mmmmmmmt``, dims
 [256, 1024] with the token merge before block 8, patch 8 (16 after the merge), no QK-norm,

@@ -2,7 +2,7 @@
 
 Run:  make demo                      (sets up .venv, then the line below)
       llrmpp demo --out runs/demo     (the shipped model, then this training; llrmpp_jax/demo.py)
-      llrmpp train --config experiments/demo.py --workdir runs/demo_train
+      llrmpp train --config demo --workdir runs/demo_train
 
 Choices for a 2-core CPU: 64x64 images, 4 input and 2 target views, a 64-wide 4-block
 attention-only backbone ({4T}), K=4 Gaussians of F=16 features per token, an "LG" decoder of
