@@ -180,9 +180,29 @@ def _reconstruct(args):
     return params, rec
 
 
+def _poses(args, out: str):
+    """Run COLMAP on ``--images`` / ``--video`` into the capture ``out``; print its report."""
+    from llrmpp_jax.capture.poses import PosesConfig, estimate_poses
+
+    cfg = PosesConfig(matcher=args.matcher, camera_model=args.camera_model, max_image_size=args.max_image_size)
+    report = estimate_poses(args.images, out, cfg, video=args.video, fps=args.fps,
+                            progress=lambda line: print(line, flush=True))
+    print("\n".join(report.lines()), flush=True)
+    return report
+
+
+def cmd_poses(args) -> int:
+    _poses(args, args.out)
+    print(f"wrote the COLMAP capture {args.out} (use it with --scene)")
+    return 0
+
+
 def cmd_reconstruct(args) -> int:
     from llrmpp_jax.capture import save_gs
 
+    if args.images or args.video:
+        args.scene = args.capture or os.path.splitext(args.out)[0] + "_capture"
+        _poses(args, args.scene)
     _, rec = _reconstruct(args)
     save_gs(args.out, rec.saved)
     if args.timing:
@@ -332,6 +352,9 @@ def cmd_view(args) -> int:
     from llrmpp_jax.viewer.server import Viewer, ViewerSettings, check_port
 
     check_port(args.host, args.port)  # before any loading or compiling
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        print(f"llrmpp view: serving on {args.host}: anyone who can reach port {args.port} sees the scene and its "
+              "photos", flush=True)
     if args.gaussians:
         from llrmpp_jax.capture import load_gs
         from llrmpp_jax.capture.render import frame_photos
@@ -383,6 +406,7 @@ def cmd_view(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from llrmpp_jax.capture.poses import CAMERA_MODELS
     from llrmpp_jax.capture.render import PATHS
     from llrmpp_jax.data.formats import FORMATS
 
@@ -446,8 +470,32 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--no-normalize", action="store_true", help="keep the capture's world frame (no Long-LRM normalisation)")
         q.add_argument("--repeats", type=int, default=3, help="timed reconstruction runs (the median is reported)")
 
-    rc = sub.add_parser("reconstruct", help="capture -> Gaussians (.gs), with a camera report and timings")
-    rc.add_argument("--scene", required=True, help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)")
+    def poses_args(q) -> None:
+        q.add_argument("--fps", type=float, default=2.0, help="--video: frames extracted per second (default 2)")
+        q.add_argument("--matcher", default="auto", choices=("auto", "sequential", "exhaustive"),
+                       help="image pairs to match: sequential (video, ordered photos), exhaustive (every pair); "
+                            "auto: sequential for a video or over 150 photos")
+        q.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,
+                       help="COLMAP camera model (shared when all photos have one size)")
+        q.add_argument("--max-image-size", type=int, default=1600, help="longest side (px) for feature extraction")
+
+    ps = sub.add_parser("poses", help="photos or a video -> a COLMAP capture (camera poses by pycolmap)")
+    src = ps.add_mutually_exclusive_group(required=True)
+    src.add_argument("--images", default=None, help="folder of photos")
+    src.add_argument("--video", default=None, help="a video file (frames extracted with ffmpeg)")
+    poses_args(ps)
+    ps.add_argument("--out", required=True, help="capture folder to write (images/, sparse/0/, database.db)")
+    ps.set_defaults(fn=cmd_poses)
+
+    rc = sub.add_parser("reconstruct", help="capture (or photos / a video) -> Gaussians (.gs), with a camera report "
+                                            "and timings")
+    src = rc.add_mutually_exclusive_group(required=True)
+    src.add_argument("--scene", default=None, help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)")
+    src.add_argument("--images", default=None, help="folder of photos without poses: run llrmpp poses first")
+    src.add_argument("--video", default=None, help="a video without poses: extract frames, run llrmpp poses first")
+    rc.add_argument("--capture", default=None, help="with --images/--video: where the poses go "
+                                                   "(default: next to --out, <name>_capture)")
+    poses_args(rc)
     capture_args(rc, required=True)
     rc.add_argument("--timing", default=None, help="also write the timings to this JSON file")
     rc.add_argument("--out", required=True, help="the .gs file to write")
@@ -528,7 +576,8 @@ def build_parser() -> argparse.ArgumentParser:
     capture_args(w, required=False)
     w.add_argument("--random-init", action="store_true",
                    help="with --procedural and no --checkpoint: an untrained model of --config (default: the demo's)")
-    w.add_argument("--host", default="0.0.0.0", help="interface to serve on (default: all)")
+    w.add_argument("--host", default="127.0.0.1",
+                   help="interface to serve on (default: this machine only; 0.0.0.0 shares it on the network)")
     w.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
     w.add_argument("--height", type=int, default=256, help="render height (px) once the camera stops")
     w.add_argument("--moving-height", type=int, default=128, help="render height (px) while the camera moves")

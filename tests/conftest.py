@@ -56,8 +56,10 @@ def rng(request) -> np.random.Generator:
 
 def shared_path(*parts: str) -> str:
     """Path inside ``../shared``; skips the test (or, called at import, the module) if the
-    folder is absent."""
+    folder is absent -- except under ``CI=true``, where that fails the test."""
     p = os.path.join(SHARED, *parts)
     if not os.path.exists(p):
+        if os.environ.get("CI"):  # CI has ../shared beside the clone: its absence is a failure
+            pytest.fail(f"CI=true but shared data not found: {p} (clone next to ../shared)", pytrace=False)
         pytest.skip(f"shared data not found: {p}", allow_module_level=True)
     return p
