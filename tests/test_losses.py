@@ -84,7 +84,7 @@ def test_stage_perceptual_weight_overrides_the_experiments(rng, vgg19):
     from llrmpp_jax import config as C
     from llrmpp_jax.experiment import ExperimentConfig, StageConfig
     from llrmpp_jax.model import init_params, reconstruct, render
-    from llrmpp_jax.trainer import load_perceptual, make_loss_fn
+    from llrmpp_jax.objective import load_perceptual, make_loss_fn
     from test_model import _scene
 
     sd, params = vgg19

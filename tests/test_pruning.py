@@ -91,7 +91,7 @@ def test_training_and_evaluation_prune_and_log_usage(key):
     """Colour model with pruning: the evaluator renders the pruned set (its key), the train
     loss renders with pruning and logs gaussian_usage."""
     from llrmpp_jax.evaluate import predict
-    from llrmpp_jax.trainer import make_loss_fn
+    from llrmpp_jax.objective import make_loss_fn
 
     cfg = C.replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0,
                                                          prune_ratio=0.6, prune_random_ratio=0.1))
