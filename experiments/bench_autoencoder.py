@@ -38,8 +38,9 @@ from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.experiment import EXPERIMENTS_DIR, StageConfig, load_experiment
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.gaussians import Gaussians
-from llrmpp_jax.model import LongLRMPP, append_target_rays, init_params, partition_logits, reconstruct, render
+from llrmpp_jax.model import LongLRMPP, append_target_rays, init_params, partition_logits, reconstruct
 from llrmpp_jax.nn.initializers import parse_init_std
+from llrmpp_jax.objective import make_objective
 from llrmpp_jax.trainer import optimizer_config
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "learning")
@@ -116,13 +117,14 @@ def main() -> None:
     opt_cfg = optimizer_config(stage)
     optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
 
+    objective = make_objective(cfg)  # MSE
+
     def loss_fn(params, batch, key):
-        del key
+        if args.canvas == "splat":  # the training objective with the input view as the target
+            return objective(params, {**batch, **{f"target_{k}": batch[f"input_{k}"]
+                                                 for k in ("images", "c2w", "intrinsics")}}, key)
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
-        if args.canvas == "ideal":
-            rgb = ideal_canvas_render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"])
-        else:
-            rgb = render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"], SIZE, SIZE).images["rgb"]
+        rgb = ideal_canvas_render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"])
         return rgb_loss(rgb.reshape(-1, SIZE, SIZE, 3),
                         batch["input_images"].reshape(-1, SIZE, SIZE, 3), None, perceptual_weight=0.0)
 

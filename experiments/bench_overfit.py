@@ -50,11 +50,10 @@ from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.synthetic import procedural_layout, procedural_scene
 from llrmpp_jax.evaluate import baseline_predictions, gaussian_statistics, picture_grid
 from llrmpp_jax.experiment import StageConfig
-from llrmpp_jax.gaussian_depth import gaussian_depth_loss
-from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.metrics import depth_metrics, psnr
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.initializers import parse_init_std
+from llrmpp_jax.objective import LossWeights, make_objective
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.refine import heldout_psnr, refine
 from llrmpp_jax.trainer import optimizer_config
@@ -253,26 +252,9 @@ def main() -> None:
     opt_cfg = optimizer_config(stage)
     optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
 
-    def loss_fn(params, batch, key):
-        del key
-        g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
-        out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], args.res, args.res,
-                     cfg.outputs)
-        loss, metrics = rgb_loss(out.images["rgb"].reshape(-1, args.res, args.res, 3),
-                                 batch["target_images"].reshape(-1, args.res, args.res, 3), None,
-                                 perceptual_weight=0.0)
-        if args.decoder_depth_weight:
-            d_loss, _ = depth_loss(out.images["depth"][..., 0].reshape(-1, args.res, args.res),
-                                   batch["target_depth"].reshape(-1, args.res, args.res),
-                                   batch["target_intrinsics"].reshape(-1, 4),
-                                   grad_weight=args.depth_aux_weight, normal_weight=args.depth_aux_weight)
-            loss = loss + args.decoder_depth_weight * d_loss
-            metrics = dict(metrics, depth_loss=d_loss)
-        if args.depth_weight:
-            d_loss, _ = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"],
-                                            batch["target_depth"], cfg)
-            loss = loss + args.depth_weight * d_loss
-        return loss, metrics
+    # MSE, the decoder's depth loss and the Gaussians' own depth loss, as the command line weighs them
+    loss_fn = make_objective(cfg, LossWeights(depth=args.decoder_depth_weight, depth_grad=args.depth_aux_weight,
+                                              depth_normal=args.depth_aux_weight, gaussian_depth=args.depth_weight))
 
     mesh = T.make_data_mesh()
     key = jax.random.key(0)
