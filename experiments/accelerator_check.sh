@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # One accelerator's speed checks in under 9 minutes, compiles included: `llrmpp doctor`,
 # the paper's Table-1 cases (reconstruct at 16/32/64 inputs and render at 544x960,
-# llrmpp_jax/bench_paper.py), the stage-4 training step (cuDNN attention,
-# experiments/bench_paper_step.py), then profiles of scaled-down programs (one reconstruct +
+# llrmpp_jax/benchmarks/paper.py), the stage-4 training step (cuDNN attention,
+# llrmpp_jax/benchmarks/paper_step.py), then profiles of scaled-down programs (one reconstruct +
 # render of 8 inputs; one stage-3 step, 8 + 8 views at 544x960) reduced to per-phase and top-30
 # op tables (llrmpp_jax/profiling.py); last, the figures beside the paper's and the goals.
 #
@@ -56,7 +56,7 @@ limit_of() {  # limit_of PART: its time limit (LIMIT_<PART> or the default above
 # The measured figures beside the paper's A100 figures and the per-chip goals (argument: OUT_DIR).
 read -r -d '' summary_py <<'EOF'
 import json, os, sys
-from llrmpp_jax.bench_paper import paper_comparison
+from llrmpp_jax.benchmarks.paper import paper_comparison
 def load(path):
     path = os.path.join(sys.argv[1], path)
     return json.load(open(path)) if os.path.exists(path) else None
@@ -96,14 +96,14 @@ fi
 for part in $parts; do
   case $part in
     environment) run_part environment bash -c 'nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv \
-      || echo "no nvidia-smi"; "$0" -c "import json; from llrmpp_jax.bench import environment as e; print(json.dumps(e()))"' \
+      || echo "no nvidia-smi"; "$0" -c "import json; from llrmpp_jax.benchmarks.measure import environment as e; print(json.dumps(e()))"' \
       "$py" ;;
     doctor) run_part doctor "$py" -m llrmpp_jax.cli doctor ;;
     model) run_part model "$py" -m llrmpp_jax.cli bench --scale "$scale" --only model --out "$out/model" ;;
     step) run_part step "$py" -m llrmpp_jax.cli bench --scale "$scale" --only paper_step --out "$out/step" ;;
-    profile_model) run_part profile_model "$py" experiments/bench_model.py --scale "$scale" --profile \
+    profile_model) run_part profile_model "$py" -m llrmpp_jax.benchmarks.model --scale "$scale" --profile \
       --out "$out/profile_model.json" ;;
-    profile_step) run_part profile_step "$py" experiments/bench_paper_step.py --scale "$scale" --profile \
+    profile_step) run_part profile_step "$py" -m llrmpp_jax.benchmarks.paper_step --scale "$scale" --profile \
       --out "$out/profile_step.json" ;;
     *) echo "=== $part: unknown part, expected some of: environment doctor model profile_model step profile_step" \
       | tee -a "$log" ;;

@@ -81,20 +81,21 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import psutil
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
-from llrmpp_jax.convert.vgg import vgg_layers
+from llrmpp_jax.benchmarks.measure import memory_analysis_bytes
+from llrmpp_jax.benchmarks.paper_step import (
+    PAPER_STAGE4_DEVICES, make_step, paper_stage4_experiment, perceptual_for_compile,
+)
 from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.model import init_params, reconstruct
 from llrmpp_jax.nn.backbone import count_params, parse_block_pattern
-from llrmpp_jax.trainer import batch_config, load_perceptual, make_loss_fn, optimizer_config
+from llrmpp_jax.trainer import batch_config
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-PAPER_STAGE4_DEVICES = 64  # paper Table 8: stage 4 trains a global batch of 64 on 64 GPUs
 GIB = 2.0**30
 
 
@@ -128,32 +129,12 @@ def with_remat(model: C.ModelConfig) -> C.ModelConfig:
                      decoder=C.replace(model.decoder, remat=True))
 
 
-def make_step(exp: ExperimentConfig, stage: StageConfig,
-              vgg_params: dict | None) -> tuple[T.step.StepFn, optax.GradientTransformation]:
-    """The trainer's per-device step for ``stage`` and its optimizer (settings as ``trainer.train``)."""
-    opt_cfg = optimizer_config(stage)
-    optimizer = T.make_optimizer(opt_cfg)
-    step = T.make_train_step(make_loss_fn(exp, vgg_params), optimizer, T.make_schedule(opt_cfg),
-                             compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
-    return step, optimizer
-
-
 # XLA:CPU's default concurrency-optimised scheduler runs every remat'd block's recomputation
 # early in the backward pass (XLA:CPU drops jax.checkpoint's optimisation barriers before
 # scheduling), so all blocks' recomputed activations are alive at once and remat saves
 # nothing (mid_256 with remat: 9.3 GB temp; 4.8 GB with the memory-minimising scheduler).
 # Set for this process and the measured cases (children inherit it); other backends ignore it.
 CPU_MEMORY_SCHEDULER = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-
-
-def memory_analysis_bytes(compiled) -> dict[str, int]:
-    """XLA's ``memory_analysis()`` of a compiled step: argument, output, alias and temp bytes,
-    ``xla_total_bytes`` (their sum without alias) and ``xla_peak_bytes`` (total - alias)."""
-    ma = compiled.memory_analysis()
-    out = {k: int(getattr(ma, f"{k}_size_in_bytes")) for k in ("argument", "output", "alias", "temp")}
-    out["xla_total_bytes"] = out["argument"] + out["output"] + out["temp"]
-    out["xla_peak_bytes"] = out["xla_total_bytes"] - out["alias"]
-    return out
 
 
 def _max_rss_bytes() -> int:
@@ -224,12 +205,6 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     }
 
 
-def paper_stage4_experiment() -> tuple[ExperimentConfig, StageConfig]:
-    """The ``dl3dv`` recipe and its stage 4 (32 inputs + 8 targets at 960x540)."""
-    exp = load_experiment("dl3dv")
-    return exp, exp.stages[3]
-
-
 def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: dict | None):
     """Stage 4's per-device step (closing over ``vgg_params``) and its inputs as
     ShapeDtypeStructs in the pmap layout: ``(step, state, batch, (b, v, t, h, w))``."""
@@ -250,23 +225,6 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
     if "depth" in exp.model.outputs:
         batch["target_depth"] = f32(t, h, w)
     return step_fn, jax.tree.map(lead, state), batch, (b, v, t, h, w)
-
-
-def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
-    """The perceptual net's params for a benchmark step: the real ones where the experiment
-    names them, else (VGG19 without ``vgg19_path``) He-normal random weights (seed 0) of
-    VGG19's conv1_1..conv5_2 shapes: a step's memory and time depend on shapes only.
-
-    Not zeros: with all-zero VGG weights the stage-4 step's perceptual term came back NaN
-    on some runs and finite on others (jax 0.10.2, CPU; 2 inputs of 32x64), so every step
-    was skipped as non-finite; random weights gave finite losses every time.
-    """
-    if exp.perceptual_net != "vgg19" or exp.vgg19_path or not exp.perceptual_weight:
-        return load_perceptual(exp)
-    rng = np.random.default_rng(0)
-    return {name: {"kernel": jnp.asarray(rng.normal(0.0, np.sqrt(2.0 / (9 * cin)), (3, 3, cin, cout)), jnp.float32),
-                   "bias": jnp.zeros((cout,), jnp.float32)}
-            for name, _, cin, cout in vgg_layers("vgg19")[:14]}
 
 
 def compile_paper() -> dict:

@@ -24,7 +24,7 @@ Run:  taskset -c 1 python experiments/cost_table.py          # ~1 min on one cor
    bytes include the [heads, L, L] logits a flash kernel (cuDNN) never writes; XLA:CPU
    computes bf16 matrix products in float32, and the converts it adds make the bytes of
    the bf16 pieces an overestimate for a GPU (up to ~4x for the backbone's linears).
-2. **Programs**: matrix-multiply FLOPs (``bench_measure.matmul_flops``, tracing only, no
+2. **Programs**: matrix-multiply FLOPs (``benchmarks.measure.matmul_flops``, tracing only, no
    recomputation) of reconstruct at 16/32/64 inputs, one render and the stage-4 step's
    forward + backward, the seconds they take at the H100's peak, and the paper's A100
    times: the efficiency each implies.
@@ -35,7 +35,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -43,8 +42,9 @@ import jax
 import jax.numpy as jnp
 
 from llrmpp_jax import config as C
-from llrmpp_jax.bench_measure import PEAK_BF16_TFLOPS, markdown_table, matmul_flops, xla_cost
-from llrmpp_jax.bench_paper import PAPER_A100, counting_config, train_step_model_flops
+from llrmpp_jax.benchmarks.measure import PEAK_BF16_TFLOPS, markdown_table, matmul_flops, xla_cost
+from llrmpp_jax.benchmarks.paper import PAPER_A100, counting_config, train_step_model_flops
+from llrmpp_jax.benchmarks.paper_step import paper_stage4_experiment
 from llrmpp_jax.convert.vgg import vgg_layers
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.losses import perceptual_loss
@@ -55,9 +55,6 @@ from llrmpp_jax.nn.transformer import TransformerBlock
 from llrmpp_jax.splat.binning import bin_gaussians
 from llrmpp_jax.splat.composite import composite
 from llrmpp_jax.splat.projection import project_gaussians
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_train import paper_stage4_experiment  # noqa: E402
 
 H100_FLOPS = PEAK_BF16_TFLOPS["H100"] * 1e12
 # Float32 matrix products run on the tensor cores as TF32 (XLA:GPU's default precision,

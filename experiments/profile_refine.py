@@ -13,7 +13,7 @@ calls with ``jax.profiler`` (:func:`llrmpp_jax.profiling.profile_program`): mill
 per call per phase (projection, binning, sort, composite forward and backward, decoder,
 loss, ...) and the top ops. Programs: the refinement objective's value and gradient on
 ``--views-per-step`` input views (what one update computes; Adam's update is negligible),
-and ``render_features`` forward and forward+backward of ``experiments/bench_splat.py``'s
+and ``render_features`` forward and forward+backward of ``llrmpp_jax.benchmarks.splat``'s
 scene (100k Gaussians, 128x128, F=32). Writes JSON and prints a Markdown table.
 """
 
@@ -23,7 +23,6 @@ import argparse
 import json
 import os
 import platform
-import sys
 
 import jax
 import jax.numpy as jnp
@@ -59,9 +58,7 @@ def refine_step_profile(args) -> dict:
 
 
 def splat_profiles(args) -> list[dict]:
-    sys.path.insert(0, os.path.dirname(__file__))
-    from bench_splat import make_scene
-
+    from llrmpp_jax.benchmarks.splat import make_scene
     from llrmpp_jax.splat import SplatConfig, render_features
 
     n, (wd, ht) = 100_000, (128, 128)

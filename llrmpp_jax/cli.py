@@ -328,8 +328,8 @@ def cmd_demo(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from llrmpp_jax.bench import BENCHMARKS, run_benchmarks
-    from llrmpp_jax.bench_paper import parse_hw, parse_views
+    from llrmpp_jax.benchmarks.suite import BENCHMARKS, run_benchmarks
+    from llrmpp_jax.benchmarks.paper import parse_hw, parse_views
 
     only = tuple(args.only.split(",")) if args.only else BENCHMARKS
     views = parse_views(args.views) if args.views else None

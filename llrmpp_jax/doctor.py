@@ -147,7 +147,7 @@ CHECKS: dict[str, tuple[Callable[[], float], float]] = {
 
 def environment_lines() -> list[str]:
     """Versions, backend, devices and the default matmul precision, one per line."""
-    from llrmpp_jax.bench_measure import environment
+    from llrmpp_jax.benchmarks.measure import environment
 
     env = environment()
     return [

@@ -18,8 +18,6 @@ from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.synthetic import ProceduralConfig
 from llrmpp_jax.errors import MissingInputError, UserError
 
-# The repository's experiment files (demo.py, small.py, the paper's curricula).
-EXPERIMENTS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
 DATA_KINDS = ("procedural", "auto", "long_lrm", "nerfstudio", "colmap", "scannet", "re10k")
 
 

@@ -12,16 +12,14 @@ import jax.numpy as jnp
 import pytest
 
 from llrmpp_jax import config as C
-from llrmpp_jax.bench import attention_benchmark
-from llrmpp_jax.bench_measure import matmul_flops, peak_bf16_flops, throughput, timed, xla_cost
-from llrmpp_jax.bench_paper import (
+from llrmpp_jax.benchmarks.attention import attention_benchmark
+from llrmpp_jax.benchmarks.measure import matmul_flops, peak_bf16_flops, throughput, timed, xla_cost
+from llrmpp_jax.benchmarks.paper import (
     counting_config, paper_comparison, profile_markdown, profile_reconstruct_render, run_table1,
 )
 from llrmpp_jax.cli import main
 from llrmpp_jax.model import init_params, reconstruct
 from llrmpp_jax.trainer import make_loss_fn
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.mark.parametrize(
@@ -184,16 +182,16 @@ def test_profile_counts_a_loop_once():
 
 
 @pytest.mark.slow
-def test_paper_step_at_cpu_scale(tmp_path, monkeypatch):
-    """``bench_paper_step.py --scale cpu`` (config.tiny(), stage 4's bf16 step with the VGG19
-    term, one device): the step ran, nothing was skipped, every documented number is
+def test_paper_step_at_cpu_scale(tmp_path):
+    """``python -m llrmpp_jax.benchmarks.paper_step --scale cpu`` (config.tiny(), stage 4's bf16
+    step with the VGG19 term, one device): the step ran, nothing was skipped, every documented number is
     finite and positive, and its model FLOPs (forward + backward) are 2-3x the loss's
     forward alone (a product's backward is one more product per operand that needs a
     gradient: 2x for the first layer, 3x for the rest; the targets' VGG pass has none)."""
     out = tmp_path / "step.json"
     env = {**os.environ, "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
            "JAX_PLATFORMS": "cpu"}
-    subprocess.run([sys.executable, os.path.join(ROOT, "experiments", "bench_paper_step.py"), "--scale", "cpu",
+    subprocess.run([sys.executable, "-m", "llrmpp_jax.benchmarks.paper_step", "--scale", "cpu",
                     "--steps", "1", "--size", "32x32", "--out", str(out)], check=True, env=env, capture_output=True)
     case = json.loads(out.read_text())["cases"]["blockwise"]
     assert "failed" not in case, case
@@ -202,8 +200,7 @@ def test_paper_step_at_cpu_scale(tmp_path, monkeypatch):
     assert case["skipped_total"] == 0 and case["peak_fraction"] is None and case["model"] == "tiny"
     assert case["memory_analysis"]["temp"] > 0 and case["size"] == [32, 32]
 
-    monkeypatch.syspath_prepend(os.path.join(ROOT, "experiments"))
-    from bench_train import paper_stage4_experiment, perceptual_for_compile
+    from llrmpp_jax.benchmarks.paper_step import paper_stage4_experiment, perceptual_for_compile
 
     exp, _ = paper_stage4_experiment()
     exp = C.replace(exp, model=counting_config(C.tiny()))

@@ -1,13 +1,25 @@
-"""The package stands alone: its recipes load by name."""
+"""The package stands alone: recipes load by name, benchmarks run as package modules, and no
+module reaches for the repository's ``experiments/`` folder."""
 
 import ast
+import importlib
 import os
 
 import pytest
 
+import llrmpp_jax
+from llrmpp_jax.benchmarks.suite import BENCHMARKS
 from llrmpp_jax.cli import main
 from llrmpp_jax.experiment import ExperimentConfig, load_experiment
 from llrmpp_jax.recipes import recipe_names, recipe_path
+
+PACKAGE = os.path.dirname(os.path.abspath(llrmpp_jax.__file__))
+
+# String constants in the package that name a path under experiments/ for a reason other
+# than reading this checkout's files: (module, string) -> why.
+ALLOWED = {
+    ("benchmarks/splat.py", "experiments/bench_splat.py"): "the script's path inside an old commit's worktree (--baseline)",
+}
 
 
 def test_the_recipes_commands_and_docs_name_are_shipped():
@@ -43,3 +55,53 @@ def test_an_unknown_config_name_is_one_line_listing_the_recipes(capsys):
     assert lines[0].startswith("llrmpp: error: config file not found: smal ")
     assert all(name in lines[0] for name in recipe_names())
     assert not os.path.exists("/tmp/never_made")
+
+
+def test_every_benchmark_llrmpp_bench_runs_is_a_package_module():
+    for name in BENCHMARKS:
+        module = importlib.import_module(f"llrmpp_jax.benchmarks.{name}")
+        assert callable(module.main), name
+
+
+def _docstring_nodes(tree: ast.AST) -> set[int]:
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                out.add(id(first.value))
+    return out
+
+
+def _names_experiments(text: str) -> bool:
+    """A path with an ``experiments`` component."""
+    return "experiments" in text.replace("\\", "/").split("/")
+
+
+def _imports_experiments(module: str) -> bool:
+    """``experiments.*`` or one of its scripts put on ``sys.path`` (``bench_train``, ...)."""
+    return module.split(".")[0] == "experiments" or module.startswith("bench_")
+
+
+def test_no_module_reaches_for_the_experiments_folder():
+    """Imports and string constants (docstrings aside: citations of evidence, not paths the
+    code opens) of every module in the package: none names the repository's experiments/
+    folder or imports its scripts, so an installed wheel has everything it reads."""
+    found = []
+    for root, _, files in os.walk(PACKAGE):
+        for f in files:
+            if not f.endswith(".py"):
+                continue
+            path = os.path.join(root, f)
+            rel = os.path.relpath(path, PACKAGE)
+            tree = ast.parse(open(path).read(), path)
+            docs = _docstring_nodes(tree)
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Import):
+                    found += [(rel, a.name) for a in node.names if _imports_experiments(a.name)]
+                elif isinstance(node, ast.ImportFrom) and node.module and _imports_experiments(node.module):
+                    found.append((rel, node.module))
+                elif (isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs
+                      and _names_experiments(node.value) and (rel, node.value) not in ALLOWED):
+                    found.append((rel, node.value))
+    assert not found, found

@@ -3,7 +3,7 @@
 Deliberately independent of the fast path (no binning, no chunks, no custom VJP) and
 written in gsplat's own formulation (full 3x3 covariances, explicit Jacobian,
 ``det = a c - b^2``), so it serves as an autodiff oracle for gradients and as the
-baseline of ``experiments/bench_splat.py``. Same semantics as
+baseline of :mod:`llrmpp_jax.benchmarks.splat`. Same semantics as
 :func:`llrmpp_jax.splat.render_features`, including gsplat's tile rule: a Gaussian is
 evaluated only at pixels whose 16x16 tile lies in its screen box.
 """

@@ -1,12 +1,12 @@
 """The paper's Table-1 figures on this device: reconstruction time at V inputs and render
 frames per second, with compile time, peak memory, FLOPs and the fraction of the card's
-bf16 peak, as JSON (:mod:`llrmpp_jax.bench_paper`); or a profile of one reconstruct +
+bf16 peak, as JSON (:mod:`llrmpp_jax.benchmarks.paper`); or a profile of one reconstruct +
 render (``--profile``).
 
 Run:
-    python experiments/bench_model.py --scale paper --out runs/bench_model.json      # one GPU: V = 16/32/64 at 544x960
-    python experiments/bench_model.py --scale cpu                                    # config.tiny(), seconds
-    python experiments/bench_model.py --scale paper --profile --out runs/profile_model.json   # 8 inputs, one render
+    python -m llrmpp_jax.benchmarks.model --scale paper --out runs/bench_model.json    # one GPU: V = 16/32/64 at 544x960
+    python -m llrmpp_jax.benchmarks.model --scale cpu                                  # config.tiny(), seconds
+    python -m llrmpp_jax.benchmarks.model --scale paper --profile --out runs/profile_model.json   # 8 inputs, one render
 
 ``llrmpp bench --scale cpu|paper --only model`` runs the first two. ``--views`` (e.g.
 ``16,32``) and ``--size`` (``HxW``) replace the scale's; ``--profile`` takes one view
@@ -20,7 +20,7 @@ import json
 import os
 import sys
 
-from llrmpp_jax.bench_paper import (
+from llrmpp_jax.benchmarks.paper import (
     bench_scale, check_case, parse_hw, parse_views, profile_markdown, profile_reconstruct_render, run_table1,
 )
 
@@ -31,8 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views", default=None, help="input view counts, comma-separated (default: the scale's)")
     ap.add_argument("--size", default=None, help="HxW of every view (default: the scale's, 544x960 at paper scale)")
     ap.add_argument("--profile", action="store_true", help="profile one reconstruct + render instead of timing")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                                  "bench_model.json"), help="JSON file written")
+    ap.add_argument("--out", default=os.path.join("runs", "bench", "bench_model.json"), help="JSON file written")
     args = ap.parse_args(argv)
     try:  # bad input: one line, before any work
         views = parse_views(args.views) if args.views else None

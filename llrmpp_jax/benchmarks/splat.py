@@ -23,15 +23,16 @@ Gaussian), ``fitted`` sizes it from the scene as the eager entry points and ``re
 (:func:`llrmpp_jax.splat.render.fitted_capacity` of the exact count); ``both`` (the
 default) times the two.
 
-``--baseline REF`` first runs this script as it was at git ``REF`` (a temporary worktree)
-with the same sweep, so a speed-up is measured on the same machine in the same run; its
-rows go under ``"baseline"``.
+``--baseline REF`` (in a git checkout) first runs this benchmark as it was at git ``REF`` (a
+temporary worktree; ``experiments/bench_splat.py`` at commits before it moved here) with the
+same sweep, so a speed-up is measured on the same machine in the same run; its rows go under
+``"baseline"``.
 
-Current numbers (docs/results.md):
-  python experiments/bench_splat.py --n 100000 --canvas 128x128 256x256 --repeats 5 \
+Current numbers (docs/speed-cpu.md):
+  python -m llrmpp_jax.benchmarks.splat --n 100000 --canvas 128x128 256x256 --repeats 10 \
       --baseline 49415ad --out experiments/results/splat_speed.json
-Full sweep:                python experiments/bench_splat.py
-Quick run (2-core CPU):    python experiments/bench_splat.py --quick
+Full sweep:                python -m llrmpp_jax.benchmarks.splat
+Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 """
 
 from __future__ import annotations
@@ -162,16 +163,24 @@ def fit_exponents(rows: list[dict], key: str) -> dict:
     return fits
 
 
+# Where this benchmark was at commits before it moved into the package (a path inside the
+# ``--baseline`` commit's worktree).
+OLD_SCRIPT = "experiments/bench_splat.py"
+
+
 def run_baseline(ref: str, argv: list[str]) -> dict:
-    """This script's sweep as it was at git ``ref``, in a temporary worktree; its JSON."""
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    """This benchmark's sweep as it was at git ``ref``, in a temporary worktree of the checkout
+    this package is in; its JSON."""
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     with tempfile.TemporaryDirectory() as tmp:
         tree = os.path.join(tmp, "tree")
         subprocess.run(["git", "-C", repo, "worktree", "add", "--detach", tree, ref], check=True, capture_output=True)
         try:
             out = os.path.join(tmp, "baseline.json")
             env = dict(os.environ, PYTHONPATH=tree)
-            cmd = [sys.executable, os.path.join(tree, "experiments", "bench_splat.py"), *argv, "--out", out]
+            moved = os.path.exists(os.path.join(tree, "llrmpp_jax", "benchmarks", "splat.py"))
+            entry = ["-m", "llrmpp_jax.benchmarks.splat"] if moved else [os.path.join(tree, OLD_SCRIPT)]
+            cmd = [sys.executable, *entry, *argv, "--out", out]
             subprocess.run(cmd, check=True, env=env, cwd=tree)
             with open(out) as fh:
                 result = json.load(fh)
@@ -199,8 +208,8 @@ def main() -> None:
     parser.add_argument("--oracle-max-bytes", type=float, default=2e9, help="largest oracle fwd+bwd residuals")
     parser.add_argument("--quick", action="store_true", help="N in {1e4, 1e5}, canvases 128x128 and 256x256")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
-    parser.add_argument("--baseline", metavar="REF", help="also run this script as it was at git REF, first")
-    parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_splat.json"),
+    parser.add_argument("--baseline", metavar="REF", help="also run this benchmark as it was at git REF, first")
+    parser.add_argument("--out", default=os.path.join("runs", "bench", "bench_splat.json"),
                         help="JSON file to write")
     args = parser.parse_args()
     if args.quick:

@@ -3,24 +3,24 @@ memory analysis, the device's peak memory, the step time and its FLOPs, per atte
 kernel; or (``--profile``) a per-op profile of one smaller step.
 
 Run (one GPU or TPU):
-    python experiments/bench_paper_step.py --out experiments/results/bench_paper_step.json
-    python experiments/bench_paper_step.py --impls blockwise --steps 1     # the portable kernel only
-    python experiments/bench_paper_step.py --profile --views 8,8 --out runs/profile_step.json   # stage 3's shapes
-    python experiments/bench_paper_step.py --scale cpu                     # config.tiny(), 2 + 1 views: seconds
+    python -m llrmpp_jax.benchmarks.paper_step --out experiments/results/bench_paper_step.json
+    python -m llrmpp_jax.benchmarks.paper_step --impls blockwise --steps 1     # the portable kernel only
+    python -m llrmpp_jax.benchmarks.paper_step --profile --views 8,8 --out runs/profile_step.json   # stage 3's shapes
+    python -m llrmpp_jax.benchmarks.paper_step --scale cpu                     # config.tiny(), 2 + 1 views: seconds
 
-``experiments/bench_train.py`` can only *compile* this step on a CPU (XLA's memory analysis,
-no run). Here it runs: ``experiments/dl3dv.py`` stage 4 (32 inputs + 8 targets at 544x960,
-one scene per device as in the paper's 64-GPU run, bf16 compute, remat everywhere as
+The repository's ``experiments/bench_train.py`` can only *compile* this step on a CPU (XLA's
+memory analysis, no run). Here it runs: the ``dl3dv`` recipe's stage 4 (32 inputs + 8 targets at
+544x960, one scene per device as in the paper's 64-GPU run, bf16 compute, remat everywhere as
 ``config.for_accelerators`` sets it, the sequential SSD inter-chunk recurrence, Long-LRM's
 VGG19 perceptual term with random weights of its shapes unless the file names weights: the
 cost does not depend on the weights), with the project's own step
 (``trainer.make_loss_fn`` -> ``train.make_train_step`` -> ``train.pmap_train_step``, donated
 state) and the model's parameters initialised as for training (on the host CPU:
-``bench_paper.host_init_params``; the init's own XLA:GPU compile took 52 s on an H200).
+``paper.host_init_params``; the init's own XLA:GPU compile took 52 s on an H200).
 ``--scale cpu`` swaps in ``config.tiny()`` (same stage, bf16, VGG19 term and code paths)
 with 2 inputs + 1 target at 64x96 and the blockwise kernel.
 
-The batch is synthetic (``bench_paper.synthetic_batch``): uniform-noise images (content
+The batch is synthetic (``paper.synthetic_batch``): uniform-noise images (content
 changes nothing in a step whose shapes and capacities are static) seen from an orbit of
 40 cameras around the origin, targets spread along it, so the Gaussians project into the
 targets as in a real capture. Each kernel (``--impls``: ``cudnn`` on NVIDIA GPUs,
@@ -31,7 +31,7 @@ from a separate ahead-of-time compile, ``aot_compile_s``), the device's ``peak_b
 of ``--steps`` synced step times after the first call, the last step's loss and splat
 overflow (``splat_dropped``), and how many steps the trainer's guard skipped (``skipped_total``);
 ``xla_flops`` (XLA's cost analysis of that compiled step: a loop body counted once, cuDNN
-calls not at all) and ``model_flops`` (``bench_paper.train_step_model_flops``: the matrix
+calls not at all) and ``model_flops`` (``paper.train_step_model_flops``: the matrix
 products of the loss's forward and backward, no recomputation), with ``tflops_per_s`` and
 ``peak_fraction`` of the card's dense bf16 peak from ``model_flops`` and the median step.
 Set ``JAX_COMPILATION_CACHE_DIR`` (with ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``) and
@@ -53,23 +53,57 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
-from llrmpp_jax.bench_measure import environment, throughput, xla_cost
-from llrmpp_jax.bench_paper import (
+from llrmpp_jax.benchmarks.measure import environment, memory_analysis_bytes, throughput, xla_cost
+from llrmpp_jax.benchmarks.paper import (
     PAPER_A100, check_case, host_init_params, profile_markdown, synthetic_batch, train_step_model_flops,
 )
+from llrmpp_jax.convert.vgg import vgg_layers
+from llrmpp_jax.experiment import ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.nn.attention import ATTENTION_IMPLEMENTATIONS
 from llrmpp_jax.nn.backbone import count_params
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_train import (  # noqa: E402
-    PAPER_STAGE4_DEVICES, make_step, memory_analysis_bytes, paper_stage4_experiment, perceptual_for_compile,
-)
+from llrmpp_jax.trainer import load_perceptual, make_loss_fn, optimizer_config
 
 GIB = 2.0**30
+PAPER_STAGE4_DEVICES = 64  # paper Table 8: stage 4 trains a global batch of 64 on 64 GPUs
+
+
+def make_step(exp: ExperimentConfig, stage: StageConfig,
+              vgg_params: dict | None) -> tuple[T.step.StepFn, optax.GradientTransformation]:
+    """The trainer's per-device step for ``stage`` and its optimizer (settings as ``trainer.train``)."""
+    opt_cfg = optimizer_config(stage)
+    optimizer = T.make_optimizer(opt_cfg)
+    step = T.make_train_step(make_loss_fn(exp, vgg_params), optimizer, T.make_schedule(opt_cfg),
+                             compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
+    return step, optimizer
+
+
+def paper_stage4_experiment() -> tuple[ExperimentConfig, StageConfig]:
+    """The ``dl3dv`` recipe and its stage 4 (32 inputs + 8 targets at 960x540)."""
+    exp = load_experiment("dl3dv")
+    return exp, exp.stages[3]
+
+
+def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
+    """The perceptual net's params for a benchmark step: the real ones where the experiment
+    names them, else (VGG19 without ``vgg19_path``) He-normal random weights (seed 0) of
+    VGG19's conv1_1..conv5_2 shapes: a step's memory and time depend on shapes only.
+
+    Not zeros: with all-zero VGG weights the stage-4 step's perceptual term came back NaN
+    on some runs and finite on others (jax 0.10.2, CPU; 2 inputs of 32x64), so every step
+    was skipped as non-finite; random weights gave finite losses every time.
+    """
+    if exp.perceptual_net != "vgg19" or exp.vgg19_path or not exp.perceptual_weight:
+        return load_perceptual(exp)
+    rng = np.random.default_rng(0)
+    return {name: {"kernel": jnp.asarray(rng.normal(0.0, np.sqrt(2.0 / (9 * cin)), (3, 3, cin, cout)), jnp.float32),
+                   "bias": jnp.zeros((cout,), jnp.float32)}
+            for name, _, cin, cout in vgg_layers("vgg19")[:14]}
 
 
 def progress(line: str) -> None:
@@ -78,13 +112,13 @@ def progress(line: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
 
-# scale -> (views (inputs, targets), size (h, w), default kernels); paper: stage 4 of dl3dv.py.
+# scale -> (views (inputs, targets), size (h, w), default kernels); paper: stage 4 of the dl3dv recipe.
 SCALES = {"paper": ((32, 8), (544, 960), "cudnn,blockwise"), "cpu": ((2, 1), (64, 96), "blockwise")}
 
 
 def experiment(scale: str, impl: str, block: tuple[int, int] | None = None):
-    """``(experiment, stage)``: ``dl3dv.py`` stage 4 with ``impl`` (and the blockwise kernel's
-    ``block``) in every global-attention block; at ``scale="cpu"`` with ``config.tiny()``."""
+    """``(experiment, stage)``: the ``dl3dv`` recipe's stage 4 with ``impl`` (and the blockwise
+    kernel's ``block``) in every global-attention block; at ``scale="cpu"`` with ``config.tiny()``."""
     exp, stage = paper_stage4_experiment()
     model = exp.model if scale == "paper" else C.for_accelerators(C.tiny())
     return C.replace(exp, model=C.with_attention(model, impl, block)), stage
@@ -169,8 +203,7 @@ def profile_step(impl: str, views: tuple[int, int], size: tuple[int, int], block
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                                  "bench_paper_step.json"), help="JSON file written")
+    ap.add_argument("--out", default=os.path.join("runs", "bench", "bench_paper_step.json"), help="JSON file written")
     ap.add_argument("--scale", default="paper", help=f"one of {sorted(SCALES)}: the paper model, or config.tiny()")
     ap.add_argument("--impls", default=None,
                     help=f"comma-separated attention kernels, each of {ATTENTION_IMPLEMENTATIONS} "
@@ -225,8 +258,8 @@ def main() -> None:
               "compilation_cache_dir": os.environ.get("JAX_COMPILATION_CACHE_DIR", ""),
               "paper_a100_step_s": PAPER_A100["train_step_s"], "cases": {}}
     for impl in impls:
-        cmd = [sys.executable, os.path.abspath(__file__), "--_impl", impl, "--steps", str(args.steps),
-               "--scale", args.scale, "--views", ",".join(map(str, views)), "--size", f"{size[0]}x{size[1]}",
+        cmd = [sys.executable, "-m", "llrmpp_jax.benchmarks.paper_step", "--_impl", impl,
+               "--steps", str(args.steps), "--scale", args.scale, "--views", ",".join(map(str, views)), "--size", f"{size[0]}x{size[1]}",
                "--block", args.block]
         t0 = time.time()
         try:

@@ -1,8 +1,8 @@
 """What the benchmarks measure with: the environment record, synced timing of a compiled
 program, XLA's FLOP and byte counts, a traced matmul FLOP count, the device's peak memory,
 achieved TFLOP/s against the card's dense bf16 peak (:data:`PEAK_BF16_TFLOPS`), and
-Markdown tables. Used by :mod:`llrmpp_jax.bench`, :mod:`llrmpp_jax.bench_paper`,
-``llrmpp doctor`` and the ``experiments/bench_*.py`` entry points.
+Markdown tables. Used by the benchmarks in :mod:`llrmpp_jax.benchmarks` and
+``llrmpp doctor``.
 """
 
 from __future__ import annotations
@@ -60,6 +60,16 @@ def xla_cost(compiled) -> dict[str, float | None]:
         ca = ca[0] if ca else {}
     get = lambda k: float(ca[k]) if k in ca else None  # noqa: E731
     return {"flops": get("flops"), "bytes_accessed": get("bytes accessed")}
+
+
+def memory_analysis_bytes(compiled) -> dict[str, int]:
+    """XLA's ``memory_analysis()`` of a compiled step: argument, output, alias and temp bytes,
+    ``xla_total_bytes`` (their sum without alias) and ``xla_peak_bytes`` (total - alias)."""
+    ma = compiled.memory_analysis()
+    out = {k: int(getattr(ma, f"{k}_size_in_bytes")) for k in ("argument", "output", "alias", "temp")}
+    out["xla_total_bytes"] = out["argument"] + out["output"] + out["temp"]
+    out["xla_peak_bytes"] = out["xla_total_bytes"] - out["alias"]
+    return out
 
 
 def matmul_flops(fn, *args) -> float:

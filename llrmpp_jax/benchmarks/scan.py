@@ -6,8 +6,8 @@ Defaults are the paper's per-block sizes (D=768 -> d_inner 1536, headdim 64 -> 2
 d_state 256, chunk 256, ngroups 1, batch 1) at L in {4096, 16384, 65536}: the full sweep,
 for accelerators. On a small CPU box use the reduced preset::
 
-    python experiments/bench_scan.py --preset cpu          # ~ 10 minutes on 2 cores
-    python experiments/bench_scan.py --out /tmp/scan.json  # full sweep (GPU/TPU)
+    python -m llrmpp_jax.benchmarks.scan --preset cpu          # ~ 10 minutes on 2 cores
+    python -m llrmpp_jax.benchmarks.scan --out /tmp/scan.json  # full sweep (GPU/TPU)
 
 Writes JSON (``--out``): device, sizes, a jitted matmul's GFLOP/s measured in the same run
 (per L, interleaved with the scans: every round runs the matmul and each scan once, so a
@@ -111,7 +111,7 @@ def _widest_span(dt: jax.Array, A: jax.Array, q: int) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default=os.path.join("experiments", "results", "bench_scan.json"))
+    ap.add_argument("--out", default=os.path.join("runs", "bench", "bench_scan.json"), help="JSON file written")
     ap.add_argument("--preset", choices=sorted(PRESETS), default="full")
     ap.add_argument("--lengths", type=int, nargs="+", help="override the preset's sequence lengths")
     ap.add_argument("--methods", nargs="+", choices=sorted(METHODS), default=list(METHODS))
@@ -122,7 +122,7 @@ def main() -> None:
     ap.add_argument("--ngroups", type=int, default=1)
     ap.add_argument("--chunk", type=int, default=256, help="chunk size of the chunked and dense forms")
     ap.add_argument("--fused-chunk", type=int, default=128,
-                    help="chunk size of the fused form (128 measured fastest on CPU; see experiments/README.md)")
+                    help="chunk size of the fused form (128 measured fastest on CPU)")
     ap.add_argument("--batch", type=int, default=1)
     ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
     ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")

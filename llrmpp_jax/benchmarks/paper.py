@@ -7,22 +7,22 @@ The paper (A100): 32 views at 960x540 reconstructed in 4.7 s (16 views 1.6 s, 64
 * :func:`reconstruct_case` -- images + cameras -> Gaussians for one scene of V inputs.
 * :func:`render_case` -- one target from those Gaussians: splat of the S partition copies
   + decoder; frames per second = 1 / the median call.
-* the training step is ``experiments/bench_paper_step.py``'s (its FLOPs:
+* the training step is :mod:`llrmpp_jax.benchmarks.paper_step`'s (its FLOPs:
   :func:`train_step_model_flops`).
 
-Every case is timed by :func:`llrmpp_jax.bench_measure.timed` (compile apart, synced calls,
+Every case is timed by :func:`llrmpp_jax.benchmarks.measure.timed` (compile apart, synced calls,
 median) and reports two FLOP counts: ``xla_flops``, XLA's cost analysis of the compiled
 program that ran (it counts a ``while`` loop's body once and a cuDNN custom call as
 nothing, so with ``for_accelerators``' remat loops, sequential SSD scan and cuDNN
 attention it undercounts), and ``model_flops``, the matrix-multiply FLOPs of the same
 computation with plain attention and no remat (:func:`counting_config`,
-:func:`llrmpp_jax.bench_measure.matmul_flops`): the tensor-core work the program must do,
+:func:`llrmpp_jax.benchmarks.measure.matmul_flops`): the tensor-core work the program must do,
 recomputation excluded, as model-FLOPs utilisation counts it. ``tflops_per_s`` and
-``peak_fraction`` use ``model_flops`` (:func:`llrmpp_jax.bench_measure.throughput`). Parameters
+``peak_fraction`` use ``model_flops`` (:func:`llrmpp_jax.benchmarks.measure.throughput`). Parameters
 are random (the training init): speed depends on shapes, and on where the Gaussians land,
 which the init's geometry decides.
 
-Run: ``python experiments/bench_model.py --scale cpu|paper`` or ``llrmpp bench --scale
+Run: ``python -m llrmpp_jax.benchmarks.model --scale cpu|paper`` or ``llrmpp bench --scale
 cpu|paper --only model``; in a notebook, ``run_table1("cpu")``; a profile of one
 reconstruct + render: :func:`profile_reconstruct_render`.
 """
@@ -38,7 +38,7 @@ import optax
 
 from llrmpp_jax import config as C
 from llrmpp_jax.array_typing import Float
-from llrmpp_jax.bench_measure import environment, markdown_table, matmul_flops, throughput, timed_with_output
+from llrmpp_jax.benchmarks.measure import environment, markdown_table, matmul_flops, throughput, timed_with_output
 from llrmpp_jax.data.camera_paths import orbit_path, pinhole_intrinsics
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.backbone import count_params
@@ -176,7 +176,7 @@ def _flops_row(timing: dict, flops: float, device_kind: str) -> dict:
 def reconstruct_case(params: dict, cfg: C.ModelConfig, batch: dict[str, np.ndarray], repeats: int,
                      device_kind: str) -> tuple[dict, object]:
     """Time ``reconstruct`` of ``batch``'s inputs (one scene, ``[1, V, H, W, 3]``; median of
-    ``repeats`` calls) and count its FLOPs. Returns the row (:func:`llrmpp_jax.bench_measure.timed`'s fields, ``views``,
+    ``repeats`` calls) and count its FLOPs. Returns the row (:func:`llrmpp_jax.benchmarks.measure.timed`'s fields, ``views``,
     ``size``, ``gaussians``, ``model_flops``, ``tflops_per_s``, ``peak_fraction``) and the Gaussians."""
     args = (params, *(jnp.asarray(batch[k]) for k in ("input_images", "input_c2w", "input_intrinsics")))
     # No untimed call: the median of the calls discards a slow first one.
@@ -193,7 +193,7 @@ def render_case(params: dict, cfg: C.ModelConfig, gaussians, c2w: Float[np.ndarr
                 intrinsics: Float[np.ndarray, "1 1 4"], height: int, width: int, repeats: int,
                 device_kind: str) -> dict:
     """Time ``render`` of one ``height x width`` target from ``gaussians`` (splat of the S
-    partition copies + decoder) and count its FLOPs. Row: :func:`llrmpp_jax.bench_measure.timed`'s
+    partition copies + decoder) and count its FLOPs. Row: :func:`llrmpp_jax.benchmarks.measure.timed`'s
     fields, ``fps`` (1 / median), ``splat_dropped`` (intersections over the splatter's
     capacity: 0 = exact), ``model_flops``, ``tflops_per_s``, ``peak_fraction``."""
     fn = lambda p, g, c, k: render(p, cfg, g, c, k, height, width)  # noqa: E731
@@ -289,7 +289,7 @@ def train_step_model_flops(exp, vgg_params: dict | None, batch: dict) -> float:
     """Model FLOPs of one training step on one device: the loss of
     ``trainer.make_loss_fn(exp, vgg_params)`` and its gradient, in the step's compute dtype,
     for ``batch`` (one device's shard ``[b, views, ...]``: arrays or ``ShapeDtypeStruct`` s):
-    :func:`llrmpp_jax.bench_measure.matmul_flops` of the :func:`counting_config` model (tracing
+    :func:`llrmpp_jax.benchmarks.measure.matmul_flops` of the :func:`counting_config` model (tracing
     only). The optimizer's update (~10 elementwise FLOPs a parameter) is not a matmul."""
     from llrmpp_jax.trainer import make_loss_fn
 
@@ -305,7 +305,7 @@ def train_step_model_flops(exp, vgg_params: dict | None, batch: dict) -> float:
 
 def paper_comparison(table1: dict | None, step: dict | None) -> str:
     """Markdown: each figure of :func:`run_table1`'s result at paper scale and of a
-    ``bench_paper_step.py`` case of the paper's stage 4 (either may be None or of another
+    :mod:`~llrmpp_jax.benchmarks.paper_step` case of the paper's stage 4 (either may be None or of another
     scale: left out) beside the paper's A100 figure (:data:`PAPER_A100`), the ratio of the
     times (>1: slower than the paper's A100) and issue 50's H100/H200 goal
     (:data:`GOALS_H100`), met or not."""
