@@ -19,7 +19,7 @@ from llrmpp_jax.benchmarks.paper import (
 )
 from llrmpp_jax.cli import main
 from llrmpp_jax.model import init_params, reconstruct
-from llrmpp_jax.trainer import make_loss_fn
+from llrmpp_jax.objective import make_loss_fn
 
 
 @pytest.mark.parametrize(

@@ -40,6 +40,7 @@ from llrmpp_jax import config as C
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.benchmarks.measure import environment, markdown_table, matmul_flops, throughput, timed_with_output
 from llrmpp_jax.data.camera_paths import orbit_path, pinhole_intrinsics
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.nn.backbone import count_params
 
@@ -81,40 +82,40 @@ SCALES: dict[str, BenchScale] = {
 
 
 def bench_scale(name: str) -> BenchScale:
-    """:data:`SCALES` ``[name]``; one-line ``ValueError`` naming the scales otherwise."""
+    """:data:`SCALES` ``[name]``; one-line ``UserError`` naming the scales otherwise."""
     if name not in SCALES:
-        raise ValueError(f"bench: unknown scale {name!r}, expected one of {sorted(SCALES)}")
+        raise UserError(f"bench: unknown scale {name!r}, expected one of {sorted(SCALES)}")
     return SCALES[name]
 
 
 def parse_views(text: str) -> tuple[int, ...]:
-    """``"16,32,64"`` -> ``(16, 32, 64)``; one-line ``ValueError`` otherwise."""
+    """``"16,32,64"`` -> ``(16, 32, 64)``; one-line ``UserError`` otherwise."""
     try:
         views = tuple(int(v) for v in text.split(","))
     except ValueError:
-        raise ValueError(f"bench: --views must be comma-separated integers (e.g. 16,32,64), got {text!r}") from None
+        raise UserError(f"bench: --views must be comma-separated integers (e.g. 16,32,64), got {text!r}") from None
     return views
 
 
 def parse_hw(text: str) -> tuple[int, int]:
-    """``"544x960"`` -> ``(544, 960)``; one-line ``ValueError`` otherwise."""
+    """``"544x960"`` -> ``(544, 960)``; one-line ``UserError`` otherwise."""
     try:
         h, w = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ValueError(f"bench: --size must be HxW (e.g. 544x960), got {text!r}") from None
+        raise UserError(f"bench: --size must be HxW (e.g. 544x960), got {text!r}") from None
     return h, w
 
 
 def check_case(cfg: C.ModelConfig, views: tuple[int, ...], height: int, width: int) -> None:
-    """One-line ``ValueError`` unless every view count is >= 1 and the image sides are
+    """One-line ``UserError`` unless every view count is >= 1 and the image sides are
     positive multiples of ``cfg.size_multiple`` (tokens, merges and decoder patches)."""
     if not views or min(views) < 1:
-        raise ValueError(f"bench: view counts must be >= 1, got {list(views)}")
+        raise UserError(f"bench: view counts must be >= 1, got {list(views)}")
     m = cfg.size_multiple
     if height < m or width < m or height % m or width % m:
         near = lambda x: max(m, round(x / m) * m)  # noqa: E731
-        raise ValueError(f"bench: size {height}x{width} is not a multiple of {m} (the model's size multiple); "
-                         f"the nearest that is: {near(height)}x{near(width)}")
+        raise UserError(f"bench: size {height}x{width} is not a multiple of {m} (the model's size multiple); "
+                        f"the nearest that is: {near(height)}x{near(width)}")
 
 
 def counting_config(model: C.ModelConfig) -> C.ModelConfig:
@@ -219,7 +220,7 @@ def run_table1(scale: str, views: tuple[int, ...] | None = None, size: tuple[int
     Returns ``{"scale", "environment", "bf16", "params", "reconstruct": [rows], "render":
     row, "paper_a100"}``; ``log`` gets one line per case and ``save`` (if given) the result
     so far after each, so that a run stopped from outside keeps its finished cases.
-    One-line ``ValueError`` for an unknown scale, a view count below 1 or a size the model
+    One-line ``UserError`` for an unknown scale, a view count below 1 or a size the model
     cannot take, before any work."""
     s = bench_scale(scale)
     views = tuple(sorted(views or s.views))
@@ -291,7 +292,7 @@ def train_step_model_flops(exp, vgg_params: dict | None, batch: dict) -> float:
     for ``batch`` (one device's shard ``[b, views, ...]``: arrays or ``ShapeDtypeStruct`` s):
     :func:`llrmpp_jax.benchmarks.measure.matmul_flops` of the :func:`counting_config` model (tracing
     only). The optimizer's update (~10 elementwise FLOPs a parameter) is not a matmul."""
-    from llrmpp_jax.trainer import make_loss_fn
+    from llrmpp_jax.objective import make_loss_fn
 
     exp = C.replace(exp, model=counting_config(exp.model))
 

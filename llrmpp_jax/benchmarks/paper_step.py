@@ -67,7 +67,8 @@ from llrmpp_jax.convert.vgg import vgg_layers
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.nn.attention import ATTENTION_IMPLEMENTATIONS
 from llrmpp_jax.nn.backbone import count_params
-from llrmpp_jax.trainer import load_perceptual, make_loss_fn, optimizer_config
+from llrmpp_jax.objective import load_perceptual, make_loss_fn
+from llrmpp_jax.trainer import optimizer_config
 
 GIB = 2.0**30
 PAPER_STAGE4_DEVICES = 64  # paper Table 8: stage 4 trains a global batch of 64 on 64 GPUs
@@ -78,7 +79,7 @@ def make_step(exp: ExperimentConfig, stage: StageConfig,
     """The trainer's per-device step for ``stage`` and its optimizer (settings as ``trainer.train``)."""
     opt_cfg = optimizer_config(stage)
     optimizer = T.make_optimizer(opt_cfg)
-    step = T.make_train_step(make_loss_fn(exp, vgg_params), optimizer, T.make_schedule(opt_cfg),
+    step = T.make_train_step(make_loss_fn(exp, vgg_params, stage), optimizer, T.make_schedule(opt_cfg),
                              compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
     return step, optimizer
 

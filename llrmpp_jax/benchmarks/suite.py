@@ -29,6 +29,7 @@ import sys
 import time
 
 from llrmpp_jax.benchmarks.measure import environment
+from llrmpp_jax.errors import UserError
 
 BENCHMARKS = ("attention", "scan", "splat", "model", "paper_step")
 
@@ -60,19 +61,19 @@ def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS,
     """Run the ``only`` benchmarks at ``scale`` (a key of :data:`SCALES`); write
     ``<out_dir>/bench_<name>.json`` for each and ``<out_dir>/bench.json`` (the summary).
     ``views`` (input view counts) and ``size`` (H, W) replace the ``model`` benchmark's
-    (:mod:`llrmpp_jax.benchmarks.paper`). Bad input is a one-line ``ValueError`` before anything runs."""
+    (:mod:`llrmpp_jax.benchmarks.paper`). Bad input is a one-line ``UserError`` before anything runs."""
     if scale not in SCALES:
-        raise ValueError(f"bench: unknown scale {scale!r}, expected one of {sorted(SCALES)}")
+        raise UserError(f"bench: unknown scale {scale!r}, expected one of {sorted(SCALES)}")
     unknown = [b for b in only if b not in BENCHMARKS]
     if unknown:
-        raise ValueError(f"bench: unknown benchmark(s) {unknown}, expected a subset of {list(BENCHMARKS)}")
+        raise UserError(f"bench: unknown benchmark(s) {unknown}, expected a subset of {list(BENCHMARKS)}")
     model_args: list[str] = []
     if views is not None or size is not None:
         from llrmpp_jax.benchmarks.paper import bench_scale, check_case
 
         if "model" not in only:
-            raise ValueError(f"bench: --views/--size set the model benchmark's cases, which --only {','.join(only)} "
-                             "leaves out")
+            raise UserError(f"bench: --views/--size set the model benchmark's cases, which --only {','.join(only)} "
+                            "leaves out")
         s = bench_scale(scale)
         views, size = views or s.views, size or (s.height, s.width)
         check_case(s.model, views, *size)
