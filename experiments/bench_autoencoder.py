@@ -35,7 +35,7 @@ from llrmpp_jax import train as T
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.synthetic import procedural_scene
-from llrmpp_jax.experiment import EXPERIMENTS_DIR, StageConfig, load_experiment
+from llrmpp_jax.experiment import StageConfig, load_experiment
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import LongLRMPP, append_target_rays, init_params, partition_logits, reconstruct
@@ -49,7 +49,7 @@ SIZE, FRAMES, BATCH = 64, 16, 2
 
 def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
-    m = load_experiment(os.path.join(EXPERIMENTS_DIR, "demo.py")).model
+    m = load_experiment("demo").model
     head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
                      scale_bias=args.scale_bias,
                      anchors=args.anchors,

@@ -82,7 +82,7 @@ def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig
         raise UserError(f"no checkpoint in {path} (expected a params folder or a training workdir)")
     stages = list(configs)
     # The curriculum's order from the longest one recorded: a first stage may have been trained
-    # with a config that names only it (experiments/small_accel.py), the later ones with the whole.
+    # with a config that names only it (the shipped model's first stage was), the later ones with the whole.
     orders = [[s["name"] for s in r.get("stages", [])] for r in configs.values() if isinstance(r, dict)]
     order = max(orders, key=len, default=[])
     stage_dir = max(stages, key=lambda d: order.index(os.path.basename(d)) if os.path.basename(d) in order else -1)
