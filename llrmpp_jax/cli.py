@@ -262,15 +262,31 @@ def cmd_render(args) -> int:
 
 def cmd_export(args) -> int:
     from llrmpp_jax.capture import load_gs
+    from llrmpp_jax.capture.bake import BakeConfig, bake_colour
     from llrmpp_jax.export_ply import export_ply
-    from llrmpp_jax.model import partition_logits
+    from llrmpp_jax.model import check_params_fit, partition_logits
 
     saved = load_gs(args.gaussians)
+    feature = saved.model.head.mode == "feature"
+    if args.bake and not feature:
+        raise UserError(f"{args.gaussians}: already colour Gaussians; export it without --bake")
+    bake = BakeConfig(sh_degree=args.sh_degree, steps=args.bake_steps, views_per_step=args.bake_views_per_step,
+                      geometry=not args.bake_keep_geometry) if args.bake else None
     logits = None
-    if saved.model.head.mode == "feature":
+    if feature:
         if not args.checkpoint:
-            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (for the partition logits)")
+            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint "
+                            f"({'its decoder renders the views to bake' if bake else 'for the partition logits'})")
         params, _ = _load_params(args.checkpoint, args.config)
+        check_params_fit(params, saved.model, args.checkpoint)
+    if bake:
+        baked = bake_colour(params, saved, bake, progress=True, scene_path=args.scene)
+        print("\n".join(baked.lines()), flush=True)
+        n = export_ply(args.ply, baked.gaussians, baked.cfg, saved.world_from_scene)
+        print(f"wrote {n:,} colour Gaussians (SH degree {args.sh_degree}, the standard 3DGS layout) in the capture's "
+              f"world frame to {args.ply}")
+        return 0
+    if feature:
         logits = partition_logits(params, saved.model, saved.gaussians)
     n = export_ply(args.ply, saved.gaussians, saved.model, saved.world_from_scene, logits)
     print(f"wrote {n:,} {saved.model.head.mode}-mode Gaussians in the capture's world frame to {args.ply}")
@@ -521,6 +537,15 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--ply", required=True, help="the PLY file to write")
     x.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
     x.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
+    x.add_argument("--bake", action="store_true",
+                   help="feature mode: fit standard colour Gaussians (SH) to the model's renders, for any 3DGS viewer")
+    x.add_argument("--sh-degree", type=int, default=3, help="--bake: SH degree of the colour (0-3, default 3)")
+    x.add_argument("--bake-steps", type=int, default=300, help="--bake: updates of the fit (default 300)")
+    x.add_argument("--bake-views-per-step", type=int, default=4, help="--bake: views fitted per update (default 4)")
+    x.add_argument("--bake-keep-geometry", action="store_true",
+                   help="--bake: keep the model's means, rotations and scales (default: fit them with the colour)")
+    x.add_argument("--scene", default=None, help="--bake: the capture's photos for the held-out scores "
+                                                "(default: the path in the .gs file)")
     x.set_defaults(fn=cmd_export)
 
     f = sub.add_parser("refine", help="optimise a .gs file's Gaussians against its input views (optimistix)")

@@ -15,6 +15,7 @@ from jax import lax
 from llrmpp_jax.array_typing import Array, Float
 
 MAX_DEGREE = 3
+SH_C0 = 0.2820947917738781  # Y_0^0: colour = SH_C0 x DC coefficient + 0.5 for a view-independent colour
 _DIR_EPS = 1e-12  # gsplat's F.normalize eps
 
 
@@ -28,7 +29,7 @@ def sh_basis(dirs: Float[Array, "N 3"], degree: int) -> Float[Array, "N bases"]:
     if not 0 <= degree <= MAX_DEGREE:
         raise ValueError(f"sh_basis: degree must be in [0, {MAX_DEGREE}], got {degree}")
     x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
-    out = [jnp.full_like(x, 0.2820947917738781)]
+    out = [jnp.full_like(x, SH_C0)]
     if degree >= 1:
         out += [-0.48860251190292 * y, 0.48860251190292 * z, -0.48860251190292 * x]
     if degree >= 2:

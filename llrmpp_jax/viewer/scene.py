@@ -25,9 +25,8 @@ from llrmpp_jax.data import ProceduralConfig, ViewGeometry, make_sample, procedu
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import reconstruct
-from llrmpp_jax.splat.sh import num_sh_bases
+from llrmpp_jax.splat.sh import SH_C0, num_sh_bases
 
-SH_C0 = 0.28209479177387814  # degree-0 real spherical harmonic, Y_0^0
 
 
 class ViewerScene(NamedTuple):
