@@ -1,4 +1,6 @@
-"""The training loop: stages, data, data-parallel steps, logging, evaluation, checkpoints.
+"""Training an experiment in a workdir: stages, checkpoints and resume, signals, logging,
+held-out evaluation around the stage loop (:func:`llrmpp_jax.train.loop.run_stage`; those
+are its hooks) and the objective (:mod:`llrmpp_jax.objective`).
 
 ``train(exp, workdir)`` runs every stage of ``exp`` in order. Each stage restarts the
 optimizer and schedule from the previous stage's parameters (Long-LRM's
@@ -33,7 +35,9 @@ from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.model import init_params
 from llrmpp_jax.objective import load_perceptual, make_loss_fn
+from llrmpp_jax.train.loop import Hook, StepInfo, run_stage
 from llrmpp_jax.train.workdir_lock import workdir_lock
+
 
 def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
     """AdamW + warmup/cosine of one stage; Mamba2's per-head vectors (like Long-LRM's
@@ -46,15 +50,8 @@ def _to_host(tree):
     return jax.tree.map(lambda x: np.asarray(jax.device_get(x)), tree)
 
 
-def train(
-    exp: ExperimentConfig,
-    workdir: str,
-    *,
-    max_minutes: float | None = None,
-    use_pmap: bool = True,
-    progress: bool = True,
-    init: str | None = None,
-) -> dict:
+def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = None, use_pmap: bool = True,
+          progress: bool = True, init: str | None = None) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``.
 
     ``init`` (fine-tuning): a training workdir, a params folder or ``pretrained:NAME``
@@ -124,12 +121,9 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
                                     compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
                                     skip_grad_norm_above=exp.skip_grad_norm_above)
         if use_pmap:
-            run = T.pmap_train_step(step_fn, donate=True)
-            state = T.replicate_for_pmap(state)
-            place = lambda b: T.shard_for_pmap(b)  # noqa: E731
+            run, state, place = T.pmap_train_step(step_fn, donate=True), T.replicate_for_pmap(state), T.shard_for_pmap
         else:
-            run = T.sharded_train_step(step_fn, mesh, donate=True)
-            state = T.replicate_on_mesh(_to_host(state), mesh)
+            run, state = T.sharded_train_step(step_fn, mesh, donate=True), T.replicate_on_mesh(_to_host(state), mesh)
             place = lambda b: T.shard_for_mesh(b, mesh)  # noqa: E731
         it = BatchIterator(scene_source(exp.data), batch_config(exp, stage), seed=exp.seed + si,
                            start_step=start, num_devices=n_local, process_index=jax.process_index(),
@@ -138,55 +132,27 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
         samples, names = eval_samples(exp, stage) if exp.eval_every else ([], [])
         bar = tqdm(total=stage.steps, initial=start, desc=f"{exp.name}/{stage.name}",
                    disable=not progress or jax.process_index() != 0, dynamic_ncols=True)
-        step, t_log, stop_now = start, time.time(), False
+        hooks = [_log_hook(exp, stage, bar, history, writer),
+                 _checkpoint_hook(exp, ckpt_dir, it, use_pmap)]
+        if samples:
+            hooks.append(_eval_hook(exp, stage, samples, names, writer, stop, result, use_pmap))
         try:
-            while step < stage.steps:
-                state, metrics = run(state, place(next(it)))
-                step += 1
-                bar.update(1)
-                if step % exp.log_every == 0 or step == stage.steps:
-                    m = {k: float(np.mean(v)) for k, v in _to_host(metrics).items()}
-                    rate = exp.log_every / max(time.time() - t_log, 1e-9)
-                    t_log = time.time()
-                    bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", sps=f"{rate:.2f}")
-                    history.append({"stage": stage.name, "step": step, **m})
-                    if writer is not None:
-                        for k, v in m.items():
-                            writer.add_scalar(f"train/{k}", v, step)
-                stop_now = bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget
-                last = step == stage.steps or stop_now
-                if step % exp.checkpoint_every == 0 or last:
-                    T.save_checkpoint(ckpt_dir, _host_state(state, use_pmap), data_state=it.state(),
-                                      config=exp, keep=exp.keep_checkpoints)
-                # a signalled stop skips the evaluation: a scheduler's grace period is short
-                if samples and (step % exp.eval_every == 0 or last and not stop):
-                    p = _host_state(state, use_pmap).params
-                    _, summary, preds = evaluate(p, exp.model, samples, names=names)
-                    if writer is not None:
-                        for method, vals in summary.items():
-                            for k, v in vals.items():
-                                writer.add_scalar(f"eval/{method}/{k}", v, step)
-                        writer.add_image("eval/grid", picture_grid(samples[0], preds[0]), step, dataformats="HWC")
-                    tqdm.write(f"[{stage.name} step {step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
-                               f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
-                    result["eval"] = summary
-                    result.setdefault("evals", []).append({"stage": stage.name, "step": step, **summary["model"]})
-                # stop_now was decided before the checkpoint: a signal that came during this
-                # step's evaluation stops the loop after the next step, checkpointed there
-                if stop_now and stop:
-                    tqdm.write(f"{stop.signal_name} received: stopped at step {step} of stage {stage.name};"
-                               " checkpoint saved, the same command resumes from it")
-                    result["stopped_by"] = stop.signal_name
-                    break
-                if stop_now:
-                    tqdm.write(f"time budget of {budget} min reached at step {step}; checkpoint saved")
-                    break
+            done = run_stage(state, run, map(place, it), steps=stage.steps, start=start, hooks=hooks,
+                             stop=lambda: bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget)
         finally:
             bar.close()
             it.close()
-        params = _host_state(state, use_pmap).params
-        result["stages"].append({"stage": stage.name, "steps": step, "skipped_data": it.skipped})
-        if stop_now:
+        # stop() was asked before the step's checkpoint: a signal that came during its
+        # evaluation stops the loop after the next step, checkpointed there
+        if done.stopped and stop:
+            tqdm.write(f"{stop.signal_name} received: stopped at step {done.step} of stage {stage.name};"
+                       " checkpoint saved, the same command resumes from it")
+            result["stopped_by"] = stop.signal_name
+        elif done.stopped:
+            tqdm.write(f"time budget of {budget} min reached at step {done.step}; checkpoint saved")
+        params = _host_state(done.state, use_pmap).params
+        result["stages"].append({"stage": stage.name, "steps": done.step, "skipped_data": it.skipped})
+        if done.stopped:
             break
     if writer is not None:
         writer.close()
@@ -200,6 +166,61 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
                    "evals": earlier["evals"] + result.get("evals", []), "stopped_by": result.get("stopped_by")},
                   f, indent=1)
     return result
+
+
+def _log_hook(exp: ExperimentConfig, stage: StageConfig, bar, history: list[dict], writer) -> Hook:
+    """Advance the progress bar; every ``log_every`` steps and at the stage's end, log the
+    step's metrics (mean over devices) to the bar, ``history`` and TensorBoard."""
+    t_log = [time.time()]
+
+    def log(info: StepInfo) -> None:
+        bar.update(1)
+        if info.step % exp.log_every and info.step != stage.steps:
+            return
+        m = {k: float(np.mean(v)) for k, v in _to_host(info.metrics).items()}
+        rate = exp.log_every / max(time.time() - t_log[0], 1e-9)
+        t_log[0] = time.time()
+        bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", sps=f"{rate:.2f}")
+        history.append({"stage": stage.name, "step": info.step, **m})
+        if writer is not None:
+            for k, v in m.items():
+                writer.add_scalar(f"train/{k}", v, info.step)
+
+    return log
+
+
+def _checkpoint_hook(exp: ExperimentConfig, ckpt_dir: str, it: BatchIterator, use_pmap: bool) -> Hook:
+    """Every ``checkpoint_every`` steps and after the last: state and data position to ``ckpt_dir``."""
+
+    def checkpoint(info: StepInfo) -> None:
+        if info.step % exp.checkpoint_every == 0 or info.last:
+            T.save_checkpoint(ckpt_dir, _host_state(info.state, use_pmap), data_state=it.state(),
+                              config=exp, keep=exp.keep_checkpoints)
+
+    return checkpoint
+
+
+def _eval_hook(exp: ExperimentConfig, stage: StageConfig, samples: list[dict], names: list[str], writer,
+               stop: T.StopRequest, result: dict, use_pmap: bool) -> Hook:
+    """Every ``eval_every`` steps and after the last (unless a signal stops the run: a
+    scheduler's grace period is short), evaluate on the held-out ``samples``: TensorBoard
+    scalars and picture grid, a console line, ``result["eval"]`` and ``result["evals"]``."""
+
+    def held_out(info: StepInfo) -> None:
+        if not (info.step % exp.eval_every == 0 or info.last and not stop):
+            return
+        _, summary, preds = evaluate(_host_state(info.state, use_pmap).params, exp.model, samples, names=names)
+        if writer is not None:
+            for method, vals in summary.items():
+                for k, v in vals.items():
+                    writer.add_scalar(f"eval/{method}/{k}", v, info.step)
+            writer.add_image("eval/grid", picture_grid(samples[0], preds[0]), info.step, dataformats="HWC")
+        tqdm.write(f"[{stage.name} step {info.step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
+                   f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
+        result["eval"] = summary
+        result.setdefault("evals", []).append({"stage": stage.name, "step": info.step, **summary["model"]})
+
+    return held_out
 
 
 def _earlier_log(path: str, starts: dict[str, int]) -> dict:

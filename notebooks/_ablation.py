@@ -82,6 +82,7 @@ from llrmpp_jax.nn.backbone import count_params
 from llrmpp_jax.objective import LossWeights, make_objective
 from llrmpp_jax.perceptual import load_vgg16_lpips
 from llrmpp_jax import train as T
+from llrmpp_jax.train.loop import StepInfo, run_stage
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TRAIN_SCENES = 100_000  # training seeds are [0, TRAIN_SCENES)
@@ -381,17 +382,21 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
                               size=TRAIN_SCENES)
     batch_cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
                             with_depth=depth, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
-    losses, dropped, kept = [], 0.0, {}
-    host_params = lambda: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's copy)
+    losses, dropped, kept = [], [], {}
+    host_params = lambda state: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's)
+
+    def record(info: StepInfo) -> None:  # the loss curve, lost splat intersections, the snapshots asked for
+        metrics = jax.device_get(info.metrics)  # host copies: indexing device arrays compiles ops
+        losses.append(float(metrics["loss"][0]))
+        dropped.append(float(metrics["splat_dropped"][0]) * n_dev)
+        if info.step in snapshots:
+            kept[info.step] = host_params(info.state)
+
     with BatchIterator(source, batch_cfg, seed=seed, num_devices=n_dev) as batches:
-        for i in range(scale.steps):
-            state, metrics = step(state, T.shard_for_pmap(next(batches), n_dev))
-            metrics = jax.device_get(metrics)  # host copies: indexing device arrays compiles ops
-            losses.append(float(metrics["loss"][0]))
-            dropped += float(metrics["splat_dropped"][0]) * n_dev
-            if i + 1 in snapshots:
-                kept[i + 1] = host_params()
-    return Trained(host_params(), np.asarray(losses, np.float32), time.perf_counter() - t0, int(dropped), kept)
+        done = run_stage(state, step, (T.shard_for_pmap(b, n_dev) for b in batches), steps=scale.steps,
+                         hooks=[record])
+    return Trained(host_params(done.state), np.asarray(losses, np.float32), time.perf_counter() - t0,
+                   int(sum(dropped)), kept)
 
 
 # --------------------------------------------------------------------------- evaluation
