@@ -15,10 +15,11 @@ import os
 from dataclasses import dataclass, field
 
 from llrmpp_jax.config import ModelConfig
+from llrmpp_jax.data.formats import FORMATS
 from llrmpp_jax.data.synthetic import ProceduralConfig
 from llrmpp_jax.errors import MissingInputError, UserError
 
-DATA_KINDS = ("procedural", "auto", "long_lrm", "nerfstudio", "colmap", "scannet", "re10k")
+DATA_KINDS = ("procedural", *FORMATS)  # endless generated scenes, or a dataset of a readable format
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import ArrayLike, Float
+from llrmpp_jax.errors import UserError
 
 _GL_CV_FLIP = (1.0, -1.0, -1.0, 1.0)
 
@@ -312,10 +313,10 @@ def validate_cameras(
     c2w = np.asarray(c2w)
     intrinsics = np.asarray(intrinsics)
     if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
-        raise ValueError(f"{name}: c2w must have shape [N, 4, 4], got {c2w.shape}")
+        raise UserError(f"{name}: c2w must have shape [N, 4, 4], got {c2w.shape}")
     n = c2w.shape[0]
     if intrinsics.shape != (n, 4):
-        raise ValueError(f"{name}: intrinsics must have shape [{n}, 4] (fx, fy, cx, cy), got {intrinsics.shape}")
+        raise UserError(f"{name}: intrinsics must have shape [{n}, 4] (fx, fy, cx, cy), got {intrinsics.shape}")
 
     def frame(i: int) -> str:
         return f"{name}, frame {i}" + (f" ({frame_names[i]})" if frame_names is not None else "")
@@ -324,7 +325,7 @@ def validate_cameras(
         bad = ~np.isfinite(arr).reshape(n, -1).all(axis=1)
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValueError(f"{frame(i)}: {field} has non-finite values: {arr[i].tolist()}")
+            raise UserError(f"{frame(i)}: {field} has non-finite values: {arr[i].tolist()}")
     c2w = c2w.astype(np.float64)
     bottom_err = np.abs(c2w[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
     rot = c2w[:, :3, :3]
@@ -332,16 +333,16 @@ def validate_cameras(
     det = np.linalg.det(rot)
     for i in range(n):
         if bottom_err[i] > atol:
-            raise ValueError(f"{frame(i)}: c2w last row must be (0, 0, 0, 1), got {c2w[i, 3].tolist()}")
+            raise UserError(f"{frame(i)}: c2w last row must be (0, 0, 0, 1), got {c2w[i, 3].tolist()}")
         if ortho_err[i] > atol or det[i] < 0:
-            raise ValueError(
+            raise UserError(
                 f"{frame(i)}: c2w[:3, :3] is not a rotation (max |R^T R - I| = {ortho_err[i]:.2e}, "
                 f"det = {det[i]:.4f}; expected an orthonormal matrix with det +1, tolerance {atol})"
             )
     bad_focal = (intrinsics[:, :2] <= 0).any(axis=1)
     if bad_focal.any():
         i = int(np.argmax(bad_focal))
-        raise ValueError(
+        raise UserError(
             f"{frame(i)}: intrinsics focal lengths must be > 0, got fx={intrinsics[i, 0]}, fy={intrinsics[i, 1]}"
         )
 

@@ -42,11 +42,11 @@ MANIFEST = "llrmpp_manifest.json"
 _FORMAT = 1
 
 
-class CorruptCheckpointError(RuntimeError):
+class CorruptCheckpointError(UserError, RuntimeError):
     """A checkpoint step whose files are missing, truncated or altered."""
 
 
-class IncompatibleCheckpointError(ValueError):
+class IncompatibleCheckpointError(UserError):
     """A checkpoint whose state tree (paths, shapes, dtypes) differs from the model's."""
 
 

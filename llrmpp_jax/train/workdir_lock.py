@@ -20,10 +20,12 @@ import os
 import socket
 from collections.abc import Iterator
 
+from llrmpp_jax.errors import UserError
+
 LOCK_NAME = ".llrmpp.lock"
 
 
-class WorkdirBusyError(ValueError):
+class WorkdirBusyError(UserError):
     """Another process holds the workdir's lock (a user error: one line, exit status 2)."""
 
 

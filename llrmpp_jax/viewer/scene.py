@@ -28,7 +28,6 @@ from llrmpp_jax.model import reconstruct
 from llrmpp_jax.splat.sh import SH_C0, num_sh_bases
 
 
-
 class ViewerScene(NamedTuple):
     """A reconstructed scene as the viewer needs it (scene units, OpenCV cameras)."""
 

@@ -36,7 +36,7 @@ from llrmpp_jax.viewer.render import OUTPUTS, Frame, ViewKey, ViewRenderer, disp
 from llrmpp_jax.viewer.scene import ViewerScene, gaussian_centres
 
 
-class PortInUseError(ValueError):
+class PortInUseError(UserError):
     """The requested port is taken; the message names it and a free one to use instead."""
 
 
