@@ -7,7 +7,7 @@ Each ``notebooks/NAME.py`` (jupytext percent format, the source of truth) is rea
 jupytext, run top to bottom by nbclient in a fresh ``python3`` kernel whose working folder is
 ``notebooks/`` and whose environment carries ``LLRMPP_NOTEBOOK_SCALE``, then written to
 ``notebooks/NAME.ipynb`` with its outputs (tables, figures). The notebooks themselves write
-their JSON and PNG results (``_ablation.save``). A cell that raises stops that notebook,
+their JSON and PNG results (``llrmpp_jax.ablation.save``). A cell that raises stops that notebook,
 reports the cell and leaves its .ipynb untouched.
 """
 
@@ -36,7 +36,7 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     os.environ["LLRMPP_NOTEBOOK_SCALE"] = scale  # the kernel inherits this process's environment
     os.environ.setdefault("MPLBACKEND", "module://matplotlib_inline.backend_inline")
-    os.environ["LLRMPP_NOTEBOOK_ECHO"] = "1"  # progress lines also to this terminal (_ablation._progress)
+    os.environ["LLRMPP_NOTEBOOK_ECHO"] = "1"  # progress lines also to this terminal (llrmpp_jax.ablation.progress)
     t0 = time.perf_counter()
     # Without fd capture the kernel's own stderr stays this terminal's, and the progress
     # echo does not land in the notebook a second time.

@@ -3,7 +3,7 @@
 Run:  python notebooks/_summary.py [--scale cpu]
       (reads experiments/results/ablations/table*_{scale}.json, prints Markdown)
 
-The JSON records are the ones the notebooks write (:func:`_ablation.save`); a table that has
+The JSON records are the ones the notebooks write (:func:`llrmpp_jax.ablation.save`); a table that has
 not been executed at the scale is listed as such, so the summary never hides a missing run.
 ``notebooks/README.md`` carries this output under "Verdicts".
 """
@@ -14,11 +14,10 @@ import argparse
 import json
 import os
 import re
-import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _ablation as A  # noqa: E402
-from _execute import notebook_names  # noqa: E402
+from _execute import notebook_names  # this folder: on sys.path when run as a script
+
+from llrmpp_jax import ablation as A
 
 RESULTS = os.path.join(A.ROOT, "experiments", "results", "ablations")
 
@@ -26,7 +25,7 @@ RESULTS = os.path.join(A.ROOT, "experiments", "results", "ablations")
 def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
     """Markdown: a line per executed table (wall time, commit, seeds, steps), then one table
     with every ordering of every executed table: the paper's difference, our paired
-    difference with its 95% interval, and the verdict (:func:`_ablation.compare`)."""
+    difference with its 95% interval, and the verdict (:func:`llrmpp_jax.ablation.compare`)."""
     runs, missing = [], []
     for name in notebook_names():
         path = os.path.join(folder, f"{name}_{scale}.json")

@@ -15,7 +15,7 @@
 # `LLRMPP_NOTEBOOK_ROWS=0,3` (row indices) runs a subset.
 
 # %%
-import _ablation as A
+from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
 scale = A.make_scale(A.scale_name(), paper_views=4)

@@ -15,7 +15,7 @@
 # model, accelerators). `LLRMPP_NOTEBOOK_ROWS=0,2` (row indices) runs a subset.
 
 # %%
-import _ablation as A
+from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
 # 5 seeds at the cpu scale: its three rows fit the hour with 5 (3 seeds took 32 min), and

@@ -20,7 +20,7 @@
 # subset.
 
 # %%
-import _ablation as A
+from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
 # 800 steps at the cpu scale: at 400 the depth rows stayed below the mean colour (README,

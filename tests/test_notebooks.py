@@ -85,7 +85,6 @@ def test_rows_match_paper_table(name, monkeypatch, capsys, tmp_path):
     monkeypatch.setenv("LLRMPP_NOTEBOOK_ROWS", "none")
     monkeypatch.setenv("LLRMPP_NOTEBOOK_SCALE", "smoke")
     monkeypatch.setenv("LLRMPP_NOTEBOOK_OUT", str(tmp_path))
-    monkeypatch.syspath_prepend(NB_DIR)
     g = runpy.run_path(os.path.join(NB_DIR, name + ".py"))
     assert g["results"] == []
     variants = g["VARIANTS"]
@@ -118,8 +117,7 @@ def _run_notebook(name: str, tmp_path, rows: str, **env: str) -> tuple[subproces
     tmp_path.mkdir(parents=True, exist_ok=True)
     out = tmp_path / "results.json"
     runner = (
-        "import json, runpy, sys\n"
-        f"sys.path.insert(0, {NB_DIR!r})\n"
+        "import json, runpy\n"
         f"g = runpy.run_path({os.path.join(NB_DIR, name + '.py')!r}, run_name='__main__')\n"
         "labels = [v.labels for v in g['VARIANTS']]\n"
         f"json.dump({{'results': g['results'], 'labels': labels, 'orderings': g['comparisons']}}, "
@@ -203,11 +201,10 @@ def test_workers_give_the_same_numbers(tmp_path):
 
 
 @pytest.fixture
-def ablation(monkeypatch):
-    monkeypatch.syspath_prepend(NB_DIR)
-    import _ablation
+def ablation():
+    from llrmpp_jax import ablation
 
-    return _ablation
+    return ablation
 
 
 def test_interval_matches_student_t(ablation):
@@ -285,7 +282,7 @@ def test_progress_is_echoed_to_the_terminal_only_when_asked(ablation, monkeypatc
         monkeypatch.setenv("LLRMPP_NOTEBOOK_ECHO", "1")
     else:
         monkeypatch.delenv("LLRMPP_NOTEBOOK_ECHO", raising=False)
-    ablation._progress("row 0 seed 1: PSNR 19.00")
+    ablation.progress("row 0 seed 1: PSNR 19.00")
     assert notebook.getvalue() == "row 0 seed 1: PSNR 19.00\n" and kernel_stderr.getvalue() == ""
     assert terminal.getvalue() == ("row 0 seed 1: PSNR 19.00\n" if echo else "")
 
@@ -355,9 +352,10 @@ def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
     assert np.percentile(np.concatenate(ray_distances), 99) < ablation.PROCEDURAL_MAX_DIST
 
 
-def test_summary_lists_every_table_and_ordering(ablation, tmp_path, monkeypatch):
+def test_summary_lists_every_table_and_ordering(tmp_path, monkeypatch):
     """``notebooks/_summary.py``: one line per ordering of an executed table, with the
     numbers of its JSON record; every other table is listed as not executed."""
+    monkeypatch.syspath_prepend(NB_DIR)
     import _summary
 
     record = {"wall_s": 1926.0, "seeds": 3, "steps": 400, "commit": "abc1234", "orderings": [

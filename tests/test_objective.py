@@ -10,13 +10,11 @@ Inputs are fresh random draws (images, cameras, depths in [0.5, 4)); tolerance 1
 relative (float32: the same ops on the same values, so equal up to XLA's fusion order).
 """
 
-import os
-
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
+from llrmpp_jax import ablation
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
@@ -25,7 +23,6 @@ from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.objective import LossWeights, make_loss_fn, make_objective
 from test_model import _scene
 
-NB_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks")
 SIZE = 32  # the depth loss's coarsest gradient scale needs 32 pixels (the Gaussians' depth: a 32-pixel canvas)
 
 
@@ -60,15 +57,7 @@ def _terms(params, cfg, batch, grad_weight, normal_weight, gaussian_depth=False)
     return rgb, depth, gdepth
 
 
-@pytest.fixture
-def ablation(monkeypatch):
-    monkeypatch.syspath_prepend(NB_DIR)
-    import _ablation
-
-    return _ablation
-
-
-def test_notebook_and_trainer_objectives_agree(ablation, key):
+def test_notebook_and_trainer_objectives_agree(key):
     cfg = _depth_model()
     k_params, k_batch, k_loss = jax.random.split(key, 3)
     params, batch = init_params(k_params, cfg, 2, SIZE, SIZE), _batch(k_batch)

@@ -19,9 +19,9 @@ Also scores three constant depths on the same held-out samples: the head's start
 
 Run (one core each, ~4 min at 400 steps; two at once on a 2-core machine)::
 
-    python notebooks/_probe_depth_scale.py base   experiments/results/ablations
-    python notebooks/_probe_depth_scale.py metric experiments/results/ablations
-    python notebooks/_probe_depth_scale.py fixed  experiments/results/ablations
+    python experiments/ablation_probe_depth_scale.py base   experiments/results/ablations
+    python experiments/ablation_probe_depth_scale.py metric experiments/results/ablations
+    python experiments/ablation_probe_depth_scale.py fixed  experiments/results/ablations
 
 Writes ``OUT/probe_depth_scale_{mode}.json`` with the commit.
 """
@@ -34,7 +34,6 @@ import os
 import sys
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
 # The mean log target depth of the cpu scale's training windows under Long-LRM's rescaling
 # (1.60 / 1.50 / 1.64 over three draws of 128 samples), where the depth head started then.
 RESCALED_DEPTH_BIAS = 1.6
@@ -42,16 +41,16 @@ RESCALED_DEPTH_BIAS = 1.6
 
 def main() -> None:
     if len(sys.argv) != 3 or sys.argv[1] not in ("base", "metric", "fixed"):
-        raise SystemExit("usage: python notebooks/_probe_depth_scale.py {base,metric,fixed} OUT_DIR")
+        raise SystemExit("usage: python experiments/ablation_probe_depth_scale.py {base,metric,fixed} OUT_DIR")
     mode, out = sys.argv[1], sys.argv[2]
     os.environ.update(LLRMPP_NOTEBOOK_SCALE="cpu", LLRMPP_NOTEBOOK_SEEDS="1", LLRMPP_NOTEBOOK_WORKERS="1",
                       LLRMPP_NOTEBOOK_ROWS="2", LLRMPP_NOTEBOOK_OUT=out)
-    sys.path.insert(0, HERE)
     import jax.numpy as jnp
     import numpy as np
 
-    import _ablation as A
+    import llrmpp_jax.ablation.scoring as scoring
     import llrmpp_jax.data.batching as batching
+    from llrmpp_jax import ablation as A
     from llrmpp_jax import config as C
     from llrmpp_jax.metrics import depth_metrics
 
@@ -61,7 +60,7 @@ def main() -> None:
         scale = dataclasses.replace(scale, base=base, rescale=True)
     bias = scale.base.decoder.depth_bias
     if mode == "fixed":
-        plain = A.make_sample
+        plain = scoring.make_sample
 
         def fixed_scale(*args, **kwargs):
             s = plain(*args, **kwargs)
@@ -76,7 +75,7 @@ def main() -> None:
 
         # both the training batches (batching's worker threads) and the held-out samples
         batching.make_sample = fixed_scale
-        A.make_sample = fixed_scale
+        scoring.make_sample = fixed_scale
 
     variants = [  # Table 7's first three rows; LLRMPP_NOTEBOOK_ROWS=2 runs the last
         A.Variant({"method": "Long-LRM 2DGS"}, None, {}, note="not run here"),

@@ -1,11 +1,11 @@
 """Pilot of the ablation notebooks' ``cpu`` scale: how many steps before rows can be told apart.
 
-Run:  python notebooks/_pilot.py --budgets 200,400,600 --seeds 3
+Run:  python experiments/ablation_pilot.py --budgets 200,400,600 --seeds 3
       (about 15 minutes per row on a 2-core CPU; writes experiments/results/ablations/pilot_cpu.json)
 
 Trains each table's chosen row (Table 4: K16 F32 canvas 0.5 with an LLG decoder; Tables 5
 and 6: LLGGG, S=2; Table 7: LLGGG with the depth loss) at the cpu scale of
-``notebooks/_ablation.py`` for the largest budget, once per seed, scoring the held-out scenes
+``llrmpp_jax.ablation`` for the largest budget, once per seed, scoring the held-out scenes
 after each budget. Prints, per budget, the mean held-out PSNR / LPIPS with the seed spread
 and 95% interval next to the untrained model and the two baselines (mean colour, nearest
 view): the cpu scale's step count is the smallest budget at which every chosen row is
@@ -18,15 +18,13 @@ import argparse
 import dataclasses
 import json
 import os
-import sys
 import time
 
 import jax
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _ablation as A  # noqa: E402
-from llrmpp_jax import config as C  # noqa: E402
-from llrmpp_jax.metrics import load_lpips_params  # noqa: E402
+from llrmpp_jax import ablation as A
+from llrmpp_jax import config as C
+from llrmpp_jax.metrics import load_lpips_params
 
 
 # The chosen row of each table: name -> (decoder blocks, renders depth). The cpu base is
@@ -82,7 +80,7 @@ def main() -> None:
         refs = A.references(cfg, scale, samples, lp)
         record["rows"][name] = {
             "train_s": seconds, "references": refs,
-            "budgets": {str(b): A._summarise(per_budget[b]) for b in budgets},
+            "budgets": {str(b): A.summarise(per_budget[b]) for b in budgets},
         }
         print(f"\n{name} ({sum(seconds) / len(seconds):.0f} s per seed for {budgets[-1]} steps)")
         print("| steps | PSNR (± 95%) | std | LPIPS |")
