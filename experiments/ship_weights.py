@@ -24,13 +24,13 @@ import subprocess
 
 import numpy as np
 
+from llrmpp_jax.data.held_out import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.pretrained import PREFIX, WEIGHTS_DIR, export_pretrained, read_meta
-from llrmpp_jax.trainer import eval_samples
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
