@@ -7,10 +7,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pytest
 
-from llrmpp_jax.data.batching import BatchConfig, BatchIterator, FileSource, ProceduralSource, build_sample, shard
+from llrmpp_jax.data.batching import BatchConfig, BatchIterator, FileSource, ProceduralSource, build_sample
 from llrmpp_jax.data.preprocess import ViewGeometry
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
+from llrmpp_jax.train.sharding import shard_for_pmap
 
 SRC = ProceduralSource(ProceduralConfig(height=24, width=32, num_frames=10))
 CFG = BatchConfig(global_batch=4, num_inputs=3, num_targets=2, geometry=ViewGeometry(multiple=8), with_depth=True)
@@ -35,7 +36,7 @@ def test_layout_and_values():
     assert b["input_images"].min() >= 0 and b["input_images"].max() <= 1
     np.testing.assert_allclose(np.abs(b["input_c2w"][..., :3, 3]).max(axis=(1, 2)), 1.0, rtol=1e-6)
     assert (b["target_depth"] > 0).all()
-    sharded = shard(b, 2)
+    sharded = shard_for_pmap(b, 2)  # the trainer's split of a batch over 2 devices
     assert sharded["target_depth"].shape == (2, 2, 2, 24, 32)
     np.testing.assert_array_equal(sharded["input_c2w"][1, 0], b["input_c2w"][2])
 

@@ -2,7 +2,7 @@
 selection, preprocessing and the training batch iterator (batch layout documented in
 :mod:`llrmpp_jax.data.batching`)."""
 
-from llrmpp_jax.data.batching import BatchConfig, BatchIterator, FileSource, ProceduralSource, shard
+from llrmpp_jax.data.batching import BatchConfig, BatchIterator, FileSource, ProceduralSource
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.scene import Scene, in_memory_scene
 from llrmpp_jax.data.selection import eval_views, kmeans_inputs, training_views, uniform_inputs
@@ -21,7 +21,6 @@ __all__ = [
     "kmeans_inputs",
     "make_sample",
     "procedural_scene",
-    "shard",
     "training_views",
     "uniform_inputs",
 ]

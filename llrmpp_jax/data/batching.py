@@ -161,14 +161,6 @@ def _process_element(seed: int, step: int, b: int) -> tuple[dict[str, np.ndarray
     return build_element(*_PROCESS_DATA, seed, step, b)
 
 
-def shard(batch: dict[str, np.ndarray], num_devices: int) -> dict[str, np.ndarray]:
-    """Split the leading batch axis over devices: ``[B, ...] -> [num_devices, B / num_devices, ...]``."""
-    b = next(iter(batch.values())).shape[0]
-    if b % num_devices:
-        raise UserError(f"shard: batch of {b} does not split evenly over {num_devices} devices")
-    return {k: v.reshape((num_devices, b // num_devices) + v.shape[1:]) for k, v in batch.items()}
-
-
 class BatchIterator:
     """Iterator of fixed-shape batches (see the module docstring for the layout).
 
