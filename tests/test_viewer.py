@@ -292,6 +292,76 @@ def test_viewer_in_browser(demo, browser, tmp_path):
         viewer.stop()
 
 
+def _rss_bytes() -> int:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))
+
+
+@pytest.mark.slow
+def test_four_tabs_under_load(demo, browser):
+    """Four tabs of one page, each moved to its own cameras three times in a row: every tab
+    gets the frame of its newest camera (per-tab latency under a bound), the server's
+    memory stays bounded, and closing two tabs stops their render workers."""
+    params, cfg, scene = demo
+    settings = ViewerSettings(height=64, moving_height=64, show_points=False, show_cameras=False)
+    viewer = Viewer(ViewRenderer(params, cfg, scene.gaussians), scene, host="127.0.0.1", port=0, settings=settings)
+    try:
+        url = f"http://127.0.0.1:{viewer.port}/"
+        browser.get(url)
+        for _ in range(3):
+            browser.switch_to.new_window("tab")
+            browser.get(url)
+        deadline = time.monotonic() + 180.0  # the first frame compiles the renderer once
+        while len(viewer.tabs()) < 4 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        tabs = sorted(viewer.tabs())
+        assert len(tabs) == 4, f"{len(tabs)} of 4 tabs got a frame"
+        rss_before = _rss_bytes()
+        cams = scene.input_c2w
+        latencies = {t: [] for t in tabs}
+        for round_ in range(3):
+            # Two requests per tab back to back: the worker may skip the first, never the second.
+            starts = {}
+            for i, t in enumerate(tabs):
+                viewer.set_camera(cams[(i + round_ + 1) % len(cams)], tab=t)
+                viewer.set_camera(cams[(i + round_) % len(cams)], tab=t)
+                starts[t] = time.monotonic()
+            pending = set(tabs)
+            deadline = time.monotonic() + 60.0
+            while pending and time.monotonic() < deadline:
+                for t, (_, frame) in viewer.tabs().items():
+                    want = cams[(tabs.index(t) + round_) % len(cams)]
+                    if t in pending and np.allclose(frame.c2w, want, atol=1e-4):
+                        pending.discard(t)
+                        latencies[t].append(time.monotonic() - starts[t])
+                time.sleep(0.02)
+            assert not pending, f"round {round_}: tabs {sorted(pending)} never showed their newest camera"
+        worst = max(max(v) for v in latencies.values())
+        assert worst < 30.0, latencies  # 64 px renders on 2 shared cores: seconds, not minutes
+        grown = _rss_bytes() - rss_before
+        assert grown < 300 * 2**20, f"server memory grew by {grown / 2**20:.0f} MiB over 24 camera moves"
+
+        workers = viewer.workers
+        handles = browser.window_handles
+        for h in handles[2:]:
+            browser.switch_to.window(h)
+            browser.close()
+        browser.switch_to.window(handles[0])
+        deadline = time.monotonic() + 60.0
+        while len(viewer.workers) > 2 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert len(viewer.workers) == 2, f"{len(viewer.workers)} workers after closing 2 of 4 tabs"
+        closed = [w for t, w in workers.items() if t not in viewer.workers]
+        deadline = time.monotonic() + 30.0
+        while any(w.alive for w in closed) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert len(closed) == 2 and not any(w.alive for w in closed)
+        print(f"four tabs: latency per tab (s) {[[round(x, 2) for x in latencies[t]] for t in tabs]}, "
+              f"RSS {rss_before / 2**20:.0f} -> {(rss_before + grown) / 2**20:.0f} MiB")
+    finally:
+        viewer.stop()
+
+
 # -- command line ---------------------------------------------------------------------------
 
 

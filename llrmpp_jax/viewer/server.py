@@ -124,6 +124,11 @@ class RenderWorker:
             self._pending = req
             self._cond.notify()
 
+    @property
+    def alive(self) -> bool:
+        """The worker's thread is running (False once closed and finished)."""
+        return self._thread.is_alive()
+
     def close(self, wait: bool = False) -> None:
         """Stop the worker after its current render (``wait``: until it has stopped)."""
         with self._cond:
@@ -171,6 +176,7 @@ class Viewer:
         self._frame_count = 0
         self._frame_cond = threading.Condition()
         self._workers: dict[int, RenderWorker] = {}
+        self._tab_frames: dict[int, tuple[int, Frame]] = {}  # tab (client id) -> (frames sent, latest)
         self._stopped = False
         self.server = viser.ViserServer(host=host, port=port, label="llrmpp view", verbose=False)
         if port and self.server.get_port() != port:  # taken between our check and viser's bind
@@ -263,6 +269,8 @@ class Viewer:
         worker = self._workers.pop(client.client_id, None)
         if worker is not None:
             worker.close()
+        with self._frame_cond:
+            self._tab_frames.pop(client.client_id, None)
 
     def _render_safely(self, client: viser.ClientHandle, req: ViewRequest) -> None:
         try:
@@ -297,6 +305,9 @@ class Viewer:
         with self._frame_cond:
             self._last = frame
             self._frame_count += 1
+            if client.client_id in self._workers:  # a tab closed meanwhile keeps no record
+                count = self._tab_frames.get(client.client_id, (0, frame))[0]
+                self._tab_frames[client.client_id] = (count + 1, frame)
             self._frame_cond.notify_all()
 
     # -- control from Python ------------------------------------------------------------
@@ -314,11 +325,25 @@ class Viewer:
                 raise TimeoutError(f"no frame after frame {after} within {timeout} s")
             return self._last
 
-    def set_camera(self, c2w: np.ndarray, fov_y: float | None = None) -> None:
-        """Move every open tab's camera to the OpenCV ``c2w [4, 4]`` (and vertical field
-        of view, radians) and render it at full height."""
+    def tabs(self) -> dict[int, tuple[int, Frame]]:
+        """Open tabs (viser client ids) that have been sent a frame: ``(frames sent, the
+        latest frame)`` each."""
+        with self._frame_cond:
+            return dict(self._tab_frames)
+
+    @property
+    def workers(self) -> dict[int, RenderWorker]:
+        """The render worker of each open tab."""
+        return dict(self._workers)
+
+    def set_camera(self, c2w: np.ndarray, fov_y: float | None = None, tab: int | None = None) -> None:
+        """Move every open tab's camera (or only tab ``tab``'s, a viser client id) to the
+        OpenCV ``c2w [4, 4]`` (and vertical field of view, radians) and render it at full
+        height."""
         c2w = np.asarray(c2w, np.float64)
         for client in self.server.get_clients().values():
+            if tab is not None and client.client_id != tab:
+                continue
             with client.atomic():
                 cam = client.camera
                 look = float(np.linalg.norm(cam.look_at - cam.position)) or 1.0
