@@ -30,13 +30,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import Float
-from llrmpp_jax.capture.render import frame_photos, path_cameras
+from llrmpp_jax.capture.render import frame_photos, path_cameras, render_views
 from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import psnr
-from llrmpp_jax.model import render
 from llrmpp_jax.refine import RefineConfig, RefineInfo, refine
 from llrmpp_jax.splat.sh import MAX_DEGREE, SH_C0, num_sh_bases
 
@@ -99,10 +98,9 @@ def colour_config(cfg: ModelConfig, sh_degree: int) -> ModelConfig:
     return dataclasses.replace(cfg, head=dataclasses.replace(cfg.head, mode="color", sh_degree=sh_degree))
 
 
-def _renders(params, cfg: ModelConfig, g: Gaussians, c2w, intr, hw) -> jax.Array:
-    """``[V, H, W, 3]`` RGB renders of ``g`` (batch 1) one view at a time (one compiled shape)."""
-    fn = jax.jit(lambda g, c, k: render(params, cfg, g, c, k, hw[0], hw[1], ("rgb",)).images["rgb"])
-    return jnp.concatenate([fn(g, c2w[None, i:i + 1], intr[None, i:i + 1])[0] for i in range(len(c2w))])
+def _renders(params, saved: SavedScene, c2w: np.ndarray, intrinsics: np.ndarray) -> jax.Array:
+    """``[V, H, W, 3]`` RGB renders in [0, 1] of ``saved`` at these cameras."""
+    return jnp.asarray(render_views(params, saved, c2w, intrinsics, [""] * len(c2w), progress=False).rgb)
 
 
 def initial_colours(means: Float[np.ndarray, "N 3"], c2w: Float[np.ndarray, "V 4 4"],
@@ -155,13 +153,12 @@ def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig()
     if saved.model.head.mode != "feature":
         raise UserError("bake: the scene is already in colour mode; export it without --bake")
     t0 = time.perf_counter()
-    hw = saved.image_hw
     feature_g = jax.tree.map(lambda x: jnp.asarray(x)[None], saved.gaussians)
     path_c2w, path_intr, _, _ = (path_cameras(saved, "spline", bake.path_views) if bake.path_views
                                  else (np.zeros((0, 4, 4)), np.zeros((0, 4)), None, None))
     c2w = np.concatenate([saved.c2w[saved.inputs], path_c2w]).astype(np.float32)
     intr = np.concatenate([saved.intrinsics[saved.inputs], path_intr]).astype(np.float32)
-    targets = _renders(params, saved.model, feature_g, jnp.asarray(c2w), jnp.asarray(intr), hw)
+    targets = _renders(params, saved, c2w, intr)
 
     cfg = colour_config(saved.model, bake.sh_degree)
     n = feature_g.means.shape[1]
@@ -178,12 +175,12 @@ def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig()
     baked, info = refine({}, cfg, colour_g, targets[None], jnp.asarray(c2w)[None], jnp.asarray(intr)[None],
                          steps=bake.steps, rc=rc, progress=progress)
 
+    baked_scene = dataclasses.replace(saved, model=cfg, gaussians=jax.tree.map(lambda x: np.asarray(x[0]), baked))
     vs_model = baked_vs_photos = model_vs_photos = float("nan")
     if len(saved.targets):
-        t_c2w = jnp.asarray(saved.c2w[saved.targets], jnp.float32)
-        t_intr = jnp.asarray(saved.intrinsics[saved.targets], jnp.float32)
-        model_rgb = _renders(params, saved.model, feature_g, t_c2w, t_intr, hw)
-        baked_rgb = _renders({}, cfg, baked, t_c2w, t_intr, hw)
+        t_c2w, t_intr = saved.c2w[saved.targets], saved.intrinsics[saved.targets]
+        model_rgb = _renders(params, saved, t_c2w, t_intr)
+        baked_rgb = _renders({}, baked_scene, t_c2w, t_intr)
         vs_model = float(jnp.mean(psnr(baked_rgb, model_rgb)))
         try:
             photos = jnp.asarray(frame_photos(saved, saved.targets, scene_path))
@@ -192,5 +189,5 @@ def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig()
         if photos is not None:
             baked_vs_photos = float(jnp.mean(psnr(baked_rgb, photos)))
             model_vs_photos = float(jnp.mean(psnr(model_rgb, photos)))
-    return Baked(jax.tree.map(lambda x: np.asarray(x[0]), baked), cfg, vs_model, baked_vs_photos,
+    return Baked(baked_scene.gaussians, cfg, vs_model, baked_vs_photos,
                  model_vs_photos, len(c2w), info, time.perf_counter() - t0)
