@@ -52,7 +52,7 @@ def main() -> None:
     parser.add_argument("--rows", default="table5/6 LLGGG S=2",
                         help="comma-separated chosen rows to pilot, of: " + "; ".join(CHOSEN))
     parser.add_argument("--out", help="JSON file to write (default: experiments/results/ablations/pilot_cpu.json)",
-                        default=os.path.join(A.ROOT, "experiments", "results", "ablations", "pilot_cpu.json"))
+                        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "ablations", "pilot_cpu.json"))
     args = parser.parse_args()
     budgets = sorted(int(b) for b in args.budgets.split(","))
     if args.seeds < 1 or budgets[0] < 1:

@@ -36,6 +36,9 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     os.environ["LLRMPP_NOTEBOOK_SCALE"] = scale  # the kernel inherits this process's environment
     os.environ.setdefault("MPLBACKEND", "module://matplotlib_inline.backend_inline")
+    # The notebooks' tables and figures go to the repository's results (cited by notebooks/README.md).
+    os.environ.setdefault("LLRMPP_NOTEBOOK_OUT", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                                              "experiments", "results", "ablations"))
     os.environ["LLRMPP_NOTEBOOK_ECHO"] = "1"  # progress lines also to this terminal (llrmpp_jax.ablation.progress)
     t0 = time.perf_counter()
     # Without fd capture the kernel's own stderr stays this terminal's, and the progress

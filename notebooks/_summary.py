@@ -19,7 +19,7 @@ from _execute import notebook_names  # this folder: on sys.path when run as a sc
 
 from llrmpp_jax import ablation as A
 
-RESULTS = os.path.join(A.ROOT, "experiments", "results", "ablations")
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "results", "ablations")
 
 
 def summary(scale: str = "cpu", folder: str = RESULTS) -> str:

@@ -41,7 +41,7 @@ Environment overrides: ``LLRMPP_NOTEBOOK_SCALE`` (smoke / cpu / paper),
 per row, ``LLRMPP_NOTEBOOK_WORKERS`` the trainings run at once (:attr:`Scale.workers`),
 ``LLRMPP_NOTEBOOK_ROWS`` a comma-separated list of row indices to run (the others
 are left out of the results; ``none`` runs no row), ``LLRMPP_NOTEBOOK_OUT`` the folder
-:func:`save` writes to (default ``experiments/results/ablations``).
+:func:`save` writes to (default ``runs/ablations``; ``make notebooks`` sets the repository's results).
 """
 
 from llrmpp_jax.ablation.report import (
@@ -61,7 +61,6 @@ from llrmpp_jax.ablation.scales import (
     EVAL_SEED,
     PROCEDURAL_DEPTH_BIAS,
     PROCEDURAL_MAX_DIST,
-    ROOT,
     SCALES,
     TRAIN_SCENES,
     Scale,
@@ -77,7 +76,7 @@ from llrmpp_jax.ablation.training import Trained, init_model, row_objective, tra
 
 __all__ = [
     "CPU_STEPS", "CPU_WORKERS", "Column", "EVAL_SEED", "METRICS", "Ordering", "PROCEDURAL_DEPTH_BIAS",
-    "PROCEDURAL_MAX_DIST", "ROOT", "SCALES", "Scale", "SeedRun", "TRAIN_SCENES", "TableRun", "Trained", "Variant",
+    "PROCEDURAL_MAX_DIST", "SCALES", "Scale", "SeedRun", "TRAIN_SCENES", "TableRun", "Trained", "Variant",
     "commit", "compare", "cpu_base", "eval_samples", "evaluate", "format_orderings", "format_table", "init_model",
     "interval", "machine", "make_scale", "ordering_cells", "plot", "progress", "references", "row_objective",
     "run_seed", "run_table", "save", "scale_name", "selected", "smoke_base", "summarise", "time_model", "train",

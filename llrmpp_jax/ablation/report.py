@@ -15,7 +15,6 @@ from typing import Any
 import jax
 import numpy as np
 
-from llrmpp_jax.ablation.scales import ROOT
 from llrmpp_jax.ablation.tables import TableRun
 
 def _fmt(x: Any, digits: int) -> str:
@@ -144,7 +143,7 @@ def plot(run: TableRun, label_keys: Sequence[str], metric: str = "psnr", title: 
 def commit() -> str:
     """The repository's short commit, with ``+dirty`` when tracked files differ from it."""
     def git(*args: str) -> str:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        return subprocess.run(["git", *args], capture_output=True, text=True).stdout.strip()  # the working directory's
     head = git("rev-parse", "--short", "HEAD") or "unknown"
     return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
 
@@ -158,9 +157,9 @@ def machine() -> str:
 
 def save(name: str, run: TableRun, comparisons: Sequence[dict[str, Any]], figure: Any = None) -> str:
     """Write ``{name}_{scale}.json`` (and ``.png`` for ``figure``) under
-    ``LLRMPP_NOTEBOOK_OUT`` (default ``experiments/results/ablations``), print and return the
-    JSON path."""
-    out = os.environ.get("LLRMPP_NOTEBOOK_OUT") or os.path.join(ROOT, "experiments", "results", "ablations")
+    ``LLRMPP_NOTEBOOK_OUT`` (default ``runs/ablations`` in the working directory; ``make
+    notebooks`` sets the repository's results folder), print and return the JSON path."""
+    out = os.environ.get("LLRMPP_NOTEBOOK_OUT") or os.path.join("runs", "ablations")
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, f"{name}_{run.scale.name}.json")
     record = {

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the checkout
 TRAIN_SCENES = 100_000  # training seeds are [0, TRAIN_SCENES)
 EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
 SCALES = ("smoke", "cpu", "paper")
