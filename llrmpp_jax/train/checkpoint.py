@@ -249,8 +249,8 @@ def _out_of_space_errno(e: BaseException | None) -> int | None:
     return None
 
 
-def _is_closed_loop_echo(unraisable) -> bool:
-    return isinstance(unraisable.exc_value, RuntimeError) and str(unraisable.exc_value) == "Event loop is closed"
+def _is_closed_loop_echo(error: BaseException | None) -> bool:
+    return isinstance(error, RuntimeError) and str(error) == "Event loop is closed"
 
 
 @contextlib.contextmanager
@@ -260,8 +260,9 @@ def _failed_writes_reported_once() -> Iterator[None]:
     the closed event loop raise "Event loop is closed" as unraisable exceptions, some after
     the save has returned. :func:`save_checkpoint` reports the failure itself, once. So
     while saving, absl's ERROR records are held back and replayed only if the save
-    succeeds; on failure the save's threads are joined first (so nothing of it runs on),
-    and from then on those closed-loop echoes, and only they, are dropped."""
+    succeeds; closed-loop echoes, and only they, are dropped from the start of the save (and,
+    after a failure, for the rest of the process); on failure the save's threads are joined
+    first, so nothing of it runs on."""
     absl_logger = logging.getLogger("absl")
     held: list[logging.LogRecord] = []
 
@@ -272,6 +273,11 @@ def _failed_writes_reported_once() -> Iterator[None]:
 
     hold = _Hold()
     before = set(threading.enumerate())
+    previous, previous_thread = sys.unraisablehook, threading.excepthook
+    # Installed before the save: an echo can come from another thread before the failure
+    # reaches this one (as an unraisable exception or a thread's uncaught one).
+    sys.unraisablehook = lambda u: None if _is_closed_loop_echo(u.exc_value) else previous(u)
+    threading.excepthook = lambda a: None if _is_closed_loop_echo(a.exc_value) else previous_thread(a)
     absl_logger.addFilter(hold)
     try:
         yield
@@ -279,10 +285,9 @@ def _failed_writes_reported_once() -> Iterator[None]:
         for t in set(threading.enumerate()) - before:
             if t is not threading.current_thread() and not t.daemon:
                 t.join(timeout=60)
-        previous = sys.unraisablehook
-        sys.unraisablehook = lambda u: None if _is_closed_loop_echo(u) else previous(u)
-        raise
+        raise  # the echo filter stays: late callbacks may still come
     else:
+        sys.unraisablehook, threading.excepthook = previous, previous_thread
         for record in held:
             absl_logger.handle(record)
     finally:
