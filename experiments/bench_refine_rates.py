@@ -33,7 +33,7 @@ from llrmpp_jax.experiment import load_experiment, replace
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.refine import RefineConfig
-from llrmpp_jax.trainer import eval_samples
+from llrmpp_jax.data.held_out import eval_samples
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The fields with a rate of their own: RefineConfig's lr_FIELD.

@@ -28,7 +28,7 @@ stage-4 step, written as JSON.
    are not run (``steps_run`` says why).
 
    Every case runs with and without remat (``jax.checkpoint`` of every backbone and decoder
-   block). The step is the project's own: ``trainer.make_loss_fn`` ->
+   block). The step is the project's own: ``objective.make_loss_fn`` ->
    ``train.make_train_step`` -> ``train.pmap_train_step`` (donated state, 1 device), on
    procedural batches from ``data.BatchIterator``. Reported: compile time
    (``lower().compile()``), XLA's ``memory_analysis()`` of the compiled step (argument,
@@ -93,7 +93,7 @@ from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.model import init_params, reconstruct
 from llrmpp_jax.nn.backbone import count_params, parse_block_pattern
-from llrmpp_jax.trainer import batch_config
+from llrmpp_jax.data.stage_batches import batch_config
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GIB = 2.0**30

@@ -95,7 +95,7 @@ def cmd_eval(args) -> int:
     from llrmpp_jax import experiment as E
     from llrmpp_jax.evaluate import evaluate, format_table
     from llrmpp_jax.metrics import load_lpips_params
-    from llrmpp_jax.trainer import eval_samples
+    from llrmpp_jax.data.held_out import eval_samples
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")

@@ -24,12 +24,13 @@ import time
 import jax
 import numpy as np
 
+from llrmpp_jax.data.held_out import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
 from llrmpp_jax.experiment import load_experiment, replace
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.pretrained import load_pretrained
-from llrmpp_jax.trainer import eval_samples, train
+from llrmpp_jax.trainer import train
 
 
 def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, refine_scenes: int = 4,

@@ -32,7 +32,7 @@ class DataConfig:
     (other kinds; ``auto`` detects the format, see :func:`~llrmpp_jax.data.formats.read_scene`);
     ``eval_path`` the same for held-out scenes.
 
-    Held-out split of real scenes (:func:`llrmpp_jax.trainer.eval_split`): targets every
+    Held-out split of real scenes (:func:`llrmpp_jax.data.held_out.eval_split`): targets every
     8th frame of the first ``eval_max_frames`` (None: all); inputs from the others by
     ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices -- in the
     scene JSONs or in ``eval_index``, Long-LRM's ``dl3dv_fold_8_kmeans_input_idx.json`` --
@@ -58,7 +58,7 @@ class DataConfig:
     def eval_reads_training_scenes(self) -> bool:
         """True when the held-out evaluation reads the training scenes (real data with no
         ``eval_path`` of its own, as ``llrmpp train --data`` sets up); training then leaves the
-        evaluation's target frames out (``trainer.scene_source``)."""
+        evaluation's target frames out (``data.sources.scene_source``)."""
         return self.kind != "procedural" and (self.eval_path is None or
                                               os.path.abspath(self.eval_path) == os.path.abspath(self.path or ""))
 

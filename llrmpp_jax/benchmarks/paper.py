@@ -288,7 +288,7 @@ def profile_markdown(profile: dict) -> str:
 
 def train_step_model_flops(exp, vgg_params: dict | None, batch: dict) -> float:
     """Model FLOPs of one training step on one device: the loss of
-    ``trainer.make_loss_fn(exp, vgg_params)`` and its gradient, in the step's compute dtype,
+    ``objective.make_loss_fn(exp, vgg_params)`` and its gradient, in the step's compute dtype,
     for ``batch`` (one device's shard ``[b, views, ...]``: arrays or ``ShapeDtypeStruct`` s):
     :func:`llrmpp_jax.benchmarks.measure.matmul_flops` of the :func:`counting_config` model (tracing
     only). The optimizer's update (~10 elementwise FLOPs a parameter) is not a matmul."""

@@ -14,7 +14,7 @@ memory analysis, no run). Here it runs: the ``dl3dv`` recipe's stage 4 (32 input
 ``config.for_accelerators`` sets it, the sequential SSD inter-chunk recurrence, Long-LRM's
 VGG19 perceptual term with random weights of its shapes unless the file names weights: the
 cost does not depend on the weights), with the project's own step
-(``trainer.make_loss_fn`` -> ``train.make_train_step`` -> ``train.pmap_train_step``, donated
+(``objective.make_loss_fn`` -> ``train.make_train_step`` -> ``train.pmap_train_step``, donated
 state) and the model's parameters initialised as for training (on the host CPU:
 ``paper.host_init_params``; the init's own XLA:GPU compile took 52 s on an H200).
 ``--scale cpu`` swaps in ``config.tiny()`` (same stage, bf16, VGG19 term and code paths)
