@@ -1,11 +1,15 @@
 """Camera poses from photos or a video (``llrmpp_jax.capture.poses``, pycolmap): a real
 capture's photos register and read back as a capture; a video's frames too; photos that
-share nothing fail in one line; bad inputs are one line."""
+share nothing fail in one line; bad inputs are one line; importing pycolmap leaves the
+process's crash handlers as they were."""
 
 from __future__ import annotations
 
 import json
 import os
+import signal
+import subprocess
+import sys
 import warnings
 
 import imageio_ffmpeg
@@ -117,3 +121,27 @@ def test_not_a_video_is_one_line(tmp_path):
         extract_frames(str(fake), str(tmp_path / "frames"), 2.0, progress=lambda _: None)
     with pytest.raises(MissingInputError):
         extract_frames(str(tmp_path / "missing.mp4"), str(tmp_path / "frames"), 2.0)
+
+
+_CRASH = """
+import faulthandler, sys, ctypes
+faulthandler.enable()
+if sys.argv[1] == "plain":
+    import pycolmap
+else:
+    from llrmpp_jax.capture.poses import _import_pycolmap
+    _import_pycolmap()
+ctypes.string_at(0)  # a segmentation fault
+"""
+
+
+@pytest.mark.parametrize("how", ["plain", "ours"])
+def test_pycolmap_leaves_the_crash_handlers_alone(how):
+    """A plain ``import pycolmap`` replaces the crash handlers with glog's (which can
+    deadlock inside the C++ unwinder); ``_import_pycolmap`` keeps the ones from before:
+    a segfault afterwards is reported by Python's faulthandler and ends the process."""
+    proc = subprocess.run([sys.executable, "-c", _CRASH, how], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGSEGV, proc.stderr[-2000:]
+    by_faulthandler = "Fatal Python error: Segmentation fault" in proc.stderr
+    by_glog = "SIGSEGV (@0x0) received" in proc.stderr
+    assert (by_faulthandler, by_glog) == ((False, True) if how == "plain" else (True, False)), proc.stderr[-2000:]
