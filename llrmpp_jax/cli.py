@@ -3,7 +3,8 @@ command line; each command is a thin shell over a library function (``llrmpp_jax
 ``params_io``, ``export_ply``, ``refine``, ``trainer``, ``evaluate``).
 
 Every command validates its inputs before any compile time is spent; a bad path or config
-is one line on stderr (``llrmpp: error: ...``) and exit status 2, not a traceback.
+is one line on stderr (``llrmpp: error: ...``) and exit status 2 (3 out of space, 4 a lost peer:
+:mod:`llrmpp_jax.errors`), not a traceback.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import os
 import signal
 import sys
 
-from llrmpp_jax.errors import UserError
+from llrmpp_jax.errors import OutOfSpaceError, UserError
 
 
 def _experiment(path: str):
@@ -59,12 +60,15 @@ def cmd_train(args) -> int:
     if args.distributed:
         import jax
 
-        # A process that dies stops the others after this many seconds without its heartbeat
-        # (JAX's coordination service ends them; measured: 11 s after a SIGKILL at 10 s).
-        jax.distributed.initialize(heartbeat_timeout_seconds=args.heartbeat_timeout)
+        from llrmpp_jax.train.peers import jax_heartbeat_timeout
+
+        # train's watchdog reports a silent peer after --heartbeat-timeout; JAX's own abort
+        # (a stack dump) comes later, only if the watchdog cannot run.
+        jax.distributed.initialize(heartbeat_timeout_seconds=jax_heartbeat_timeout(args.heartbeat_timeout))
     if args.init:
         _require_checkpoint(args.init, "--init: ")
-    result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map, init=args.init)
+    result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map, init=args.init,
+                   peer_timeout_s=args.heartbeat_timeout)
     if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
         return 128 + signal.Signals[result["stopped_by"]].value
     return 0
@@ -445,8 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--shard-map", action="store_true", help="use jit + shard_map over a device mesh instead of pmap")
     t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
     t.add_argument("--heartbeat-timeout", type=int, default=60,
-                   help="--distributed: seconds without a peer's heartbeat before the others stop (default 60); "
-                        "restart all processes to resume from the last checkpoint")
+                   help="--distributed: seconds without a peer's heartbeat before the others stop with one line "
+                        "naming it, exit status 4 (default 60); start every process again to resume")
     vgg = t.add_mutually_exclusive_group()
     vgg.add_argument("--vgg19", default=None, metavar="PATH",
                      help="VGG19 perceptual weights: torchvision vgg19 state_dict (.pth), Long-LRM's "
@@ -624,19 +628,24 @@ _ENVIRONMENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.
 
 def main(argv: list[str] | None = None) -> int:
     """Run one ``llrmpp`` command. A :class:`~llrmpp_jax.errors.UserError` (or a missing
-    path, a permission, a full disk) is one line on stderr and exit status 2; any other
+    path, a permission, a full disk) is one line on stderr and the error's exit status
+    (:mod:`llrmpp_jax.errors`: 2 bad input, 3 out of space, 4 a lost peer); any other
     exception is a bug and keeps its traceback (exit status 1)."""
     args = build_parser().parse_args(argv)
     try:
         return args.fn(args)
     except UserError as e:
         print(f"llrmpp: error: {e}", file=sys.stderr)
-        return 2
+        return e.exit_status
     except OSError as e:  # the machine under the command: a path, a permission, a full disk
-        if not isinstance(e, (FileNotFoundError, PermissionError)) and e.errno not in _ENVIRONMENT_ERRNOS:
+        if isinstance(e, (FileNotFoundError, PermissionError)):
+            status = UserError.exit_status
+        elif e.errno in _ENVIRONMENT_ERRNOS:
+            status = OutOfSpaceError.exit_status
+        else:
             raise
         print(f"llrmpp: error: {e}", file=sys.stderr)
-        return 2
+        return status
     except KeyboardInterrupt:
         print("llrmpp: interrupted", file=sys.stderr)
         return 130

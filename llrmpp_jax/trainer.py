@@ -36,6 +36,7 @@ from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.model import init_params
 from llrmpp_jax.objective import load_perceptual, make_loss_fn
 from llrmpp_jax.train.loop import Hook, StepInfo, run_stage
+from llrmpp_jax.train.peers import watch_peers
 from llrmpp_jax.train.workdir_lock import workdir_lock
 
 
@@ -51,7 +52,7 @@ def _to_host(tree):
 
 
 def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = None, use_pmap: bool = True,
-          progress: bool = True, init: str | None = None) -> dict:
+          progress: bool = True, init: str | None = None, peer_timeout_s: float = 60.0) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``.
 
     ``init`` (fine-tuning): a training workdir, a params folder or ``pretrained:NAME``
@@ -65,9 +66,16 @@ def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = No
 
     SIGINT (Ctrl-C) or SIGTERM stops the run after the current step with a checkpoint
     (``result["stopped_by"]`` names the signal); the same call resumes from it. A second
-    Ctrl-C interrupts at once."""
+    Ctrl-C interrupts at once.
+
+    Multi-host: a process silent for ``peer_timeout_s`` seconds ends the others with one
+    line naming it (:func:`llrmpp_jax.train.peers.watch_peers`, exit status 4); starting
+    every process again resumes from the last complete checkpoint."""
     lock = workdir_lock(workdir) if jax.process_index() == 0 else contextlib.nullcontext()
-    with lock, T.stop_on_signals() as stop:
+    checkpoints = os.path.join(workdir, "checkpoints")
+    peers = watch_peers(peer_timeout_s, resume_hint=lambda: "start every process again to resume from the last "
+                        f"complete checkpoint in {checkpoints}")
+    with lock, peers, T.stop_on_signals() as stop:
         return _train_stages(exp, workdir, stop, max_minutes=max_minutes, use_pmap=use_pmap, progress=progress,
                              init=init)
 

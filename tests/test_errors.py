@@ -19,7 +19,7 @@ _RAISER = textwrap.dedent(
     """
     import errno, sys
     from llrmpp_jax import cli
-    from llrmpp_jax.errors import UserError
+    from llrmpp_jax.errors import OutOfSpaceError, PeerLostError, UserError
 
     def fail(args):
         raise {exc}
@@ -50,17 +50,20 @@ def test_error_types_are_what_callers_already_catch():
 
 
 @pytest.mark.parametrize(
-    "exc, message",
+    "exc, message, status",
     [
-        ("UserError('--size: width 0 is not a positive multiple of 16')", "--size: width 0"),
-        ("OSError(errno.ENOSPC, 'No space left on device', '/runs/a/ckpt')", "No space left on device"),
-        ("OSError(errno.EFBIG, 'File too large', '/runs/a/ckpt')", "File too large"),
-        ("PermissionError(errno.EACCES, 'Permission denied', '/root/out')", "Permission denied"),
+        ("UserError('--size: width 0 is not a positive multiple of 16')", "--size: width 0", 2),
+        ("PermissionError(errno.EACCES, 'Permission denied', '/root/out')", "Permission denied", 2),
+        ("OSError(errno.ENOSPC, 'No space left on device', '/runs/a/ckpt')", "No space left on device", 3),
+        ("OSError(errno.EFBIG, 'File too large', '/runs/a/ckpt')", "File too large", 3),
+        ("OutOfSpaceError('checkpoint step 3 not saved: /runs/a: quota exceeded')", "quota exceeded", 3),
+        ("PeerLostError('lost process 1 of 2: no heartbeat for 20 s')", "lost process 1", 4),
     ],
 )
-def test_user_and_environment_errors_are_one_line_exit_2(exc, message):
+def test_user_and_environment_errors_are_one_line_with_their_status(exc, message, status):
+    """Bad input exits 2, out of space 3, a lost peer 4 (so a scheduler can tell them apart)."""
     res = _run(_RAISER.format(exc=exc))
-    assert res.returncode == 2, res.stderr
+    assert res.returncode == status, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
 
