@@ -10,7 +10,14 @@ from llrmpp_jax.data.camera_paths import look_at
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.metrics import psnr
 from llrmpp_jax.model import init_params, reconstruct, render
-from llrmpp_jax.refine import RefineConfig, from_unconstrained, heldout_psnr, refine, to_unconstrained
+from llrmpp_jax.refine import (
+    RefineConfig,
+    from_unconstrained,
+    heldout_psnr,
+    rate_scale_for,
+    refine,
+    to_unconstrained,
+)
 
 H = W = 32
 COLOUR = C.ModelConfig(head=C.GaussianHeadConfig(mode="color", sh_degree=1))
@@ -139,10 +146,15 @@ def test_refine_rejects_bad_arguments(rng):
         RefineConfig(views_per_step=0)
 
 
-@pytest.mark.parametrize("steps, scale", [(4, 10.0), (25, 4.0)])
-def test_default_rates_scale_with_the_steps(rng, steps, scale):
-    """``rate_scale=None`` multiplies every field's rate by 100 / steps clipped to [1, 10]:
-    the same fit as those rates multiplied by hand with ``rate_scale=1``."""
+def test_rate_scale_is_100_over_steps_clipped():
+    for steps, scale in [(1, 10.0), (4, 10.0), (10, 10.0), (25, 4.0), (40, 2.5), (100, 1.0), (1000, 1.0)]:
+        assert rate_scale_for(steps) == pytest.approx(scale, rel=1e-12), steps
+
+
+def test_default_rates_scale_with_the_steps(rng):
+    """``rate_scale=None`` multiplies every field's rate by :func:`rate_scale_for` the steps
+    (10 at 4 steps): the same fit as those rates multiplied by hand with ``rate_scale=1``."""
+    steps, scale = 4, 10.0
     g, c2w, intr = known_scene(rng, n=40, views=2)
     images = jnp.asarray(rng.uniform(0.1, 0.9, (1, 2, H, W, 3)), jnp.float32)
     base = RefineConfig()
