@@ -16,8 +16,18 @@ Depth (:func:`depth_loss`), on z-depth maps ``[..., H, W]`` with pixel intrinsic
 
 * ``depth``: smooth-L1 (beta 1) between ``log target`` and ``log max(pred, 1e-6)``;
 * ``grad``: for s in 4, 8, 16, 32, both maps are area-downsampled by s (see below),
-  filtered with :func:`sobel`, and ``mean|Sx_p - Sx_t| + mean|Sy_p - Sy_t|`` is summed
-  over the four scales;
+  filtered with :func:`sobel`, and ``(mean|Sx_p - Sx_t| + mean|Sy_p - Sy_t|) / 2`` (one
+  mean over the entries of both components) is summed over the four scales. That is the
+  magnitude of SimpleRecon's ``MSGradientLoss`` (nianticlabs/simplerecon ``losses.py``,
+  the paper's cited source), so ``grad_weight`` 0.1 weighs what it weighs there: per scale
+  it takes ``kornia.filters.spatial_gradient`` (this :func:`sobel`) of the linear depths
+  (``grad_loss(depth_gt, depth_pred)``, not log depths) and ``torch.mean`` of
+  ``|grad_pred - grad_gt|`` over every ``(x|y, pixel)`` entry whose target gradient is
+  finite. Two choices differ from it and follow the paper: the scales (SimpleRecon: the
+  full map and three ``blur_pool2d`` halvings; the paper: 1/4 of the map, then 4 scales,
+  here areas of 4, 8, 16 and 32 pixels a side) and the mask (SimpleRecon drops a
+  component where the target's gradient is not finite; here a pixel's two components go
+  together, valid iff its 3x3 neighbourhood is: the same on fully valid maps);
 * ``normal``: the 1/4 maps are unprojected with intrinsics ``/ 4`` (exact for area
   downsampling with centred pixels), normals from :func:`depth_to_normals`, and the
   loss is ``mean(1 - cos(n_p, n_t))``;
@@ -262,8 +272,10 @@ def depth_loss(
     grad_term = jnp.zeros((), jnp.float32)
     for s in GRAD_SCALES:
         p_s, t_s, v_s = _area_downsample(pred, target, valid, s)
-        err = jnp.sum(jnp.abs(sobel(p_s) - sobel(t_s)), axis=-3)  # |dx| + |dy|
-        grad_term = grad_term + _masked_mean(err, _erode3x3(v_s))
+        err = jnp.abs(sobel(p_s) - sobel(t_s))  # [..., 2, h, w]: |dx|, |dy|
+        # one mean over both components' entries, as SimpleRecon's torch.mean of the pair
+        both = jnp.broadcast_to(jnp.expand_dims(_erode3x3(v_s), -3), err.shape)
+        grad_term = grad_term + _masked_mean(err, both)
 
     p4, t4, v4 = _area_downsample(pred, target, valid, NORMAL_SCALE)
     k4 = intrinsics.astype(jnp.float32) / float(NORMAL_SCALE)
