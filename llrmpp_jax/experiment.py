@@ -13,6 +13,7 @@ import dataclasses
 import importlib.util
 import os
 from dataclasses import dataclass, field
+from typing import Literal
 
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.formats import FORMATS
@@ -79,7 +80,16 @@ class StageConfig:
     the resize target; the data pipeline rounds each side to a multiple of the model's
     ``size_multiple`` (Long-LRM's rule: 540 -> 544), so any value is valid;
     ``square_crop`` centre-crops to a square; ``lr``/``warmup_steps`` restart with each
-    stage (Long-LRM resets the optimizer between stages). Training augmentations
+    stage (Long-LRM resets the optimizer between stages). ``lr_schedule`` is the rate
+    after the warmup: ``"long_lrm"``, Long-LRM's (reference facts §2.1: HF
+    ``get_cosine_schedule_with_warmup`` with its configs' ``train_steps`` of 1,000,000,
+    whatever the stage's length), a cosine over a 1,000,000-step horizon, so a 10K-step
+    stage ends within 0.03% of its peak rate and a 60K-step one within 0.9%; or
+    ``"stage"``, a cosine down to 0 at the stage's last step. The paper (§4.1: "we follow
+    ... learning rate, optimizer" of Long-LRM) is silent otherwise, so its recipes take
+    Long-LRM's horizon itself, not "constant after warmup", which it only approximates.
+    Both schedules are functions of the optimizer's update count, so a stage's
+    checkpoint resumes under either. Training augmentations
     (Long-LRM, reference facts §3.3-3.4): ``zoom_min`` is ``random_crop`` (zoom by
     ``1/r``, ``r ~ U(zoom_min, 1)``, one ``r`` per sample; 1.0 = off);
     ``reverse_prob`` / ``shuffle_prob`` reverse / shuffle the input order;
@@ -99,6 +109,7 @@ class StageConfig:
     zoom_min: float = 1.0
     lr: float = 4e-4
     warmup_steps: int = 2000
+    lr_schedule: Literal["long_lrm", "stage"] = "stage"
     min_span: int | None = None
     max_span: int | None = None
     input_weight: float = 0.1  # Long-LRM++: input frames are drawn as targets with weight 0.1
@@ -107,6 +118,8 @@ class StageConfig:
     perceptual_weight: float | None = None
 
     def __post_init__(self) -> None:
+        if self.lr_schedule not in ("long_lrm", "stage"):
+            raise UserError(f"stage {self.name!r}: lr_schedule must be 'long_lrm' or 'stage', got {self.lr_schedule!r}")
         if self.perceptual_weight is not None and self.perceptual_weight < 0:
             raise UserError(f"stage {self.name!r}: perceptual_weight must be >= 0, got {self.perceptual_weight}")
         if self.steps < 1 or self.global_batch < 1 or self.num_inputs < 1 or self.num_targets < 1:

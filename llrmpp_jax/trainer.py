@@ -41,10 +41,12 @@ from llrmpp_jax.train.workdir_lock import workdir_lock
 
 
 def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
-    """AdamW + warmup/cosine of one stage; Mamba2's per-head vectors (like Long-LRM's
-    ``_no_weight_decay``) are never decayed."""
+    """AdamW + warmup/cosine of one stage, the cosine over Long-LRM's 1,000,000-step horizon
+    or over the stage (``StageConfig.lr_schedule``); Mamba2's per-head vectors (like
+    Long-LRM's ``_no_weight_decay``) are never decayed."""
+    horizon = T.LONG_LRM_TRAIN_STEPS if stage.lr_schedule == "long_lrm" else stage.steps
     return T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
-                             total_steps=stage.steps, no_decay_names=("A_log", "dt_bias", "D"))
+                             total_steps=horizon, no_decay_names=("A_log", "dt_bias", "D"))
 
 
 def _to_host(tree):

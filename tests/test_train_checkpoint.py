@@ -8,6 +8,7 @@ training process that the kill test starts and kills.
 
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -227,6 +228,56 @@ def test_keep_last_n_and_abstract_template(tmp_path, three_states):
 def test_save_rejects_replicated_state(tmp_path, three_states):
     with pytest.raises(ValueError, match=r"state.step has shape \(2,\), expected \(\)"):
         save_checkpoint(tmp_path, replicate_for_pmap(three_states[0]))
+
+
+@pytest.mark.parametrize("before, after", [("stage", "long_lrm"), ("long_lrm", "stage")])
+def test_a_stage_resumes_across_a_change_of_lr_schedule(tmp_path, before, after):
+    """A stage checkpointed after 3 steps under one ``StageConfig.lr_schedule`` restores
+    under the other: the optimizer state has the same tree (a schedule is a function of
+    the update count, not held in the state), the count carries over, and the next 3 steps
+    run at the new schedule's rates -- HF's get_cosine_schedule_with_warmup written out
+    here (rtol 1e-6) -- bitwise as the same steps run on the unsaved state."""
+    from llrmpp_jax.experiment import StageConfig
+    from llrmpp_jax.trainer import optimizer_config
+
+    steps, warmup, lr = 8, 2, 1e-2
+    mesh = make_data_mesh()
+
+    def optimizer(schedule):
+        stage = StageConfig("s", steps=steps, global_batch=8, num_inputs=1, num_targets=1, resize_h=None,
+                            lr=lr, warmup_steps=warmup, lr_schedule=schedule)
+        return optimizer_config(stage)
+
+    def hf_rate(schedule, count):
+        total = 1_000_000 if schedule == "long_lrm" else steps
+        if count < warmup:
+            return lr * count / warmup
+        return lr * 0.5 * (1.0 + math.cos(math.pi * (count - warmup) / (total - warmup)))
+
+    def run(schedule, state, start, stop):
+        cfg = optimizer(schedule)
+        step = sharded_train_step(make_train_step(noisy_loss, make_optimizer(cfg), make_schedule(cfg)), mesh)
+        rates = []
+        for position in range(start, stop):
+            state, metrics = step(state, shard_for_mesh(toy_batch(np.random.default_rng([SEED, 9, position])), mesh))
+            rates.append(float(metrics["lr"]))
+        return state, rates
+
+    def init(schedule, seed):
+        state = init_train_state(toy_params(jax.random.key(seed)), make_optimizer(optimizer(schedule)),
+                                 jax.random.key(seed + 1))
+        return replicate_on_mesh(state, mesh)
+
+    half, rates_before = run(before, init(before, SEED), 0, 3)
+    save_checkpoint(tmp_path, half, data_state={"position": 3})
+    template = init(after, 99)
+    assert jax.tree.structure(template.opt_state) == jax.tree.structure(half.opt_state)
+    restored = restore_checkpoint(tmp_path, template)
+    resumed, rates_after = run(after, restored.state, 3, 6)
+    direct, _ = run(after, half, 3, 6)
+    assert_tree_equal(resumed, direct)
+    want = [hf_rate(before, c) for c in range(3)] + [hf_rate(after, c) for c in range(3, 6)]
+    np.testing.assert_allclose(rates_before + rates_after, want, rtol=1e-6)
 
 
 def _train_until_killed(directory: str) -> None:

@@ -12,7 +12,9 @@ Eval: llrmpp eval --config dl3dv --checkpoint runs/dl3dv --out runs/dl3dv/eval
 | 4     | 32     | 8       | 960x540    | 10K   | 64           | 64            |
 
 The paper follows Long-LRM's recipe where it is silent: AdamW lr 4e-4 with 2000 warmup steps
-in stage 1, and 4e-5 without warmup in the fine-tuning stages (Long-LRM's stages 2-3);
+in stage 1, and 4e-5 without warmup in the fine-tuning stages (Long-LRM's stages 2-3), each
+rate then on Long-LRM's cosine over a 1,000,000-step horizon (its configs' train_steps), so
+nearly constant within a stage (``lr_schedule="long_lrm"``; stage 1 ends at 99.2% of 4e-4);
 training windows of 64-128 frames at low resolution and the whole video at 960x540;
 square crops below 960x540; "960x540" is 960x544 after rounding to the patch multiple.
 Input frames are drawn as targets with weight 0.1 (paper appendix). Long-LRM's augmentations
@@ -36,18 +38,18 @@ KMEANS_INDEX = "data/dl3dv/dl3dv_fold_8_kmeans_input_idx.json"
 
 
 def get_config() -> ExperimentConfig:
-    order = dict(reverse_prob=0.5, shuffle_prob=0.5)
+    shared = dict(lr_schedule="long_lrm", reverse_prob=0.5, shuffle_prob=0.5)
     stages = (
         StageConfig("stage1_256", steps=60_000, global_batch=256, num_inputs=8, num_targets=8,
                     resize_h=256, square_crop=True, lr=4e-4, warmup_steps=2000, min_span=64, max_span=128,
-                    **order),
+                    **shared),
         StageConfig("stage2_512", steps=10_000, global_batch=64, num_inputs=8, num_targets=8,
                     resize_h=512, square_crop=True, lr=4e-5, warmup_steps=0, min_span=64, max_span=128,
-                    **order),
+                    **shared),
         StageConfig("stage3_540", steps=10_000, global_batch=64, num_inputs=8, num_targets=8,
-                    resize_h=540, lr=4e-5, warmup_steps=0, zoom_min=0.77, **order),
+                    resize_h=540, lr=4e-5, warmup_steps=0, zoom_min=0.77, **shared),
         StageConfig("stage4_540_32v", steps=10_000, global_batch=64, num_inputs=32, num_targets=8,
-                    resize_h=540, lr=4e-5, warmup_steps=0, zoom_min=0.77, **order),
+                    resize_h=540, lr=4e-5, warmup_steps=0, zoom_min=0.77, **shared),
     )
     model = C.for_accelerators(C.paper_dl3dv())
     return ExperimentConfig(

@@ -12,7 +12,8 @@ Eval: llrmpp eval --config scannet --checkpoint runs/scannet --format scannet \
 
 Loss: MSE + 0.5 perceptual on colour, smooth-L1 log-depth + 0.1 gradient + 0.1 normal on
 depth (paper §3.4). ScanNet is dense, so input frames are not down-weighted as targets
-(paper appendix): input_weight 1.0. Learning rates, input-order augmentations and the
+(paper appendix): input_weight 1.0. Learning rates and their schedule (Long-LRM's cosine
+over 1,000,000 steps, nearly constant within a stage), input-order augmentations and the
 gradient-norm guard as in dl3dv.py; the zoom (r ~ U(0.77, 1)) at 448x336, the full-frame
 stages, as Long-LRM zooms only its full-frame stage (Long-LRM has no ScanNet recipe).
 Evaluation (paper §4.3): per scene the first 1,280 frames, every 8th a target, 128 inputs
@@ -30,17 +31,17 @@ EVAL = "data/scannet/val"
 
 
 def get_config() -> ExperimentConfig:
-    order = dict(reverse_prob=0.5, shuffle_prob=0.5)
+    shared = dict(lr_schedule="long_lrm", reverse_prob=0.5, shuffle_prob=0.5)
     stages = (
         StageConfig("stage1_256", steps=20_000, global_batch=128, num_inputs=8, num_targets=8,
                     resize_h=256, square_crop=True, lr=4e-4, warmup_steps=2000, input_weight=1.0,
-                    min_span=64, max_span=128, **order),
+                    min_span=64, max_span=128, **shared),
         StageConfig("stage2_448x336", steps=5_000, global_batch=128, num_inputs=8, num_targets=8,
                     resize_h=336, resize_w=448, lr=4e-5, warmup_steps=0, input_weight=1.0,
-                    min_span=64, max_span=128, zoom_min=0.77, **order),
+                    min_span=64, max_span=128, zoom_min=0.77, **shared),
         StageConfig("stage3_448x336_128v", steps=2_000, global_batch=64, num_inputs=128, num_targets=8,
                     resize_h=336, resize_w=448, lr=4e-5, warmup_steps=0, input_weight=1.0,
-                    zoom_min=0.77, **order),
+                    zoom_min=0.77, **shared),
     )
     model = C.for_accelerators(C.paper_scannet())
     return ExperimentConfig(

@@ -12,6 +12,7 @@ from llrmpp_jax.train.checkpoint import (
 )
 from llrmpp_jax.train.interrupt import StopRequest, stop_on_signals
 from llrmpp_jax.train.optimizer import (
+    LONG_LRM_TRAIN_STEPS,
     OptimizerConfig,
     make_optimizer,
     make_schedule,
@@ -38,6 +39,7 @@ __all__ = [
     "AXIS",
     "CorruptCheckpointError",
     "IncompatibleCheckpointError",
+    "LONG_LRM_TRAIN_STEPS",
     "OptimizerConfig",
     "Restored",
     "recorded_config",

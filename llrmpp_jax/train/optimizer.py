@@ -26,6 +26,10 @@ from llrmpp_jax.array_typing import Array, ArrayLike, Float, Int
 from llrmpp_jax.errors import UserError
 
 
+# Long-LRM's ``training.train_steps`` in every released config: the horizon of its cosine.
+LONG_LRM_TRAIN_STEPS = 1_000_000
+
+
 @dataclass(frozen=True)
 class OptimizerConfig:
     """Hyper-parameters of :func:`make_optimizer` (defaults: Long-LRM ``7m1t_tm.yaml``).
@@ -42,7 +46,7 @@ class OptimizerConfig:
     weight_decay: float = 0.05
     no_decay_names: tuple[str, ...] = ()
     warmup_steps: int = 2000
-    total_steps: int = 1_000_000
+    total_steps: int = LONG_LRM_TRAIN_STEPS
     grad_clip_norm: float | None = 10.0
 
     def __post_init__(self) -> None:
