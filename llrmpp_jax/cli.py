@@ -125,9 +125,11 @@ def cmd_eval(args) -> int:
     scene_source(exp.data, held_out=True)  # a missing split, list or scene fails before the weights load
     print(f"held-out data: {held_out_description(exp.data)}")
     params, cfg = _load_params(args.checkpoint, args.config)
-    samples, names = eval_samples(E.replace(exp, model=cfg), exp.stages[-1])
-    rows, summary, _ = evaluate(params, cfg, samples, load_lpips_params(), names, refine_steps=args.refine_steps,
-                                refine_config=refine_config, progress=True)
+    exp = E.replace(exp, model=cfg)
+    samples, names = eval_samples(exp, last)
+    # the last stage's model: its Gaussian pruning too (Long-LRM prunes in its 960x540 evaluation)
+    rows, summary, _ = evaluate(params, exp.model_of(last), samples, load_lpips_params(), names,
+                                refine_steps=args.refine_steps, refine_config=refine_config, progress=True)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "per_scene.csv"), "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=list(rows[0]))

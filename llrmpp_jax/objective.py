@@ -12,11 +12,13 @@ of an experiment.
 Loss: ``MSE + perceptual * VGG`` on the rendered RGB; with a depth output, ``+ depth * (log
 smooth-L1 + depth_grad * Sobel gradient + depth_normal * normal cosine)``
 (:func:`~llrmpp_jax.losses.depth_loss`); ``+ gaussian_depth *`` the Gaussians' own splatted
-depth against the target (:func:`~llrmpp_jax.gaussian_depth.gaussian_depth_loss`). ``key``
-draws the random share of Long-LRM's Gaussian pruning (colour mode with ``prune_ratio > 0``).
+depth against the target (:func:`~llrmpp_jax.gaussian_depth.gaussian_depth_loss`); ``+
+opacity *`` their mean opacity (Long-LRM's regulariser). ``key`` draws the random share of
+Long-LRM's Gaussian pruning (colour mode with ``prune_ratio > 0``; a stage may set its own,
+:meth:`~llrmpp_jax.experiment.ExperimentConfig.model_of`).
 
 Metrics: ``mse``, ``perceptual``, ``psnr`` (:func:`~llrmpp_jax.losses.rgb_loss`), the depth
-terms as ``depth_<term>`` and ``gaussian_depth_<term>``, ``splat_dropped`` (intersections
+terms as ``depth_<term>`` and ``gaussian_depth_<term>``, ``opacity`` (when weighted), ``splat_dropped`` (intersections
 lost to the splat buffer's capacity, summed) and ``gaussian_usage`` (before pruning, as
 Long-LRM logs it).
 """
@@ -48,6 +50,8 @@ class LossWeights:
     depth head's loss, used only when the model renders depth (0: rendered, not trained).
     ``depth_grad`` / ``depth_normal``: that loss's gradient and normal terms (the paper's
     0.1 each). ``gaussian_depth``: the Gaussians' splatted depth against the target (0: off).
+    ``opacity``: Long-LRM's regulariser, the mean opacity of the (pruned) Gaussians (its 0.1;
+    0: off).
     """
 
     perceptual: float = 0.0
@@ -55,6 +59,7 @@ class LossWeights:
     depth_grad: float = 0.1
     depth_normal: float = 0.1
     gaussian_depth: float = 0.0
+    opacity: float = 0.0
 
 
 def objective(params: dict, cfg: C.ModelConfig, batch: dict[str, Any], key: Any,
@@ -79,6 +84,9 @@ def objective(params: dict, cfg: C.ModelConfig, batch: dict[str, Any], key: Any,
         d, daux = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"], batch["target_depth"], cfg)
         loss = loss + weights.gaussian_depth * d
         aux.update({f"gaussian_depth_{k}": v for k, v in daux.items()})
+    if weights.opacity:  # Long-LRM: sigmoid(opacity).mean() over the batch's pruned Gaussians
+        aux["opacity"] = jnp.mean(g.opacities)
+        loss = loss + weights.opacity * aux["opacity"]
     aux["splat_dropped"] = jnp.sum(out.dropped).astype(jnp.float32)
     aux["gaussian_usage"] = jnp.mean(usage)
     return loss, aux
@@ -97,16 +105,17 @@ def make_objective(cfg: C.ModelConfig, weights: LossWeights = LossWeights(),
 def loss_weights(exp: ExperimentConfig, stage: StageConfig | None = None) -> LossWeights:
     """The weights of ``exp``: ``stage``'s perceptual weight
     (:meth:`~llrmpp_jax.experiment.ExperimentConfig.perceptual_weight_of`; the experiment's
-    when ``stage`` is None), its depth terms, its Gaussian depth weight."""
+    when ``stage`` is None), its depth terms, its Gaussian depth and opacity weights."""
     return LossWeights(perceptual=exp.perceptual_weight if stage is None else exp.perceptual_weight_of(stage),
                        depth_grad=exp.depth_grad_weight, depth_normal=exp.depth_normal_weight,
-                       gaussian_depth=exp.gaussian_depth_weight)
+                       gaussian_depth=exp.gaussian_depth_weight, opacity=exp.opacity_weight)
 
 
 def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None, stage: StageConfig | None = None) -> LossFn:
-    """``loss_fn(params, batch, key) -> (loss, metrics)`` of ``exp``'s model with its
-    :func:`loss_weights` for ``stage``."""
-    return make_objective(exp.model, loss_weights(exp, stage), vgg_params)
+    """``loss_fn(params, batch, key) -> (loss, metrics)`` of ``exp``'s model (``stage``'s,
+    :meth:`~llrmpp_jax.experiment.ExperimentConfig.model_of`) with its :func:`loss_weights`
+    for ``stage``."""
+    return make_objective(exp.model if stage is None else exp.model_of(stage), loss_weights(exp, stage), vgg_params)
 
 
 def load_perceptual(exp: ExperimentConfig) -> dict | None:

@@ -219,7 +219,8 @@ def _eval_hook(exp: ExperimentConfig, stage: StageConfig, samples: list[dict], n
     def held_out(info: StepInfo) -> None:
         if not (info.step % exp.eval_every == 0 or info.last and not stop):
             return
-        _, summary, preds = evaluate(_host_state(info.state, use_pmap).params, exp.model, samples, names=names)
+        _, summary, preds = evaluate(_host_state(info.state, use_pmap).params, exp.model_of(stage), samples,
+                                     names=names)
         if writer is not None:
             for method, vals in summary.items():
                 for k, v in vals.items():

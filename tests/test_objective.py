@@ -13,6 +13,7 @@ relative (float32: the same ops on the same values, so equal up to XLA's fusion 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from llrmpp_jax import ablation
 from llrmpp_jax import config as C
@@ -21,6 +22,7 @@ from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.objective import LossWeights, make_loss_fn, make_objective
+from llrmpp_jax.pruning import prune_gaussians
 from test_model import _scene
 
 SIZE = 32  # the depth loss's coarsest gradient scale needs 32 pixels (the Gaussians' depth: a 32-pixel canvas)
@@ -101,3 +103,38 @@ def test_each_weight_scales_its_term(key):
     np.testing.assert_allclose(float(r), float(want_r), rtol=1e-6)
     assert float(aux["depth_depth"]) > 0 and float(aux["gaussian_depth_depth"]) > 0
     assert {"mse", "psnr", "splat_dropped", "gaussian_usage"} <= set(aux)
+
+
+def test_opacity_term_and_a_stage_s_pruning(key):
+    """Long-LRM's recipe: loss = MSE + 0.1 x the mean opacity of the Gaussians rendered; a
+    stage that sets pruning 0.6 / 0.1 trains the pruned set (the same parameters), the
+    others the whole one. Oracle: reconstruct, prune_gaussians with the same key, render,
+    rgb_loss, each from its own function (rtol 1e-6)."""
+    cfg = C.replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0))
+    k_params, k_batch, k_loss = jax.random.split(key, 3)
+    params, batch = init_params(k_params, cfg, 2, 16, 16), _batch(k_batch, 16)
+    plain = StageConfig("plain", 1, 1, 2, 2, 16)
+    pruned = StageConfig("pruned", 1, 1, 2, 2, 16, prune_ratio=0.6, prune_random_ratio=0.1)
+    exp = ExperimentConfig("t", cfg, (plain, pruned), perceptual_weight=0.0, opacity_weight=0.1)
+    assert exp.model_of(plain) == cfg and exp.model_of(pruned).head.prune_ratio == 0.6
+
+    @jax.jit
+    def losses(params, batch, k):
+        g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
+        want = []
+        for gs in (g, prune_gaussians(g, 0.6, 0.1, k)):
+            out = render(params, cfg, gs, batch["target_c2w"], batch["target_intrinsics"], 16, 16)
+            mse, _ = rgb_loss(out.images["rgb"], batch["target_images"], None, perceptual_weight=0.0)
+            want.append((mse + 0.1 * jnp.mean(gs.opacities), jnp.mean(gs.opacities)))
+        got = [make_loss_fn(exp, None, s)(params, batch, k) for s in (plain, pruned)]
+        return [(loss, aux["opacity"]) for loss, aux in got], want
+
+    got, want = losses(params, batch, k_loss)
+    for (loss, opacity), (want_loss, want_opacity) in zip(got, want, strict=True):
+        assert 0 < float(want_opacity) < 1
+        np.testing.assert_allclose(float(opacity), float(want_opacity), rtol=1e-6)
+        np.testing.assert_allclose(float(loss), float(want_loss), rtol=1e-6)
+    assert abs(float(want[0][1]) - float(want[1][1])) > 1e-4  # pruning kept the more opaque ones
+    with pytest.raises(ValueError, match=r"stage 'pruned': GaussianHeadConfig: pruning is Long-LRM's colour-mode"):
+        ExperimentConfig("t", C.tiny(), (pruned,))
+

@@ -60,6 +60,27 @@ def test_the_paper_recipes_take_long_lrm_s_learning_rate_schedule():
         StageConfig("s", steps=1, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, lr_schedule="constant")
 
 
+def test_the_long_lrm_recipe_is_long_lrm_s_training_recipe():
+    """Long-LRM's configs (reference facts §2.1-2.2, §3.3-3.4) written out by hand: its
+    architecture (what ``llrmpp convert`` converts to), MSE + 1.0 VGG19 perceptual + 0.1
+    opacity, uniform targets, order augmentations everywhere, zoom and pruning 0.6 / 0.1 at
+    960x540 only, 4e-4 with 2000 warmup steps then 4e-5, its 1,000,000-step cosine, the
+    gradient-norm guard at 50."""
+    from llrmpp_jax import config as C
+
+    exp = load_experiment("long_lrm")
+    assert exp.model == C.long_lrm()
+    assert (exp.perceptual_weight, exp.perceptual_net, exp.opacity_weight) == (1.0, "vgg19", 0.1)
+    assert exp.skip_grad_norm_above == 50.0 and exp.bf16 and exp.gaussian_depth_weight == 0.0
+    got = [(s.resize_h, s.square_crop, s.num_inputs, s.num_targets, s.lr, s.warmup_steps, s.min_span, s.max_span,
+            s.zoom_min, exp.model_of(s).head.prune_ratio, exp.model_of(s).head.prune_random_ratio) for s in exp.stages]
+    assert got == [(256, True, 32, 8, 4e-4, 2000, 64, 128, 1.0, 0.0, 0.0),
+                   (512, True, 32, 8, 4e-5, 0, 64, 128, 1.0, 0.0, 0.0),
+                   (540, False, 32, 8, 4e-5, 0, None, None, 0.77, 0.6, 0.1)]
+    assert all((s.input_weight, s.reverse_prob, s.shuffle_prob, s.lr_schedule) == (1.0, 0.5, 0.5, "long_lrm")
+               for s in exp.stages)
+
+
 def test_the_small_recipe_is_the_shipped_model_s():
     from llrmpp_jax.pretrained import load_pretrained
 

@@ -8,7 +8,8 @@ take a recipe's name or the path of any such Python file:
 * ``demo`` -- the tiny model ``llrmpp demo`` trains from scratch on a CPU in minutes;
 * ``small`` -- the shipped model ``pretrained:small`` (procedural scenes);
 * ``dl3dv``, ``scannet`` -- the paper's curricula (Tables 8 and 9);
-* ``long_lrm`` -- Long-LRM, the architecture of the official PyTorch checkpoints.
+* ``long_lrm`` -- Long-LRM: the architecture of the official PyTorch checkpoints (what
+  ``llrmpp convert`` converts to) and its own DL3DV training recipe.
 
 Each recipe is self-contained: none imports another.
 """
