@@ -234,6 +234,23 @@ def test_depth_bias_offsets_the_log_depth_head(key):
     np.testing.assert_array_equal(np.asarray(biased["rgb"]), np.asarray(base["rgb"]))
 
 
+def test_paper_scannet_depth_head_starts_at_its_typical_depth(key):
+    """paper_scannet's decoder (the paper's widths), freshly initialised, on a random canvas
+    of 64 x 48 (a 128 x 96 image; the canvas a scene's Gaussians give is near zero mean as
+    well): the depth output's median is within 15% of exp(depth_bias) = 4 scene units
+    (config.SCANNET_DEPTH_BIAS), not the exp(0) = 1 of a bias-free head."""
+    model = C.paper_scannet()
+    cfg = model.decoder
+    assert cfg.depth_bias == pytest.approx(np.log(4.0)) == C.SCANNET_DEPTH_BIAS
+    assert C.paper_dl3dv().decoder.depth_bias == 0.0  # no depth head there
+    k_init, k_x = jax.random.split(key)
+    canvas = jax.random.normal(k_x, (1, cfg.partitions, 48, 64, model.head.feature_dim + 6), jnp.float32)
+    params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
+    depth = np.asarray(TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))["depth"])
+    assert depth.shape == (1, 96, 128, 1)
+    assert abs(np.log(np.median(depth)) - np.log(4.0)) < np.log(1.15), np.median(depth)
+
+
 def _golden_colour_scene():
     """The golden Long-LRM Gaussians (float64) and their input cameras as render targets."""
     from llrmpp_jax.gaussians import Gaussians

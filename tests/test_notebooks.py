@@ -332,7 +332,8 @@ def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
         assert rgb.base.decoder.depth_bias == C.DecoderConfig().depth_bias
     for depth in (False, True):
         paper = ablation.make_scale("paper", paper_views=8, depth=depth)
-        assert paper.base.decoder.depth_bias == C.DecoderConfig().depth_bias and paper.rescale
+        preset = C.paper_scannet() if depth else C.paper_dl3dv()
+        assert paper.base.decoder.depth_bias == preset.decoder.depth_bias and paper.rescale
         assert paper.base.head.max_dist == C.GaussianHeadConfig().max_dist
     scale = ablation.make_scale("cpu", paper_views=4, depth=True)
     source = ProceduralSource(ProceduralConfig(height=32, width=32, num_frames=scale.frames),
