@@ -6,9 +6,6 @@
   caller sets come after, so they win): most tests run a program once or twice, so compile
   time dominates. The suite takes 774-874 s instead of 948 s on 2 cores (the few tests that run
   long loops, the capture end-to-end ones, get slower); every oracle tolerance still holds.
-* One persistent XLA cache for the session (``JAX_COMPILATION_CACHE_DIR``, unless the
-  caller sets one; at most 2 GB): the two xdist workers and the ``llrmpp`` subprocesses
-  the CLI tests start compile many of the same programs (the tiny model's steps and renders).
 * ``jax_numpy_dtype_promotion="strict"`` and ``jax_numpy_rank_promotion="raise"``: silent
   float64 upcasts and accidental broadcasting are bugs here.
 * x64 is *enabled* so oracles can run in float64; library code must therefore state its
@@ -16,7 +13,6 @@
 """
 
 import os
-import tempfile
 import zlib
 
 QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
@@ -26,8 +22,6 @@ os.environ["XLA_FLAGS"] = " ".join([
     "--xla_force_host_platform_device_count=2",
 ])
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "llrmpp-test-xla-cache"))
-os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(2 * 1024**3))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
