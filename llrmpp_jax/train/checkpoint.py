@@ -25,6 +25,7 @@ import re
 import shutil
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -207,12 +208,7 @@ def save_checkpoint(
             code = _out_of_space_errno(e)
             if code is None:
                 raise
-            # Orbax renames a step into place only when complete: what is left is its
-            # temporary folder (and maybe a manifest-less step, which restore rejects).
-            for partial in directory.glob(f"{step}.orbax-checkpoint-tmp*"):
-                shutil.rmtree(partial, ignore_errors=True)
-            if not (step_dir / MANIFEST).exists():
-                shutil.rmtree(step_dir, ignore_errors=True)
+            _remove_unfinished(directory, step)
             earlier = sorted(s for s in mngr.all_steps() if s != step)
             kept = f"the newest complete checkpoint (step {earlier[-1]}) is intact" if earlier else "no earlier checkpoint"
             raise OutOfSpaceError(
@@ -226,6 +222,26 @@ def save_checkpoint(
         for old in sorted(mngr.all_steps(), reverse=True)[keep:]:
             mngr.delete(old)
     return step_dir
+
+
+def _remove_unfinished(directory: Path, step: int, quiet_s: float = 0.5, limit_s: float = 10.0) -> None:
+    """Remove what a failed save of ``step`` left: orbax renames a step into place only
+    when complete, so its temporary folder (and maybe a manifest-less step, which restore
+    rejects). Tensorstore's writer threads of the failed save can still be creating files
+    there after the failure reached us (they are not Python threads to join), so removal
+    repeats until nothing has reappeared for ``quiet_s`` seconds (at most ``limit_s``)."""
+    def leftovers() -> list[Path]:
+        found = list(directory.glob(f"{step}.orbax-checkpoint-tmp*"))
+        step_dir = directory / str(step)
+        return found + ([step_dir] if step_dir.exists() and not (step_dir / MANIFEST).exists() else [])
+
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        for path in leftovers():
+            shutil.rmtree(path, ignore_errors=True)
+        time.sleep(quiet_s)
+        if not leftovers():
+            return
 
 
 # Write failures that mean the disk (or a limit on it) is full, and what to tell the user.
