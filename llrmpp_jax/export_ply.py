@@ -116,8 +116,8 @@ def quat_multiply(a: Float[np.ndarray, "*N 4"], b: Float[np.ndarray, "*N 4"]) ->
                      aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
-def sh_rotation(rot: Float[np.ndarray, "3 3"], degree: int) -> Float[np.ndarray, "M M"]:
-    """``X`` [M, M] with ``SH_world(R d) . (X c) == SH_scene(d) . c`` for every direction d.
+def sh_rotation(rot: Float[np.ndarray, "3 3"], degree: int) -> Float[np.ndarray, "bases bases"]:
+    """``X`` [bases, bases] with ``SH_world(R d) . (X c) == SH_scene(d) . c`` for every direction d.
 
     Each degree's real SH span is closed under rotation, so ``Y(R^T d) = A Y(d)`` for a
     block-diagonal ``A`` and ``X = A^T``; it is fitted in float64 by least squares over

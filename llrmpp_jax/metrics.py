@@ -90,7 +90,7 @@ def ssim(
     *,
     gaussian: bool = False,
     sample_covariance: bool | None = None,
-) -> Float[Array, "*B"]:
+) -> Float[Array, "*batch"]:
     """Per-image mean SSIM, equal to scikit-image's ``structural_similarity`` (module docstring).
 
     Args:

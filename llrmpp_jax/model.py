@@ -57,7 +57,7 @@ def input_features(
 def append_target_rays(
     canvas: Float[Array, "B T S hc wc F"], c2w: Float[Array, "B T 4 4"], intrinsics: Float[Array, "B T 4"],
     canvas_ratio: int,
-) -> Float[Array, "B T S hc wc F+6"]:
+) -> Float[Array, "B T S Hc Wc F+6"]:
     """The decoder's input: each canvas with its target's Plücker rays ``[o x d, d]`` through
     the canvas pixel centres (image intrinsics scaled down by ``canvas_ratio``), paper §3.2."""
     b, t, s, hc, wc, _ = canvas.shape

@@ -94,7 +94,7 @@ def vgg_features(
     *,
     taps: Sequence[str],
     pool: Literal["max", "avg"],
-) -> list[Float[Array, "B h w C"]]:
+) -> list[Float[Array, "B _ _ _"]]:
     """Post-ReLU VGG activations at ``taps`` (e.g. ``"relu3_2"``), in the order given.
 
     Args:

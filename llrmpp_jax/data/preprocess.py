@@ -121,12 +121,12 @@ def zoom_image(image: Float[np.ndarray, "H W C"], r: float, offset: tuple[int, i
 
 def load_views(
     scene: Scene,
-    indices: Int[np.ndarray, "K"],
+    indices: Int[np.ndarray, "views"],
     resized_hw: tuple[int, int],
     box: tuple[int, int, int, int],
     zoom: float | None,
     with_depth: bool,
-) -> tuple[Float[np.ndarray, "K H W 3"], Float[np.ndarray, "K 4"], Float[np.ndarray, "K H W"] | None]:
+) -> tuple[Float[np.ndarray, "views H W 3"], Float[np.ndarray, "views 4"], Float[np.ndarray, "views H W"] | None]:
     """Load frames ``indices`` resized to ``resized_hw``, cropped to ``box`` and zoomed by
     ``1/zoom`` (None = no zoom): ``(images, intrinsics, depth or None)``. Depth is not
     resampled twice: each output pixel takes the stored depth sample under its centre

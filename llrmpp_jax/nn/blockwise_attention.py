@@ -211,8 +211,8 @@ def blockwise_attention(
     """``softmax(q k^T * hd^-0.5 + bias, where mask) v`` in query x key blocks.
 
     ``q``: ``[B, Lq, nh, hd]``; ``k``, ``v``: ``[B, Lk, nh, hd]``; ``bias`` / ``mask``
-    ``[Bb, Hb, Qb, Lk]`` with ``Bb in (1, B)``, ``Hb in (1, nh)``, ``Qb in (1, Lq)``
-    (``mask`` True where a key takes part). Block sizes need not divide L (the last block
+    ``[B, nh, Lq, Lk]``, each of the first three axes possibly 1 (broadcast; ``mask`` True
+    where a key takes part). Block sizes need not divide L (the last block
     is padded; a block larger than L shrinks to L). Differentiable in q, k, v and bias
     with a memory-linear backward (see the module docstring).
     """

@@ -52,34 +52,34 @@ def _acc(dtype: jnp.dtype) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if dtype == jnp.float64 else jnp.dtype(jnp.float32)
 
 
-def _dense(x: Float[Array, "... C"], kernel: Float[Array, "C E"]) -> Float[Array, "... E"]:
+def _dense(x: Float[Array, "... Ci"], kernel: Float[Array, "Ci Co"]) -> Float[Array, "... Co"]:
     """Bias-free linear layer, float32 (or float64) accumulation, result in the dtype of ``x``."""
     return jnp.matmul(x, kernel.astype(x.dtype), preferred_element_type=_acc(x.dtype)).astype(x.dtype)
 
 
 def causal_depthwise_conv1d(
-    x: Float[Array, "... L C"], kernel: Float[Array, "K C"], bias: Float[Array, " C"]
+    x: Float[Array, "... L C"], kernel: Float[Array, "kw C"], bias: Float[Array, " C"]
 ) -> Float[Array, "... L C"]:
-    """Per-channel causal convolution along L: ``y_t = b + sum_k kernel[k] * x_{t-(K-1)+k}``.
+    """Per-channel causal convolution along L: ``y_t = b + sum_k kernel[k] * x_{t-(kw-1)+k}``.
 
-    Zero history before t=0; tap ``K-1`` multiplies the current token (PyTorch
-    ``Conv1d(groups=C, padding=K-1)`` truncated to the first L outputs, cross-correlation).
-    One grouped ``conv_general_dilated`` (``feature_group_count=C``, K-1 zeros on the left)
-    rather than K shifted slices: the slices' transposes in the backward are K zero-padded
-    ``[..., L+K-1, C]`` buffers, the conv's backward is one conv of the cotangent.
+    Zero history before t=0; tap ``kw-1`` multiplies the current token (PyTorch
+    ``Conv1d(groups=C, padding=kw-1)`` truncated to the first L outputs, cross-correlation).
+    One grouped ``conv_general_dilated`` (``feature_group_count=C``, kw-1 zeros on the left)
+    rather than kw shifted slices: the slices' transposes in the backward are kw zero-padded
+    ``[..., L+kw-1, C]`` buffers, the conv's backward is one conv of the cotangent.
     """
     if kernel.ndim != 2 or kernel.shape[1] != x.shape[-1] or bias.shape != (x.shape[-1],):
         raise ValueError(
-            f"causal_depthwise_conv1d: x {x.shape} needs kernel [K, {x.shape[-1]}] and bias "
+            f"causal_depthwise_conv1d: x {x.shape} needs kernel [kw, {x.shape[-1]}] and bias "
             f"[{x.shape[-1]}], got kernel {kernel.shape} and bias {bias.shape}"
         )
-    (K, C), L = kernel.shape, x.shape[-2]
+    (kw, C), L = kernel.shape, x.shape[-2]
     acc = _acc(x.dtype)
     y = jax.lax.conv_general_dilated(
         x.astype(acc).reshape(-1, L, C),
-        kernel.astype(acc)[:, None, :],  # [K, 1, C]: one input channel per group
+        kernel.astype(acc)[:, None, :],  # [kw, 1, C]: one input channel per group
         window_strides=(1,),
-        padding=[(K - 1, 0)],
+        padding=[(kw - 1, 0)],
         dimension_numbers=("NWC", "WIO", "NWC"),
         feature_group_count=C,
         precision=jax.lax.Precision.HIGHEST,  # no TF32/bf16 passes: exact float32 taps

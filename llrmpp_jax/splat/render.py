@@ -64,7 +64,7 @@ class SplatOutput(NamedTuple):
 EXPECTED_DEPTH_MIN_ALPHA = 1e-10
 
 
-def expected_depth(out: SplatOutput) -> Float[Array, "*S H W"]:
+def expected_depth(out: SplatOutput) -> Float[Array, "*batch H W"]:
     """gsplat's "ED" render mode: accumulated camera z over accumulated alpha
     (``out.depth / (1 - out.transmittance)``), 0 where nothing was drawn. The one
     definition used by the model's depth, the depth loss, ``llrmpp render --depth`` and
@@ -274,7 +274,7 @@ def render_sh(
 
     Colour of a Gaussian = ``max(SH(mean - camera centre) + 0.5, 0)`` (gsplat);
     ``rgb = features + transmittance * background`` (default white). ``sh_degree``
-    defaults to ``sqrt(M) - 1``; with fewer, the extra coefficients are ignored.
+    defaults to ``sqrt(sh) - 1``; with fewer, the extra coefficients are ignored.
     Returns ``(rgb [H, W, 3], output)`` where ``output.features`` has no background.
     """
     m = _shape(sh_coeffs, "sh_coeffs")
@@ -287,7 +287,7 @@ def render_sh(
             f"sh_coeffs has shape {m}"
         )
     if sh_degree is None and num_sh_bases(degree) != m[1]:
-        raise ValueError(f"sh_coeffs has M={m[1]} coefficients, not a square; pass sh_degree")
+        raise ValueError(f"sh_coeffs has sh={m[1]} coefficients, not a square; pass sh_degree")
     background = jnp.ones((3,), jnp.float32) if background is None else background
     if _shape(background, "background") != (3,):
         raise ValueError(f"background must have shape (3,), got {_shape(background, 'background')}")
