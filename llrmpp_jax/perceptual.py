@@ -72,7 +72,7 @@ def _conv_order(params: VGGParams) -> list[tuple[int, int, str]]:
     return sorted(order)
 
 
-def _pool2x2(x: Float[Array, "B H W C"], pool: str) -> Float[Array, "B h w C"]:
+def _pool2x2(x: Float[Array, "B H W C"], pool: Literal["max", "avg"]) -> Float[Array, "B H//2 W//2 C"]:
     """2x2 stride-2 pooling; an odd last row/column is dropped, as torch's pools do."""
     b, h, w, c = x.shape
     x = x[:, : h // 2 * 2, : w // 2 * 2, :].reshape(b, h // 2, 2, w // 2, 2, c)

@@ -10,12 +10,16 @@ World frame: z up, floor at z = 0. All paths return OpenCV camera-to-world ``[fr
 
 from __future__ import annotations
 
+import typing
+from typing import Literal
+
 import numpy as np
 
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.errors import UserError
 
-PATH_KINDS = ("orbit", "walk", "sweep")
+PathKind = Literal["orbit", "walk", "sweep"]
+PATH_KINDS: tuple[str, ...] = typing.get_args(PathKind)
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
-from llrmpp_jax.data.camera_paths import PATH_KINDS, orbit_path, pinhole_intrinsics, sweep_path, walk_path
+from llrmpp_jax.data.camera_paths import PATH_KINDS, PathKind, orbit_path, pinhole_intrinsics, sweep_path, walk_path
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.textures import POSTER_TEXTURES, sample_texture, texture_bank, texture_ids
 from llrmpp_jax.geometry import pixel_rays
@@ -238,7 +238,7 @@ class ProceduralConfig:
     height: int = 128
     width: int = 128
     num_frames: int = 32
-    path_kinds: tuple[str, ...] = PATH_KINDS
+    path_kinds: tuple[PathKind, ...] = PATH_KINDS
     fov_deg: tuple[float, float] = (50.0, 75.0)
     num_boxes: tuple[int, int] = (2, 6)
     num_spheres: tuple[int, int] = (1, 4)

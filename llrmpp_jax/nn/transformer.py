@@ -9,6 +9,8 @@ Submodule names mirror the PyTorch ones (``norm1``, ``attn.qkv``, ``attn.proj``,
 
 from __future__ import annotations
 
+from typing import Literal
+
 import flax.linen as nn
 import jax.numpy as jnp
 
@@ -50,7 +52,7 @@ class TransformerBlock(nn.Module):
 
     dim: int
     cfg: TransformerConfig
-    attention: str = "global"
+    attention: Literal["global", "local"] = "global"
     grid: tuple[int, int] | None = None
     num_neighbours: int = 64
     dtype: jnp.dtype | None = None
