@@ -1,9 +1,9 @@
 """One legend of axis names, used in every docstring and jaxtyping annotation.
 
-Every name an annotation of the package uses has a line here and one meaning everywhere.
-Case matters: ``H`` and ``h`` are different axes. Within one call, a name is one size
-across all the arguments and the return value that use it; ``#`` marks an axis that may
-also be 1 (broadcast).
+Every name an annotation of the package uses has a line here and one meaning everywhere
+(``tests/test_array_typing.py`` holds the annotations to it). Case matters: ``H`` and
+``h`` are different axes. Within one call, a name is one size across all the arguments
+and the return value that use it; ``#`` marks an axis that may also be 1 (broadcast).
 
 Scenes and images
     B           batch (scenes)
@@ -81,17 +81,21 @@ Data
     spheres     spheres of a procedural scene
     quads       rectangles of a procedural scene
 
-Arrays are ``jax.Array`` or NumPy arrays; annotations are checked only where a test
-asks for it (jaxtyping's import hook), never at run time in library code.
+Arrays are ``jax.Array`` (``Array``) or, where a function also takes NumPy,
+``ArrayLike``. Annotations are checked only in the test suite (``tests/conftest.py``
+installs jaxtyping's import hook with beartype), never at run time in library code.
 """
 
 from typing import TypeAlias
 
 import jax
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, Shaped  # noqa: F401
+from jax.typing import DTypeLike
+from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray, Shaped, UInt32
 
 ArrayLike: TypeAlias = jax.Array | np.ndarray
+# A size or count as callers pass it: a Python int or a NumPy one (``tuple(scene.hw[i])``).
+IntLike: TypeAlias = int | np.integer
 KeyArray: TypeAlias = PRNGKeyArray
 
-__all__ = ["Array", "ArrayLike", "Bool", "Float", "Int", "KeyArray", "Shaped"]
+__all__ = ["Array", "ArrayLike", "Bool", "DTypeLike", "Float", "Int", "IntLike", "KeyArray", "Shaped", "UInt32"]

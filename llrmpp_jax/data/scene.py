@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from llrmpp_jax.array_typing import Float, Int
+from llrmpp_jax.array_typing import Float, Int, IntLike
 from llrmpp_jax.data.distortion import undistort_image
 from llrmpp_jax.data.resample import resize_depth, resize_image
 from llrmpp_jax.errors import UserError
@@ -87,7 +87,7 @@ class Scene:
     def has_depth(self) -> bool:
         return self.depth_fn is not None
 
-    def image(self, i: int, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W 3"]:
+    def image(self, i: IntLike, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W 3"]:
         """Frame i's pinhole image ``[H, W, 3]`` float32 in [0, 1], resized to ``hw`` if given
         (intrinsics then follow :func:`~llrmpp_jax.geometry.resize_intrinsics`).
         ``ValueError`` naming the frame if the stored image does not have the recorded size."""
@@ -104,7 +104,7 @@ class Scene:
             img = undistort_image(img, self._intrinsics_at(i, img.shape[:2]), self.distortion[i])
         return img
 
-    def depth(self, i: int, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W"]:
+    def depth(self, i: IntLike, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W"]:
         """Frame i's z-depth ``[H, W]`` float32 metres (0 = invalid), nearest-resized to ``hw``."""
         if self.depth_fn is None:
             raise UserError(f"scene {self.name!r} has no depth maps")
@@ -121,10 +121,10 @@ class Scene:
             depth = undistort_image(depth, self._intrinsics_at(i, depth.shape), self.distortion[i], nearest=True)
         return depth
 
-    def _intrinsics_at(self, i: int, hw: tuple[int, int]) -> np.ndarray:
+    def _intrinsics_at(self, i: IntLike, hw: tuple[int, int]) -> np.ndarray:
         return resize_intrinsics(self.intrinsics[i], tuple(self.hw[i]), hw)
 
-    def subset(self, indices: Sequence[int]) -> Scene:
+    def subset(self, indices: Sequence[int] | Int[np.ndarray, " views"]) -> Scene:
         """The scene restricted to ``indices`` (in that order); loaders are re-indexed."""
         idx = np.asarray(indices, dtype=np.int64)
         if idx.ndim != 1 or idx.size == 0 or (idx < 0).any() or (idx >= len(self)).any():

@@ -34,13 +34,13 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.array_typing import Array, ArrayLike, Float, KeyArray
 from llrmpp_jax.config import Mamba2Config
 from llrmpp_jax.nn.norms import rms_norm
 from llrmpp_jax.nn.remat_loops import remat_after_cotangent
 from llrmpp_jax.nn.ssd import ssd_scan
 
-Params = dict[str, dict[str, Array]]
+Params = dict[str, dict[str, ArrayLike]]
 
 # Long-LRM's Mamba2Block constants (facts §1.4 "Init").
 _A_INIT_RANGE = (1.0, 16.0)
@@ -120,12 +120,12 @@ def in_proj_widths(d_inner: int, cfg: Mamba2Config) -> tuple[int, int, int, int,
     return d_inner, d_inner, gn, gn, d_inner // cfg.headdim
 
 
-def _split_columns(a: Float[Array, "... E"], widths: tuple[int, ...]) -> list[Float[Array, "... e"]]:
+def _split_columns(a: Float[ArrayLike, "... C"], widths: tuple[int, ...]) -> list[Float[Array, "... _"]]:
     """``a`` cut along its last axis into consecutive blocks of ``widths``."""
     return jnp.split(a, list(itertools.accumulate(widths))[:-1], axis=-1)
 
 
-def mamba2_scan_direction(proj: InProj, params: dict[str, Array], cfg: Mamba2Config) -> Float[Array, "... L C"]:
+def mamba2_scan_direction(proj: InProj, params: dict[str, ArrayLike], cfg: Mamba2Config) -> Float[Array, "... L di"]:
     """One scan direction (``Mamba2SingleScan``): in_proj's output blocks -> ``[..., L, d_inner]``.
 
     ``params`` holds ``conv_kernel, conv_bias, dt_bias, A_log, D, norm_scale``; the widths

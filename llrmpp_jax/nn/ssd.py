@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.nn.variance import common_variance, full_like_varying
 
 InterChunk = Literal["associative", "sequential", "dense", "fused"]
@@ -505,7 +505,7 @@ def ssd_scan(
     C: Float[Array, "*batch L g n"],
     *,
     chunk_size: int,
-    D: Float[Array, " nh"] | None = None,
+    D: Float[ArrayLike, " nh"] | None = None,
     inter_chunk: Literal["associative", "sequential", "fused"] = "associative",
 ) -> Float[Array, "*batch L nh P"]:
     """Chunked SSD scan (Mamba-2 Listing 1 with a linear-time inter-chunk step).
@@ -542,8 +542,8 @@ def ssd_dense(
     C: Float[Array, "*batch L g n"],
     *,
     chunk_size: int,
-    D: Float[Array, " nh"] | None = None,
-) -> Float[Array, "... L nh P"]:
+    D: Float[ArrayLike, " nh"] | None = None,
+) -> Float[Array, "*batch L nh P"]:
     """Chunked SSD with ``ssd_minimal``'s dense O(chunks^2) inter-chunk einsum (an oracle).
 
     Same arguments and result as :func:`ssd_scan`.
@@ -558,8 +558,8 @@ def ssd_sequential(
     B: Float[Array, "*batch L g n"],
     C: Float[Array, "*batch L g n"],
     *,
-    D: Float[Array, " nh"] | None = None,
-) -> Float[Array, "... L nh P"]:
+    D: Float[ArrayLike, " nh"] | None = None,
+) -> Float[Array, "*batch L nh P"]:
     """The SSM recurrence as a ``lax.scan`` over time (the oracle; no chunking).
 
     ``state_t = exp(dt_t A) state_{t-1} + dt_t x_t B_t^T``, ``y_t = state_t C_t + D x_t``.
