@@ -52,7 +52,7 @@ def _acc(dtype: jnp.dtype) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if dtype == jnp.float64 else jnp.dtype(jnp.float32)
 
 
-def _dense(x: Float[Array, "... Ci"], kernel: Float[Array, "Ci Co"]) -> Float[Array, "... Co"]:
+def _dense(x: Float[Array, "... Ci"], kernel: Float[ArrayLike, "Ci Co"]) -> Float[Array, "... Co"]:
     """Bias-free linear layer, float32 (or float64) accumulation, result in the dtype of ``x``."""
     return jnp.matmul(x, kernel.astype(x.dtype), preferred_element_type=_acc(x.dtype)).astype(x.dtype)
 
@@ -88,7 +88,7 @@ def causal_depthwise_conv1d(
 
 
 def gated_rms_norm(
-    y: Float[Array, "... C"], z: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
+    y: Float[Array, "... C"], z: Float[Array, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """``rms_norm(y * silu(z)) * scale`` (mamba_ssm ``RMSNormGated``, norm after the gate)."""
     acc = _acc(y.dtype)
