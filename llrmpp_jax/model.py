@@ -29,7 +29,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float, Int, KeyArray
+from llrmpp_jax.array_typing import Array, ArrayLike, Float, Int, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.decoder import TargetDecoder, partition_opacities
 from llrmpp_jax.errors import UserError
@@ -46,7 +46,7 @@ class RenderOutput(NamedTuple):
 
 
 def input_features(
-    images: Float[Array, "B V H W 3"], c2w: Float[Array, "B V 4 4"], intrinsics: Float[Array, "B V 4"]
+    images: Float[ArrayLike, "B V H W 3"], c2w: Float[ArrayLike, "B V 4 4"], intrinsics: Float[ArrayLike, "B V 4"]
 ) -> Float[Array, "B V H W 9"]:
     """Per-pixel ``[rgb*2-1, o x d, d]`` (Long-LRM / LVSM order; d through pixel centres)."""
     h, w = images.shape[2:4]
@@ -55,9 +55,9 @@ def input_features(
 
 
 def append_target_rays(
-    canvas: Float[Array, "B T S hc wc F"], c2w: Float[Array, "B T 4 4"], intrinsics: Float[Array, "B T 4"],
+    canvas: Float[Array, "B T S Hc Wc F"], c2w: Float[ArrayLike, "B T 4 4"], intrinsics: Float[ArrayLike, "B T 4"],
     canvas_ratio: int,
-) -> Float[Array, "B T S hc wc F+6"]:
+) -> Float[Array, "B T S Hc Wc F+6"]:
     """The decoder's input: each canvas with its target's Plücker rays ``[o x d, d]`` through
     the canvas pixel centres (image intrinsics scaled down by ``canvas_ratio``), paper §3.2."""
     b, t, s, hc, wc, _ = canvas.shape
@@ -174,15 +174,15 @@ def init_params(key: KeyArray, cfg: ModelConfig, num_views: int, height: int, wi
     return jax.jit(init)(key)
 
 
-def reconstruct(params: dict, cfg: ModelConfig, images: Float[Array, "B V H W 3"],
-                c2w: Float[Array, "B V 4 4"], intrinsics: Float[Array, "B V 4"]) -> Gaussians:
+def reconstruct(params: dict, cfg: ModelConfig, images: Float[ArrayLike, "B V H W 3"],
+                c2w: Float[ArrayLike, "B V 4 4"], intrinsics: Float[ArrayLike, "B V 4"]) -> Gaussians:
     """Images in [0, 1] + input cameras -> Gaussians (``N = V * h * w * K`` per scene)."""
     _check_views(images, c2w, intrinsics)
     return LongLRMPP(cfg).apply({"params": params}, images, c2w, intrinsics, method="reconstruct")
 
 
-def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Array, "B T 4 4"],
-           intrinsics: Float[Array, "B T 4"], height: int, width: int,
+def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B T 4 4"],
+           intrinsics: Float[ArrayLike, "B T 4"], height: int, width: int,
            outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
     """Render ``outputs`` ("rgb" and/or "depth") at T target cameras of size ``height x width``."""
     b = gaussians.means.shape[0]
@@ -194,8 +194,8 @@ def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Arra
                                 tuple(outputs), method="render")
 
 
-def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Array, "B T 4 4"],
-                        intrinsics: Float[Array, "B T 4"], height: int, width: int) -> Int[Array, "B T"]:
+def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B T 4 4"],
+                        intrinsics: Float[ArrayLike, "B T 4"], height: int, width: int) -> Int[Array, "B T"]:
     """(Gaussian, compositor block) pairs each render of :func:`render` at these cameras
     fills: size ``cfg.splat.max_intersections`` by the largest (feature mode counts the
     canvas and all S partition copies, as the render does)."""

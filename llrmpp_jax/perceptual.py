@@ -41,12 +41,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.convert.table import load_torch_state_dict
 from llrmpp_jax.convert.vgg import convert_vgg, vgg_layers
 from llrmpp_jax.errors import MissingInputError, UserError
 
-VGGParams: TypeAlias = Mapping[str, Mapping[str, Array]]
+VGGParams: TypeAlias = Mapping[str, Mapping[str, ArrayLike]]
 
 PERCEPTUAL_TAPS: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_2", "relu4_2", "relu5_2")
 LPIPS_TAPS: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3", "relu5_3")
@@ -72,7 +72,7 @@ def _conv_order(params: VGGParams) -> list[tuple[int, int, str]]:
     return sorted(order)
 
 
-def _pool2x2(x: Float[Array, "B H W C"], pool: str) -> Float[Array, "B h w C"]:
+def _pool2x2(x: Float[Array, "B H W C"], pool: Literal["max", "avg"]) -> Float[Array, "B H//2 W//2 C"]:
     """2x2 stride-2 pooling; an odd last row/column is dropped, as torch's pools do."""
     b, h, w, c = x.shape
     x = x[:, : h // 2 * 2, : w // 2 * 2, :].reshape(b, h // 2, 2, w // 2, 2, c)
@@ -90,11 +90,11 @@ def _conv3x3(x: Float[Array, "B H W Ci"], layer: Mapping[str, Array]) -> Float[A
 
 def vgg_features(
     params: VGGParams,
-    images: Float[Array, "B H W 3"],
+    images: Float[ArrayLike, "B H W 3"],
     *,
     taps: Sequence[str],
     pool: Literal["max", "avg"],
-) -> list[Float[Array, "B h w C"]]:
+) -> list[Float[Array, "B _ _ _"]]:
     """Post-ReLU VGG activations at ``taps`` (e.g. ``"relu3_2"``), in the order given.
 
     Args:

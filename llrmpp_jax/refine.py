@@ -57,7 +57,7 @@ import optax
 import optimistix as optx
 from tqdm.auto import tqdm
 
-from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.array_typing import Array, ArrayLike, Float, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
@@ -259,9 +259,9 @@ def refine(
     params: dict,
     cfg: ModelConfig,
     gaussians: Gaussians,
-    images: Float[Array, "B V H W 3"],
-    c2w: Float[Array, "B V 4 4"],
-    intrinsics: Float[Array, "B V 4"],
+    images: Float[ArrayLike, "B V H W 3"],
+    c2w: Float[ArrayLike, "B V 4 4"],
+    intrinsics: Float[ArrayLike, "B V 4"],
     steps: int = 10,
     rc: RefineConfig = RefineConfig(),
     vgg_params: VGGParams | None = None,

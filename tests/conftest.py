@@ -10,9 +10,16 @@
   float64 upcasts and accidental broadcasting are bugs here.
 * x64 is *enabled* so oracles can run in float64; library code must therefore state its
   dtypes explicitly (it does: float32 by default).
+* Every function and dataclass of ``llrmpp_jax`` is checked against its annotations
+  (jaxtyping's import hook with beartype): array shapes against the letters of
+  ``llrmpp_jax.array_typing``'s legend, everything else by type. Functions under ``jit`` are
+  checked when traced. The hook only instruments modules imported after it is installed,
+  hence before any test module imports the package.
 """
 
+import contextlib
 import os
+import sys
 import zlib
 
 QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
@@ -24,8 +31,14 @@ os.environ["XLA_FLAGS"] = " ".join([
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import jax  # noqa: E402
+import jaxtyping  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+
+if "llrmpp_jax" in sys.modules:  # a plugin imported it first: its functions would go unchecked
+    raise RuntimeError("llrmpp_jax was imported before tests/conftest.py could install jaxtyping's hook")
+# PEP 484's numeric tower (an int where a float is annotated), as static checkers read it.
+jaxtyping.install_import_hook("llrmpp_jax", "beartype.beartype(conf=beartype.BeartypeConf(is_pep484_tower=True))")
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
@@ -40,6 +53,19 @@ def _seed(request) -> int:
     """Per-test seed from the test's id (crc32: stable across runs, unlike ``hash``), mixed
     with ``LLRMPP_TEST_SEED`` (default 0) so a sweep over fresh draws is one variable away."""
     return zlib.crc32(request.node.nodeid.encode()) ^ int(os.environ.get("LLRMPP_TEST_SEED", "0"))
+
+
+@contextlib.contextmanager
+def unchecked():
+    """The annotation checks off inside the block: for a test that passes what the
+    annotations rule out on purpose, to reach the library's own error for it (what a user
+    sees: nothing is checked outside the tests)."""
+    before = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    try:
+        yield
+    finally:
+        jaxtyping.config.update("jaxtyping_disable", before)
 
 
 @pytest.fixture

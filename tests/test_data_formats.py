@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from llrmpp_jax.data.formats import (
+    FORMATS,
+    READERS,
     read_colmap_model,
     read_colmap_scene,
     read_long_lrm_index,
@@ -51,6 +53,11 @@ def assert_same(a: Scene, b: Scene, depth=True):
         np.testing.assert_array_equal(b.image(i), a.image(i))
         if depth:
             np.testing.assert_allclose(b.depth(i), a.depth(i), rtol=0, atol=1e-6)
+
+
+def test_format_names_are_the_readers_and_auto():
+    """``Format`` (the configs' and ``--format``'s names) lists exactly the readers."""
+    assert set(FORMATS) == {"auto", *READERS} and len(FORMATS) == len(READERS) + 1
 
 
 def test_long_lrm_round_trip(tmp_path, source):

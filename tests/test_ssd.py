@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import unchecked
 from llrmpp_jax.nn import ssd as ssd_module
 from llrmpp_jax.nn.ssd import segment_sum, ssd_dense, ssd_scan, ssd_sequential
 
@@ -205,15 +206,15 @@ def test_ssd_scan_bf16_accumulates_in_f32(rng, inter_chunk):
 
 def test_ssd_bad_inputs_raise(rng):
     x, dt, A, B, C, D = _inputs(rng, (2,), 10, 4, 3, 1, 5)
-    with pytest.raises(ValueError, match="dt has shape"):
+    with pytest.raises(ValueError, match="dt has shape"), unchecked():
         ssd_scan(x, dt[:, :-1], A, B, C, chunk_size=4)
-    with pytest.raises(ValueError, match="A has shape"):
+    with pytest.raises(ValueError, match="A has shape"), unchecked():
         ssd_scan(x, dt, A[:3], B, C, chunk_size=4)
-    with pytest.raises(ValueError, match="not a multiple of ngroups"):
+    with pytest.raises(ValueError, match="not a multiple of ngroups"), unchecked():
         ssd_sequential(x, dt, A, np.concatenate([B] * 3, -2), np.concatenate([C] * 3, -2))
-    with pytest.raises(ValueError, match="C has shape"):
+    with pytest.raises(ValueError, match="C has shape"), unchecked():
         ssd_dense(x, dt, A, B, C[..., :4], chunk_size=4)
-    with pytest.raises(ValueError, match="chunk_size"):
+    with pytest.raises(ValueError, match="chunk_size"), unchecked():
         ssd_scan(x, dt, A, B, C, chunk_size=0)
-    with pytest.raises(ValueError, match="inter_chunk"):
+    with pytest.raises(ValueError, match="inter_chunk"), unchecked():
         ssd_scan(x, dt, A, B, C, chunk_size=4, inter_chunk="dense")

@@ -9,6 +9,7 @@ import numpy as np
 import optax
 import pytest
 
+from conftest import unchecked
 from llrmpp_jax.train.optimizer import OptimizerConfig, make_optimizer, make_schedule
 from llrmpp_jax.train.sharding import (
     make_data_mesh,
@@ -251,7 +252,7 @@ def test_bad_inputs(key, rng):
         bad = {**params, "dense1": {**params["dense1"],
                                     "bias": params["dense1"]["bias"].astype(jnp.bfloat16)}}
         init_train_state(bad, tx, key)
-    with pytest.raises(ValueError, match="typed PRNG key"):
+    with pytest.raises(ValueError, match="typed PRNG key"), unchecked():
         init_train_state(params, tx, jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="batch size 7 does not divide over 2 devices"):
         shard_for_pmap(toy_batch(rng, 7))

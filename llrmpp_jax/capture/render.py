@@ -39,7 +39,7 @@ from llrmpp_jax.splat import expected_depth, render_features
 PATHS = ("targets", "inputs", "spline", "orbit")
 
 
-def spline_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "N 4 4"]:
+def spline_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "frames 4 4"]:
     """``frames`` poses through the ``V >= 2`` poses ``c2w`` in order (see the module doc)."""
     v = c2w.shape[0]
     if v < 2 or frames < 2:
@@ -52,7 +52,7 @@ def spline_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarra
     return out
 
 
-def orbit_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "N 4 4"]:
+def orbit_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "frames 4 4"]:
     """``frames`` poses orbiting the inputs' common look-at point (see the module doc)."""
     o, d = c2w[:, :3, 3], c2w[:, :3, 2]
     proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # [V, 3, 3] projections off each axis
@@ -78,7 +78,7 @@ def orbit_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray
 
 def path_cameras(
     saved: SavedScene, kind: str, frames: int = 60
-) -> tuple[Float[np.ndarray, "N 4 4"], Float[np.ndarray, "N 4"], list[str], np.ndarray | None]:
+) -> tuple[Float[np.ndarray, "frames 4 4"], Float[np.ndarray, "frames 4"], list[str], np.ndarray | None]:
     """``(c2w, intrinsics, names, frame indices or None)`` of path ``kind`` (module doc);
     names are the source photos' file stems for ``targets``/``inputs``."""
     if kind not in PATHS:
@@ -97,11 +97,11 @@ def path_cameras(
 
 @dataclass(frozen=True)
 class RenderedViews:
-    """``rgb [N, H, W, 3]`` in [0, 1]; ``depth [N, H, W]`` camera z in capture units (0 where
+    """``rgb [frames, H, W, 3]`` in [0, 1]; ``depth [frames, H, W]`` camera z in capture units (0 where
     nothing was hit) or None; ``names`` one per view."""
 
-    rgb: Float[np.ndarray, "N H W 3"]
-    depth: Float[np.ndarray, "N H W"] | None
+    rgb: Float[np.ndarray, "frames H W 3"]
+    depth: Float[np.ndarray, "frames H W"] | None
     names: list[str]
 
 
@@ -121,8 +121,8 @@ def _render_depth(g: Gaussians, cfg: ModelConfig, c2w, k, height: int, width: in
 def render_views(
     params: dict,
     saved: SavedScene,
-    c2w: Float[np.ndarray, "N 4 4"],
-    intrinsics: Float[np.ndarray, "N 4"],
+    c2w: Float[np.ndarray, "frames 4 4"],
+    intrinsics: Float[np.ndarray, "frames 4"],
     names: list[str],
     *,
     depth: bool = False,
@@ -142,7 +142,7 @@ def render_views(
     return RenderedViews(np.stack(rgb), np.stack(dep).astype(np.float32) if depth else None, list(names))
 
 
-def write_video(path: str, frames: Float[np.ndarray, "N H W 3"], fps: float) -> None:
+def write_video(path: str, frames: Float[np.ndarray, "frames H W 3"], fps: float) -> None:
     """H.264 MP4 (yuv420p) of ``frames`` in [0, 1] through imageio-ffmpeg."""
     import warnings
 

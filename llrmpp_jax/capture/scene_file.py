@@ -44,8 +44,8 @@ class SavedScene:
 
     gaussians: Gaussians
     model: ModelConfig
-    c2w: Float[np.ndarray, "M 4 4"]
-    intrinsics: Float[np.ndarray, "M 4"]
+    c2w: Float[np.ndarray, "frames 4 4"]
+    intrinsics: Float[np.ndarray, "frames 4"]
     world_from_scene: Float[np.ndarray, "4 4"]
     frame_names: tuple[str, ...]
     inputs: Int[np.ndarray, "V"]

@@ -39,7 +39,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -50,6 +50,7 @@ from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
 from llrmpp_jax.errors import UserError
 
 
+@runtime_checkable  # so the annotation can be checked (tests run beartype on the package)
 class SceneSource(Protocol):
     """Indexable collection of scenes: ``len(source)`` and ``source.load(i) -> Scene``."""
 

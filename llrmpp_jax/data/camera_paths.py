@@ -1,6 +1,6 @@
 """Camera trajectories of the kinds real multi-view datasets hold, for procedural scenes.
 
-World frame: z up, floor at z = 0. All paths return OpenCV camera-to-world ``[N, 4, 4]``.
+World frame: z up, floor at z = 0. All paths return OpenCV camera-to-world ``[frames, 4, 4]``.
 
 * ``orbit`` -- circling an object while looking at it (object-centric captures, GSO-like).
 * ``walk`` -- forward walk-through with head sway and bob (DL3DV / RealEstate10K videos).
@@ -10,18 +10,22 @@ World frame: z up, floor at z = 0. All paths return OpenCV camera-to-world ``[N,
 
 from __future__ import annotations
 
+import typing
+from typing import Literal
+
 import numpy as np
 
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.errors import UserError
 
-PATH_KINDS = ("orbit", "walk", "sweep")
+PathKind = Literal["orbit", "walk", "sweep"]
+PATH_KINDS: tuple[str, ...] = typing.get_args(PathKind)
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 
 
 def look_at(
-    eye: Float[np.ndarray, "N 3"], target: Float[np.ndarray, "N 3"], roll: Float[np.ndarray, "N"] | None = None
-) -> Float[np.ndarray, "N 4 4"]:
+    eye: Float[np.ndarray, "frames 3"], target: Float[np.ndarray, "frames 3"], roll: Float[np.ndarray, "frames"] | None = None
+) -> Float[np.ndarray, "frames 4 4"]:
     """OpenCV camera-to-world looking from ``eye`` at ``target`` with world z up (image
     rows point down the world), optionally rolled by ``roll`` radians about the view axis."""
     eye = np.asarray(eye, dtype=np.float64)
@@ -43,7 +47,7 @@ def look_at(
 
 def orbit_path(
     rng: np.random.Generator, n: int, center: Float[np.ndarray, "3"], min_radius: float, max_radius: float
-) -> Float[np.ndarray, "N 4 4"]:
+) -> Float[np.ndarray, "frames 4 4"]:
     """Orbit of ``n`` views around ``center`` over a random arc of 120-360 degrees, with
     radius and height drifting smoothly (radius in ``[min_radius, max_radius]``)."""
     arc = np.deg2rad(rng.uniform(120, 360))
@@ -58,7 +62,7 @@ def orbit_path(
     return look_at(eye, target, roll=rng.normal(0.0, 0.02, size=n))
 
 
-def walk_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) -> Float[np.ndarray, "N 4 4"]:
+def walk_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) -> Float[np.ndarray, "frames 4 4"]:
     """Forward walk of ``n`` views across a room of half extents ``(half_x, half_y)``,
     keeping 0.8 m from the walls, with yaw sway (±20°), pitch and head bob."""
     margin = 0.8
@@ -84,7 +88,7 @@ def walk_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) ->
     return look_at(eye, eye + fwd, roll=rng.normal(0.0, 0.02, size=n))
 
 
-def sweep_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) -> Float[np.ndarray, "N 4 4"]:
+def sweep_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) -> Float[np.ndarray, "frames 4 4"]:
     """Wide indoor pan of ``n`` views: the camera drifts inside a 0.4 m circle near the room
     centre while its heading turns through 120-300 degrees and its pitch nods."""
     t = np.linspace(0.0, 1.0, n)
@@ -102,7 +106,7 @@ def sweep_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) -
 
 def pinhole_intrinsics(
     rng: np.random.Generator, n: int, height: int, width: int, fov_deg: tuple[float, float]
-) -> Float[np.ndarray, "N 4"]:
+) -> Float[np.ndarray, "frames 4"]:
     """One random camera for the whole path: horizontal field of view drawn from
     ``fov_deg``, square pixels, principal point within 2% of the image centre."""
     fov = np.deg2rad(rng.uniform(*fov_deg))

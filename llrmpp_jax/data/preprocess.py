@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from llrmpp_jax.array_typing import Float, Int
+from llrmpp_jax.array_typing import Float, Int, IntLike
 from llrmpp_jax.data.resample import remap
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.errors import UserError
@@ -55,7 +55,7 @@ class ViewGeometry:
             raise UserError(f"ViewGeometry: need multiple >= 1 and 0 < zoom_min <= 1, got {self}")
 
 
-def resized_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
+def resized_size(hw: tuple[IntLike, IntLike], geom: ViewGeometry) -> tuple[int, int]:
     """Step 1's output size for a stored size ``hw`` (Long-LRM's rounding rule)."""
     h, w = int(hw[0]), int(hw[1])
     rh, rw = geom.resize_h, geom.resize_w
@@ -81,7 +81,7 @@ def crop_box(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int, int, in
     return (h - side) // 2, (w - side) // 2, side, side
 
 
-def output_size(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int]:
+def output_size(hw: tuple[IntLike, IntLike], geom: ViewGeometry) -> tuple[int, int]:
     """Final view size for stored size ``hw`` (after resize and square crop; the zoom keeps it)."""
     rh, rw = resized_size(hw, geom)
     return (min(rh, rw),) * 2 if geom.square_crop else (rh, rw)
@@ -121,12 +121,12 @@ def zoom_image(image: Float[np.ndarray, "H W C"], r: float, offset: tuple[int, i
 
 def load_views(
     scene: Scene,
-    indices: Int[np.ndarray, "K"],
+    indices: Int[np.ndarray, "views"],
     resized_hw: tuple[int, int],
     box: tuple[int, int, int, int],
     zoom: float | None,
     with_depth: bool,
-) -> tuple[Float[np.ndarray, "K H W 3"], Float[np.ndarray, "K 4"], Float[np.ndarray, "K H W"] | None]:
+) -> tuple[Float[np.ndarray, "views H W 3"], Float[np.ndarray, "views 4"], Float[np.ndarray, "views H W"] | None]:
     """Load frames ``indices`` resized to ``resized_hw``, cropped to ``box`` and zoomed by
     ``1/zoom`` (None = no zoom): ``(images, intrinsics, depth or None)``. Depth is not
     resampled twice: each output pixel takes the stored depth sample under its centre

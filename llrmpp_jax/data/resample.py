@@ -57,7 +57,7 @@ def _resize_axis(x: np.ndarray, n_out: int, axis: int) -> np.ndarray:
     return np.take(x, i0, axis=axis) * (1 - frac) + np.take(x, np.minimum(i0 + 1, n_in - 1), axis=axis) * frac
 
 
-def resize_image(image: Float[np.ndarray, "H W C"], hw: tuple[int, int]) -> Float[np.ndarray, "h w C"]:
+def resize_image(image: Float[np.ndarray, "H W C"], hw: tuple[int, int]) -> Float[np.ndarray, "Ho Wo C"]:
     """Resize ``[H, W, C]`` float32 to ``hw`` (anti-aliased when shrinking)."""
     h, w = int(hw[0]), int(hw[1])
     if image.ndim != 3:
@@ -72,7 +72,7 @@ def resize_image(image: Float[np.ndarray, "H W C"], hw: tuple[int, int]) -> Floa
     return np.array(out, dtype=np.float32)
 
 
-def resize_depth(depth: Float[np.ndarray, "H W"], hw: tuple[int, int]) -> Float[np.ndarray, "h w"]:
+def resize_depth(depth: Float[np.ndarray, "H W"], hw: tuple[int, int]) -> Float[np.ndarray, "Ho Wo"]:
     """Nearest-sample resize of a ``[H, W]`` depth map to ``hw`` (pixel centres map exactly)."""
     if depth.ndim != 2:
         raise UserError(f"resize_depth: depth must have shape [H, W], got {depth.shape}")
@@ -84,8 +84,8 @@ def resize_depth(depth: Float[np.ndarray, "H W"], hw: tuple[int, int]) -> Float[
 
 
 def remap(
-    image: Float[np.ndarray, "H W ..."], src_xy: Float[np.ndarray, "h w 2"], nearest: bool = False
-) -> Float[np.ndarray, "h w ..."]:
+    image: Float[np.ndarray, "H W ..."], src_xy: Float[np.ndarray, "Ho Wo 2"], nearest: bool = False
+) -> Float[np.ndarray, "Ho Wo ..."]:
     """Sample ``image`` at continuous coordinates ``src_xy[..., (x, y)]`` (pixel (i, j)
     spans ``[j, j+1) x [i, i+1)``). Bilinear by default, ``nearest`` for depth; samples
     outside the image take the nearest border value."""

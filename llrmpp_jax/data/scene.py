@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from llrmpp_jax.array_typing import Float, Int
+from llrmpp_jax.array_typing import Float, Int, IntLike
 from llrmpp_jax.data.distortion import undistort_image
 from llrmpp_jax.data.resample import resize_depth, resize_image
 from llrmpp_jax.errors import UserError
@@ -36,24 +36,24 @@ class Scene:
 
     Attributes:
       name: scene identifier (dataset hash, folder name, procedural seed).
-      c2w: ``[N, 4, 4]`` float64 OpenCV camera-to-world.
-      intrinsics: ``[N, 4]`` float64 pinhole pixel ``(fx, fy, cx, cy)`` at the frame's size.
-      hw: ``[N, 2]`` int64 image size ``(H, W)`` of each frame as stored.
-      frame_names: N strings naming each frame (usually the image path), used in errors.
+      c2w: ``[frames, 4, 4]`` float64 OpenCV camera-to-world.
+      intrinsics: ``[frames, 4]`` float64 pinhole pixel ``(fx, fy, cx, cy)`` at the frame's size.
+      hw: ``[frames, 2]`` int64 image size ``(H, W)`` of each frame as stored.
+      frame_names: one string naming each frame (usually the image path), used in errors.
       image_fn: loader for frame i's image as stored, ``[H, W, 3]`` float32 in [0, 1].
       depth_fn: loader for frame i's metric z-depth ``[H, W]`` float32 (0 = invalid), or None.
-      distortion: ``[N, 5]`` OpenCV ``(k1, k2, p1, p2, k3)`` of the stored images, or None
+      distortion: ``[frames, 5]`` OpenCV ``(k1, k2, p1, p2, k3)`` of the stored images, or None
         (pinhole). Images and depth returned by :meth:`image` / :meth:`depth` are undistorted.
     """
 
     name: str
-    c2w: Float[np.ndarray, "N 4 4"]
-    intrinsics: Float[np.ndarray, "N 4"]
-    hw: Int[np.ndarray, "N 2"]
+    c2w: Float[np.ndarray, "frames 4 4"]
+    intrinsics: Float[np.ndarray, "frames 4"]
+    hw: Int[np.ndarray, "frames 2"]
     frame_names: tuple[str, ...]
     image_fn: ImageLoader
     depth_fn: DepthLoader | None = None
-    distortion: Float[np.ndarray, "N 5"] | None = None
+    distortion: Float[np.ndarray, "frames 5"] | None = None
 
     def __post_init__(self) -> None:
         c2w = np.asarray(self.c2w, dtype=np.float64)
@@ -64,14 +64,14 @@ class Scene:
             raise UserError(f"scene {self.name!r}: empty scene (no usable frames)")
         validate_cameras(c2w, intrinsics, name=f"scene {self.name!r}", frame_names=self.frame_names)
         if hw.shape != (n, 2) or (hw <= 0).any():
-            raise UserError(f"scene {self.name!r}: hw must be positive [N={n}, 2] (H, W), got {hw.shape}")
+            raise UserError(f"scene {self.name!r}: hw must be positive [frames={n}, 2] (H, W), got {hw.shape}")
         if len(self.frame_names) != n:
             raise UserError(f"scene {self.name!r}: frame_names has {len(self.frame_names)} entries, expected {n}")
         if self.distortion is not None:
             distortion = np.asarray(self.distortion, dtype=np.float64)
             if distortion.shape != (n, 5) or not np.isfinite(distortion).all():
                 raise UserError(
-                    f"scene {self.name!r}: distortion must be finite [N={n}, 5] (k1, k2, p1, p2, k3), "
+                    f"scene {self.name!r}: distortion must be finite [frames={n}, 5] (k1, k2, p1, p2, k3), "
                     f"got shape {distortion.shape}"
                 )
             object.__setattr__(self, "distortion", distortion if distortion.any() else None)
@@ -87,7 +87,7 @@ class Scene:
     def has_depth(self) -> bool:
         return self.depth_fn is not None
 
-    def image(self, i: int, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W 3"]:
+    def image(self, i: IntLike, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W 3"]:
         """Frame i's pinhole image ``[H, W, 3]`` float32 in [0, 1], resized to ``hw`` if given
         (intrinsics then follow :func:`~llrmpp_jax.geometry.resize_intrinsics`).
         ``ValueError`` naming the frame if the stored image does not have the recorded size."""
@@ -104,7 +104,7 @@ class Scene:
             img = undistort_image(img, self._intrinsics_at(i, img.shape[:2]), self.distortion[i])
         return img
 
-    def depth(self, i: int, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W"]:
+    def depth(self, i: IntLike, hw: tuple[int, int] | None = None) -> Float[np.ndarray, "H W"]:
         """Frame i's z-depth ``[H, W]`` float32 metres (0 = invalid), nearest-resized to ``hw``."""
         if self.depth_fn is None:
             raise UserError(f"scene {self.name!r} has no depth maps")
@@ -121,10 +121,10 @@ class Scene:
             depth = undistort_image(depth, self._intrinsics_at(i, depth.shape), self.distortion[i], nearest=True)
         return depth
 
-    def _intrinsics_at(self, i: int, hw: tuple[int, int]) -> np.ndarray:
+    def _intrinsics_at(self, i: IntLike, hw: tuple[int, int]) -> np.ndarray:
         return resize_intrinsics(self.intrinsics[i], tuple(self.hw[i]), hw)
 
-    def subset(self, indices: Sequence[int]) -> Scene:
+    def subset(self, indices: Sequence[int] | Int[np.ndarray, " views"]) -> Scene:
         """The scene restricted to ``indices`` (in that order); loaders are re-indexed."""
         idx = np.asarray(indices, dtype=np.int64)
         if idx.ndim != 1 or idx.size == 0 or (idx < 0).any() or (idx >= len(self)).any():
@@ -144,15 +144,15 @@ class Scene:
 
 def in_memory_scene(
     name: str,
-    images: Float[np.ndarray, "N H W 3"],
-    c2w: Float[np.ndarray, "N 4 4"],
-    intrinsics: Float[np.ndarray, "N 4"],
-    depth: Float[np.ndarray, "N H W"] | None = None,
+    images: Float[np.ndarray, "frames H W 3"],
+    c2w: Float[np.ndarray, "frames 4 4"],
+    intrinsics: Float[np.ndarray, "frames 4"],
+    depth: Float[np.ndarray, "frames H W"] | None = None,
 ) -> Scene:
     """A ``Scene`` over arrays already in memory (procedural scenes, tests)."""
     images = np.asarray(images, dtype=np.float32)
     if images.ndim != 4 or images.shape[-1] != 3:
-        raise UserError(f"images: expected shape [N, H, W, 3], got {images.shape}")
+        raise UserError(f"images: expected shape [frames, H, W, 3], got {images.shape}")
     n, h, w, _ = images.shape
     if depth is not None:
         depth = np.asarray(depth, dtype=np.float32)

@@ -31,7 +31,7 @@ def every_nth(num_frames: int, every: int = 8) -> Int[np.ndarray, "T"]:
 
 
 def kmeans_inputs(
-    c2w: Float[np.ndarray, "N 4 4"], candidates: Int[np.ndarray, "C"], num_inputs: int
+    c2w: Float[np.ndarray, "frames 4 4"], candidates: Int[np.ndarray, "candidates"], num_inputs: int
 ) -> Int[np.ndarray, "V"]:
     """Long-LRM's k-means input selection, exactly as its ``Dataset.__getitem__``: the 6-D
     features ``[c2w[:3, 3], c2w[:3, 2]]`` of the candidates (raw world coordinates),
@@ -52,7 +52,7 @@ def kmeans_inputs(
 
 
 def eval_views(
-    c2w: Float[np.ndarray, "N 4 4"],
+    c2w: Float[np.ndarray, "frames 4 4"],
     num_inputs: int,
     every: int = 8,
     max_frames: int | None = None,

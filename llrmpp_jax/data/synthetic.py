@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
-from llrmpp_jax.data.camera_paths import PATH_KINDS, orbit_path, pinhole_intrinsics, sweep_path, walk_path
+from llrmpp_jax.data.camera_paths import PATH_KINDS, PathKind, orbit_path, pinhole_intrinsics, sweep_path, walk_path
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.textures import POSTER_TEXTURES, sample_texture, texture_bank, texture_ids
 from llrmpp_jax.geometry import pixel_rays
@@ -30,29 +30,31 @@ _EPS = 1e-4  # minimum hit distance (m)
 class Layout:
     """Scene geometry and materials (world metres, z up). Per-primitive arrays:
 
-    * boxes (B): ``box_center [B, 3]``, ``box_rot [B, 3, 3]`` (world-from-box), ``box_half [B, 3]``.
-    * spheres (S): ``sphere_center [S, 3]``, ``sphere_radius [S]``.
-    * quads (Q): two-sided rectangles ``quad_center [Q, 3]`` with unit in-plane axes
-      ``quad_u`` (texture right), ``quad_v`` (texture up) ``[Q, 3]`` and half sizes
-      ``quad_half [Q, 2]``: the room's six faces and the posters.
-    * materials, concatenated in the order boxes, spheres, quads (M = B + S + Q):
-      ``texture [M]`` (index into :func:`~llrmpp_jax.data.textures.texture_bank`),
-      ``tint [M, 3]`` and ``texels_per_m [M]``: the texture tiles at that density, or, for
-      a quad with 0, is stretched once over the rectangle (posters).
+    * boxes: ``box_center [boxes, 3]``, ``box_rot [boxes, 3, 3]`` (world-from-box),
+      ``box_half [boxes, 3]``.
+    * spheres: ``sphere_center [spheres, 3]``, ``sphere_radius [spheres]``.
+    * quads: two-sided rectangles ``quad_center [quads, 3]`` with unit in-plane axes
+      ``quad_u`` (texture right), ``quad_v`` (texture up) ``[quads, 3]`` and half sizes
+      ``quad_half [quads, 2]``: the room's six faces and the posters.
+    * materials, one per primitive in the order boxes, spheres, quads
+      (``boxes+spheres+quads`` of them): ``texture`` (index into
+      :func:`~llrmpp_jax.data.textures.texture_bank`), ``tint [.., 3]`` and ``texels_per_m``:
+      the texture tiles at that density, or, for a quad with 0, is stretched once over the
+      rectangle (posters).
     """
 
-    box_center: Float[np.ndarray, "B 3"]
-    box_rot: Float[np.ndarray, "B 3 3"]
-    box_half: Float[np.ndarray, "B 3"]
-    sphere_center: Float[np.ndarray, "S 3"]
-    sphere_radius: Float[np.ndarray, "S"]
-    quad_center: Float[np.ndarray, "Q 3"]
-    quad_u: Float[np.ndarray, "Q 3"]
-    quad_v: Float[np.ndarray, "Q 3"]
-    quad_half: Float[np.ndarray, "Q 2"]
-    texture: Int[np.ndarray, "M"]
-    tint: Float[np.ndarray, "M 3"]
-    texels_per_m: Float[np.ndarray, "M"]
+    box_center: Float[np.ndarray, "boxes 3"]
+    box_rot: Float[np.ndarray, "boxes 3 3"]
+    box_half: Float[np.ndarray, "boxes 3"]
+    sphere_center: Float[np.ndarray, "spheres 3"]
+    sphere_radius: Float[np.ndarray, "spheres"]
+    quad_center: Float[np.ndarray, "quads 3"]
+    quad_u: Float[np.ndarray, "quads 3"]
+    quad_v: Float[np.ndarray, "quads 3"]
+    quad_half: Float[np.ndarray, "quads 2"]
+    texture: Int[np.ndarray, "boxes+spheres+quads"]
+    tint: Float[np.ndarray, "boxes+spheres+quads 3"]
+    texels_per_m: Float[np.ndarray, "boxes+spheres+quads"]
     light_dir: Float[np.ndarray, "3"] = field(default_factory=lambda: np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9]))
 
     @property
@@ -62,15 +64,15 @@ class Layout:
 
 @dataclass(frozen=True)
 class Rendered:
-    """Ray-cast views: ``rgb [N, H, W, 3]`` float32 in [0, 1], ``depth [N, H, W]`` float32
-    z-depth (0 where a ray hits nothing), ``primitive [N, H, W]`` int32 index of the hit
-    primitive in boxes-spheres-quads order (-1 = none), ``normal [N, H, W, 3]`` float32
+    """Ray-cast views: ``rgb [frames, H, W, 3]`` float32 in [0, 1], ``depth [frames, H, W]`` float32
+    z-depth (0 where a ray hits nothing), ``primitive [frames, H, W]`` int32 index of the hit
+    primitive in boxes-spheres-quads order (-1 = none), ``normal [frames, H, W, 3]`` float32
     world-space unit surface normal turned towards the camera (0 where nothing is hit)."""
 
-    rgb: Float[np.ndarray, "N H W 3"]
-    depth: Float[np.ndarray, "N H W"]
-    primitive: Int[np.ndarray, "N H W"]
-    normal: Float[np.ndarray, "N H W 3"]
+    rgb: Float[np.ndarray, "frames H W 3"]
+    depth: Float[np.ndarray, "frames H W"]
+    primitive: Int[np.ndarray, "frames H W"]
+    normal: Float[np.ndarray, "frames H W 3"]
 
 
 # Ray batches are stored transposed, ``[3, R]`` (one contiguous row per axis), and cast in
@@ -177,9 +179,9 @@ _CHUNK = 1 << 14  # rays per pass: keeps every temporary (~128 KiB) in cache
 
 
 def render_views(
-    lay: Layout, c2w: Float[np.ndarray, "N 4 4"], intrinsics: Float[np.ndarray, "N 4"], height: int, width: int
+    lay: Layout, c2w: Float[np.ndarray, "frames 4 4"], intrinsics: Float[np.ndarray, "frames 4"], height: int, width: int
 ) -> Rendered:
-    """Ray-cast ``N`` views of ``lay`` at ``height x width`` (pixel centres, OpenCV cameras)."""
+    """Ray-cast one view per camera of ``lay`` at ``height x width`` (pixel centres, OpenCV cameras)."""
     c2w = np.asarray(c2w, dtype=np.float64)
     intrinsics = np.asarray(intrinsics, dtype=np.float64)
     n, pixels = c2w.shape[0], height * width
@@ -236,7 +238,7 @@ class ProceduralConfig:
     height: int = 128
     width: int = 128
     num_frames: int = 32
-    path_kinds: tuple[str, ...] = PATH_KINDS
+    path_kinds: tuple[PathKind, ...] = PATH_KINDS
     fov_deg: tuple[float, float] = (50.0, 75.0)
     num_boxes: tuple[int, int] = (2, 6)
     num_spheres: tuple[int, int] = (1, 4)
@@ -262,8 +264,8 @@ def _yaw_rot(yaw: float) -> np.ndarray:
 
 
 def procedural_layout(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> tuple[Layout, np.ndarray, np.ndarray, str]:
-    """Scene layout, cameras and path kind for ``seed``: ``(layout, c2w [N, 4, 4],
-    intrinsics [N, 4], kind)``. Deterministic: the same seed and config give the same scene.
+    """Scene layout, cameras and path kind for ``seed``: ``(layout, c2w [frames, 4, 4],
+    intrinsics [frames, 4], kind)``. Deterministic: the same seed and config give the same scene.
     Objects never contain a camera (0.35 m clearance)."""
     rng = np.random.default_rng([seed, 0x5CE4E])
     bank = texture_bank()
@@ -373,7 +375,7 @@ def procedural_layout(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> 
 def procedural_scene(
     seed: int,
     cfg: ProceduralConfig = ProceduralConfig(),
-    cameras: tuple[Float[np.ndarray, "N 4 4"], Float[np.ndarray, "N 4"]] | None = None,
+    cameras: tuple[Float[np.ndarray, "frames 4 4"], Float[np.ndarray, "frames 4"]] | None = None,
 ) -> Scene:
     """A lazily rendered :class:`Scene` (RGB + exact depth) for ``seed``; each frame is
     ray-cast on first access and kept for the scene's lifetime. ``cameras`` (``c2w``,

@@ -114,8 +114,8 @@ def _bilinear_wrap(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def sample_texture(
-    texture: Texture, u: Float[np.ndarray, "R"], v: Float[np.ndarray, "R"], lod: Float[np.ndarray, "R"]
-) -> Float[np.ndarray, "R 3"]:
+    texture: Texture, u: Float[np.ndarray, "pts"], v: Float[np.ndarray, "pts"], lod: Float[np.ndarray, "pts"]
+) -> Float[np.ndarray, "pts 3"]:
     """Bilinear lookup with wrap-around at texture coordinates ``(u, v)`` (1 = one full
     texture; v grows downwards) from mip level ``round(lod)`` (clamped to the pyramid)."""
     level = np.clip(np.rint(lod), 0, len(texture.levels) - 1).astype(np.int64)
@@ -126,6 +126,6 @@ def sample_texture(
     return out
 
 
-def texture_ids(names: tuple[str, ...]) -> Int[np.ndarray, "K"]:
+def texture_ids(names: tuple[str, ...]) -> Int[np.ndarray, "textures"]:
     """Indices of several textures in the bank."""
     return np.array([texture_index(n) for n in names], dtype=np.int64)

@@ -11,31 +11,33 @@ dimension (learnable scale ``[hd]``, eps 1e-5) on q and k after the head split.
 from __future__ import annotations
 
 import math
+import typing
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Bool, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Bool, DTypeLike, Float
+from llrmpp_jax.config import AttentionImpl
 from llrmpp_jax.nn.blockwise_attention import blockwise_attention
 from llrmpp_jax.nn.initializers import DENSE_INIT
 from llrmpp_jax.nn.norms import RMSNorm
 
 # Global-attention kernels of multi_head_attention (TransformerConfig.attention_impl).
-ATTENTION_IMPLEMENTATIONS = ("xla", "cudnn", "blockwise")
+ATTENTION_IMPLEMENTATIONS: tuple[str, ...] = typing.get_args(AttentionImpl)
 
 
 def multi_head_attention(
-    q: Float[Array, "... Lq nh hd"],
-    k: Float[Array, "... Lk nh hd"],
-    v: Float[Array, "... Lk nh hd"],
+    q: Float[ArrayLike, "*batch Lq nh hd"],
+    k: Float[ArrayLike, "*batch Lk nh hd"],
+    v: Float[ArrayLike, "*batch Lk nh hd"],
     *,
-    bias: Float[Array, "... nh Lq Lk"] | None = None,
-    mask: Bool[Array, "... nh Lq Lk"] | None = None,
-    implementation: str = "blockwise",
+    bias: Float[ArrayLike, "*#batch #nh #Lq Lk"] | None = None,
+    mask: Bool[ArrayLike, "*#batch #nh #Lq Lk"] | None = None,
+    implementation: AttentionImpl = "blockwise",
     block_q: int = 512,
     block_k: int = 512,
-) -> Float[Array, "... Lq nh hd"]:
+) -> Float[Array, "*batch Lq nh hd"]:
     """``softmax(q k^T * hd^-0.5 + bias, where mask) v`` for every head.
 
     ``bias`` / ``mask`` are ``[nh, Lq, Lk]`` (shared over the batch) or
@@ -76,7 +78,7 @@ def multi_head_attention(
     lq, nh, hd = q.shape[-3:]
     lk = k.shape[-3]
 
-    def to_4d(a: Array | None, name: str) -> Array | None:
+    def to_4d(a: ArrayLike | None, name: str) -> ArrayLike | None:
         if a is None:
             return None
         tail_ok = a.ndim >= 3 and a.shape[-1] == lk and a.shape[-2] in (1, lq) and a.shape[-3] in (1, nh)
@@ -110,13 +112,13 @@ def _num_heads(dim: int, head_dim: int, who: str) -> int:
     return dim // head_dim
 
 
-def _check_width(x: Array, dim: int, who: str) -> None:
+def _check_width(x: ArrayLike, dim: int, who: str) -> None:
     if x.ndim < 2 or x.shape[-1] != dim:
         raise ValueError(f"{who}: x must be [..., L, dim={dim}], got shape {x.shape}")
 
 
 def _qkv_heads(
-    x: Float[Array, "... L D"], dim: int, head_dim: int, qk_norm: bool, eps: float, dtype
+    x: Float[ArrayLike, "... L D"], dim: int, head_dim: int, qk_norm: bool, eps: float, dtype: DTypeLike | None
 ) -> tuple[Array, Array, Array]:
     """``qkv`` Dense + head split (+ QK-norm); called inside a module's compact ``__call__``.
 
@@ -133,7 +135,7 @@ def _qkv_heads(
     return q, k, v
 
 
-def _out_proj(o: Float[Array, "... L nh hd"], dim: int, dtype) -> Float[Array, "... L D"]:
+def _out_proj(o: Float[Array, "... L nh hd"], dim: int, dtype: DTypeLike | None) -> Float[Array, "... L D"]:
     o = o.reshape(*o.shape[:-2], dim)  # heads concatenated head-major, as PyTorch
     return nn.Dense(dim, use_bias=False, kernel_init=DENSE_INIT, dtype=dtype, name="proj")(o)
 
@@ -151,12 +153,12 @@ class Attention(nn.Module):
     head_dim: int
     qk_norm: bool
     norm_eps: float = 1e-5
-    implementation: str = "blockwise"
-    dtype: jnp.dtype | None = None
+    implementation: AttentionImpl = "blockwise"
+    dtype: DTypeLike | None = None
     block_sizes: tuple[int, int] = (512, 512)
 
     @nn.compact
-    def __call__(self, x: Float[Array, "... L D"]) -> Float[Array, "... L D"]:
+    def __call__(self, x: Float[ArrayLike, "... L D"]) -> Float[Array, "... L D"]:
         _num_heads(self.dim, self.head_dim, "Attention")
         _check_width(x, self.dim, "Attention")
         q, k, v = _qkv_heads(x, self.dim, self.head_dim, self.qk_norm, self.norm_eps, self.dtype)

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from llrmpp_jax.array_typing import Array, Bool, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Bool, Float
 from llrmpp_jax.nn.variance import common_variance, full_like_varying
 
 
@@ -38,7 +38,7 @@ def _acc_dtype(dtype) -> jnp.dtype:
     return jnp.dtype(dtype) if jnp.finfo(dtype).bits > 32 else jnp.dtype(jnp.float32)
 
 
-def _pad_to(x: Array, axis: int, multiple: int) -> Array:
+def _pad_to(x: ArrayLike, axis: int, multiple: int) -> ArrayLike:
     extra = -x.shape[axis] % multiple
     if extra == 0 or x.shape[axis] == 1:  # size-1 axes broadcast and are never padded
         return x
@@ -59,8 +59,8 @@ def _from_blocks(x: Array) -> Array:
     return x.reshape(x.shape[0], x.shape[1] * x.shape[2], *x.shape[3:])
 
 
-def _slice_qk(a: Array, i: Array, bq: int, j: Array, bk: int) -> Array:
-    """Block ``(i, j)`` of a ``[Bb, Hb, Qb, Lk]`` bias/mask (a size-1 Qb stays size 1)."""
+def _slice_qk(a: ArrayLike, i: Array, bq: int, j: Array, bk: int) -> Array:
+    """Block ``(i, j)`` of a ``[B|1, nh|1, Lq|1, Lk]`` bias/mask (a size-1 query axis stays size 1)."""
     qsize = 1 if a.shape[2] == 1 else bq
     qstart = 0 if a.shape[2] == 1 else i * bq
     return lax.dynamic_slice(a, (0, 0, qstart, j * bk), (a.shape[0], a.shape[1], qsize, bk))
@@ -199,20 +199,20 @@ _attention.defvjp(_attention_fwd, _attention_bwd)
 
 
 def blockwise_attention(
-    q: Float[Array, "B Lq nh hd"],
-    k: Float[Array, "B Lk nh hd"],
-    v: Float[Array, "B Lk nh hd"],
+    q: Float[ArrayLike, "B Lq nh hd"],
+    k: Float[ArrayLike, "B Lk nh hd"],
+    v: Float[ArrayLike, "B Lk nh hd"],
     *,
-    bias: Float[Array, "Bb Hb Qb Lk"] | None = None,
-    mask: Bool[Array, "Bb Hb Qb Lk"] | None = None,
+    bias: Float[ArrayLike, "#B #nh #Lq Lk"] | None = None,
+    mask: Bool[ArrayLike, "#B #nh #Lq Lk"] | None = None,
     block_q: int = 512,
     block_k: int = 512,
 ) -> Float[Array, "B Lq nh hd"]:
     """``softmax(q k^T * hd^-0.5 + bias, where mask) v`` in query x key blocks.
 
     ``q``: ``[B, Lq, nh, hd]``; ``k``, ``v``: ``[B, Lk, nh, hd]``; ``bias`` / ``mask``
-    ``[Bb, Hb, Qb, Lk]`` with ``Bb in (1, B)``, ``Hb in (1, nh)``, ``Qb in (1, Lq)``
-    (``mask`` True where a key takes part). Block sizes need not divide L (the last block
+    ``[B, nh, Lq, Lk]``, each of the first three axes possibly 1 (broadcast; ``mask`` True
+    where a key takes part). Block sizes need not divide L (the last block
     is padded; a block larger than L shrinks to L). Differentiable in q, k, v and bias
     with a memory-linear backward (see the module docstring).
     """

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from llrmpp_jax.array_typing import Array, Float, Int
+from llrmpp_jax.array_typing import Array, ArrayLike, DTypeLike, Float, Int
 from llrmpp_jax.nn.variance import common_variance, full_like_varying
 from llrmpp_jax.nn.attention import _check_width, _num_heads, _out_proj, _qkv_heads
 from llrmpp_jax.nn.initializers import DENSE_INIT
@@ -233,7 +233,7 @@ class RelativePositionBias(nn.Module):
 
     num_heads: int
     hidden: int = 32
-    dtype: jnp.dtype | None = None
+    dtype: DTypeLike | None = None
 
     @nn.compact
     def __call__(self, feats: Float[Array, "U 5"]) -> Float[Array, "U nh"]:
@@ -262,10 +262,10 @@ class LocalAttention(nn.Module):
     num_neighbours: int = 64
     bias_hidden: int = 32
     norm_eps: float = 1e-5
-    dtype: jnp.dtype | None = None
+    dtype: DTypeLike | None = None
 
     @nn.compact
-    def __call__(self, x: Float[Array, "... L D"]) -> Float[Array, "... L D"]:
+    def __call__(self, x: Float[ArrayLike, "... L D"]) -> Float[Array, "... L D"]:
         nh = _num_heads(self.dim, self.head_dim, "LocalAttention")
         _check_width(x, self.dim, "LocalAttention")
         h, w = self.grid

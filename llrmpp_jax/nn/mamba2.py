@@ -34,13 +34,13 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.array_typing import Array, ArrayLike, Float, KeyArray
 from llrmpp_jax.config import Mamba2Config
 from llrmpp_jax.nn.norms import rms_norm
 from llrmpp_jax.nn.remat_loops import remat_after_cotangent
 from llrmpp_jax.nn.ssd import ssd_scan
 
-Params = dict[str, dict[str, Array]]
+Params = dict[str, dict[str, ArrayLike]]
 
 # Long-LRM's Mamba2Block constants (facts §1.4 "Init").
 _A_INIT_RANGE = (1.0, 16.0)
@@ -52,34 +52,34 @@ def _acc(dtype: jnp.dtype) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if dtype == jnp.float64 else jnp.dtype(jnp.float32)
 
 
-def _dense(x: Float[Array, "... C"], kernel: Float[Array, "C E"]) -> Float[Array, "... E"]:
+def _dense(x: Float[Array, "... Ci"], kernel: Float[ArrayLike, "Ci Co"]) -> Float[Array, "... Co"]:
     """Bias-free linear layer, float32 (or float64) accumulation, result in the dtype of ``x``."""
     return jnp.matmul(x, kernel.astype(x.dtype), preferred_element_type=_acc(x.dtype)).astype(x.dtype)
 
 
 def causal_depthwise_conv1d(
-    x: Float[Array, "... L C"], kernel: Float[Array, "K C"], bias: Float[Array, " C"]
+    x: Float[Array, "... L C"], kernel: Float[Array, "kw C"], bias: Float[Array, " C"]
 ) -> Float[Array, "... L C"]:
-    """Per-channel causal convolution along L: ``y_t = b + sum_k kernel[k] * x_{t-(K-1)+k}``.
+    """Per-channel causal convolution along L: ``y_t = b + sum_k kernel[k] * x_{t-(kw-1)+k}``.
 
-    Zero history before t=0; tap ``K-1`` multiplies the current token (PyTorch
-    ``Conv1d(groups=C, padding=K-1)`` truncated to the first L outputs, cross-correlation).
-    One grouped ``conv_general_dilated`` (``feature_group_count=C``, K-1 zeros on the left)
-    rather than K shifted slices: the slices' transposes in the backward are K zero-padded
-    ``[..., L+K-1, C]`` buffers, the conv's backward is one conv of the cotangent.
+    Zero history before t=0; tap ``kw-1`` multiplies the current token (PyTorch
+    ``Conv1d(groups=C, padding=kw-1)`` truncated to the first L outputs, cross-correlation).
+    One grouped ``conv_general_dilated`` (``feature_group_count=C``, kw-1 zeros on the left)
+    rather than kw shifted slices: the slices' transposes in the backward are kw zero-padded
+    ``[..., L+kw-1, C]`` buffers, the conv's backward is one conv of the cotangent.
     """
     if kernel.ndim != 2 or kernel.shape[1] != x.shape[-1] or bias.shape != (x.shape[-1],):
         raise ValueError(
-            f"causal_depthwise_conv1d: x {x.shape} needs kernel [K, {x.shape[-1]}] and bias "
+            f"causal_depthwise_conv1d: x {x.shape} needs kernel [kw, {x.shape[-1]}] and bias "
             f"[{x.shape[-1]}], got kernel {kernel.shape} and bias {bias.shape}"
         )
-    (K, C), L = kernel.shape, x.shape[-2]
+    (kw, C), L = kernel.shape, x.shape[-2]
     acc = _acc(x.dtype)
     y = jax.lax.conv_general_dilated(
         x.astype(acc).reshape(-1, L, C),
-        kernel.astype(acc)[:, None, :],  # [K, 1, C]: one input channel per group
+        kernel.astype(acc)[:, None, :],  # [kw, 1, C]: one input channel per group
         window_strides=(1,),
-        padding=[(K - 1, 0)],
+        padding=[(kw - 1, 0)],
         dimension_numbers=("NWC", "WIO", "NWC"),
         feature_group_count=C,
         precision=jax.lax.Precision.HIGHEST,  # no TF32/bf16 passes: exact float32 taps
@@ -88,7 +88,7 @@ def causal_depthwise_conv1d(
 
 
 def gated_rms_norm(
-    y: Float[Array, "... C"], z: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
+    y: Float[Array, "... C"], z: Float[Array, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """``rms_norm(y * silu(z)) * scale`` (mamba_ssm ``RMSNormGated``, norm after the gate)."""
     acc = _acc(y.dtype)
@@ -120,12 +120,12 @@ def in_proj_widths(d_inner: int, cfg: Mamba2Config) -> tuple[int, int, int, int,
     return d_inner, d_inner, gn, gn, d_inner // cfg.headdim
 
 
-def _split_columns(a: Float[Array, "... E"], widths: tuple[int, ...]) -> list[Float[Array, "... e"]]:
+def _split_columns(a: Float[ArrayLike, "... C"], widths: tuple[int, ...]) -> list[Float[Array, "... _"]]:
     """``a`` cut along its last axis into consecutive blocks of ``widths``."""
     return jnp.split(a, list(itertools.accumulate(widths))[:-1], axis=-1)
 
 
-def mamba2_scan_direction(proj: InProj, params: dict[str, Array], cfg: Mamba2Config) -> Float[Array, "... L C"]:
+def mamba2_scan_direction(proj: InProj, params: dict[str, ArrayLike], cfg: Mamba2Config) -> Float[Array, "... L di"]:
     """One scan direction (``Mamba2SingleScan``): in_proj's output blocks -> ``[..., L, d_inner]``.
 
     ``params`` holds ``conv_kernel, conv_bias, dt_bias, A_log, D, norm_scale``; the widths

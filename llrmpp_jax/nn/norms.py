@@ -9,21 +9,21 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 
 
-def _compute_dtype(x: Array) -> jnp.dtype:
+def _compute_dtype(x: ArrayLike) -> jnp.dtype:
     # bf16 activations are normalised in float32; float64 (test oracles) stays float64.
     return jnp.dtype(jnp.float64) if x.dtype == jnp.float64 else jnp.dtype(jnp.float32)
 
 
-def _lead(scale: Array, x: Array) -> Array:
+def _lead(scale: ArrayLike, x: ArrayLike) -> ArrayLike:
     """Give ``scale [C]`` the rank of ``x`` (rank promotion is an error in our tests)."""
     return scale.reshape((1,) * (x.ndim - 1) + scale.shape)
 
 
 def rms_norm(
-    x: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
+    x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """``x / sqrt(mean(x**2) + eps) * scale`` over the last axis."""
     xf = x.astype(_compute_dtype(x))
@@ -32,7 +32,7 @@ def rms_norm(
 
 
 def layer_norm(
-    x: Float[Array, "... C"], scale: Float[Array, " C"], eps: float = 1e-5
+    x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5
 ) -> Float[Array, "... C"]:
     """LayerNorm without bias over the last axis (biased variance, as PyTorch)."""
     xf = x.astype(_compute_dtype(x))
@@ -47,7 +47,7 @@ class LayerNorm(nn.Module):
     eps: float = 1e-5
 
     @nn.compact
-    def __call__(self, x: Float[Array, "... C"]) -> Float[Array, "... C"]:
+    def __call__(self, x: Float[ArrayLike, "... C"]) -> Float[Array, "... C"]:
         return layer_norm(x, self.param("scale", nn.initializers.ones, (x.shape[-1],), jnp.float32), self.eps)
 
 
@@ -57,5 +57,5 @@ class RMSNorm(nn.Module):
     eps: float = 1e-5
 
     @nn.compact
-    def __call__(self, x: Float[Array, "... C"]) -> Float[Array, "... C"]:
+    def __call__(self, x: Float[ArrayLike, "... C"]) -> Float[Array, "... C"]:
         return rms_norm(x, self.param("scale", nn.initializers.ones, (x.shape[-1],), jnp.float32), self.eps)

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 
 
-def patchify(x: Float[Array, "... V H W C"], p: int) -> Float[Array, "... L pC"]:
+def patchify(x: Float[ArrayLike, "... V H W C"], p: int) -> Float[Array, "... L pC"]:
     """Cut ``[..., V, H, W, C]`` images into non-overlapping ``p x p`` patches.
 
     Returns ``[..., V*h*w, p*p*C]`` with ``h = H/p``, ``w = W/p``; token
@@ -41,7 +41,7 @@ def patchify(x: Float[Array, "... V H W C"], p: int) -> Float[Array, "... L pC"]
 
 
 def unpatchify(
-    tokens: Float[Array, "... L pC"], p: int, v: int, h: int, w: int
+    tokens: Float[ArrayLike, "... L pC"], p: int, v: int, h: int, w: int
 ) -> Float[Array, "... V H W C"]:
     """Exact inverse of :func:`patchify`: ``[..., V*h*w, p*p*C] -> [..., V, h*p, w*p, C]``.
 

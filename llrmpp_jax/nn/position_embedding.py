@@ -21,7 +21,7 @@ MAX_PERIOD = 10000.0
 
 
 @functools.lru_cache(maxsize=32)
-def sincos_2d(h: int, w: int, dim: int) -> Float[np.ndarray, "L E"]:
+def sincos_2d(h: int, w: int, dim: int) -> Float[np.ndarray, "L C"]:
     """``[h*w, dim]`` float32 embedding of a row-major ``h x w`` grid (NumPy, static, read-only).
 
     With ``f = dim / 4`` frequencies ``omega_i = MAX_PERIOD^(-i / f)``, ``i = 0 .. f-1``,

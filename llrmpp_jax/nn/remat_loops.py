@@ -9,7 +9,8 @@ checkpoint layout); they are stacked in the forward pass.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import flax.linen as nn
 import jax

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.nn.variance import common_variance, full_like_varying
 
 InterChunk = Literal["associative", "sequential", "dense", "fused"]
@@ -72,8 +72,9 @@ def _check_inputs(x, dt, A, B, C, D, chunk_size: int | None = None) -> None:
         raise ValueError(f"ssd: nh={nh} heads (x {x.shape}) is not a multiple of ngroups={g} (B {B.shape})")
 
 
-def segment_sum(a: Float[Array, "... T"]) -> Float[Array, "... T T"]:
-    """Segment sums ``out[..., i, j] = sum_{k=j+1..i} a[..., k]`` for ``j <= i``, ``-inf`` above.
+def segment_sum(a: Float[Array, "... t"]) -> Float[Array, "... t t"]:
+    """Segment sums ``out[..., i, j] = sum_{k=j+1..i} a[..., k]`` for ``j <= i``, ``-inf`` above
+    (``t`` steps: a chunk's positions, or the chunks).
 
     ``exp(segment_sum(dt * A))`` is the decay from step ``j`` to step ``i`` (1 on the
     diagonal, 0 above it). Built as a masked cumsum (``ssd_minimal.segsum``), not as a
@@ -88,7 +89,7 @@ def segment_sum(a: Float[Array, "... T"]) -> Float[Array, "... T T"]:
     return jnp.where(on_or_below, sums, -jnp.inf)
 
 
-def _compensated_cumsum(a: Float[Array, "... T"]) -> tuple[Float[Array, "... T"], Float[Array, "... T"]]:
+def _compensated_cumsum(a: Float[Array, "... t"]) -> tuple[Float[Array, "... t"], Float[Array, "... t"]]:
     """Inclusive running sum over the last axis as ``hi + lo`` (Kahan/TwoSum): ``hi`` the
     float running sum, ``lo`` its accumulated rounding error, so ``hi + lo`` is exact to
     ~eps^2 relative and differences ``(hi_i - hi_j) + (lo_i - lo_j)`` lose nothing to
@@ -107,10 +108,10 @@ def _compensated_cumsum(a: Float[Array, "... T"]) -> tuple[Float[Array, "... T"]
 
 
 def _inter_chunk_states(
-    chunk_log_decay: Float[Array, "b c g h"],
-    chunk_states: Float[Array, "b c g h P n"],
+    chunk_log_decay: Float[Array, "b c g hg"],
+    chunk_states: Float[Array, "b c g hg P n"],
     method: InterChunk,
-) -> Float[Array, "b c g h P n"]:
+) -> Float[Array, "b c g hg P n"]:
     """State entering each chunk: ``S_in[0] = 0``, ``S_in[c+1] = exp(a_c) S_in[c] + s_c``.
 
     ``chunk_log_decay`` a_c is the sum of ``dt * A`` over chunk c; ``chunk_states`` s_c the
@@ -139,7 +140,7 @@ def _inter_chunk_states(
         _, s_out = jax.lax.associative_scan(combine, (chunk_log_decay, chunk_states), axis=1)
     elif method == "dense":
         # ssd_minimal's O(chunks^2) form: state after chunk z = sum_{c<=z} decay(c->z) s_c.
-        decay = jnp.exp(segment_sum(jnp.moveaxis(chunk_log_decay, 1, -1)))  # [b, g, h, z, c]
+        decay = jnp.exp(segment_sum(jnp.moveaxis(chunk_log_decay, 1, -1)))  # [b, g, hg, z, c]
         s_out = jnp.einsum("bghzc,bcghpn->bzghpn", decay.astype(chunk_states.dtype), chunk_states)
     else:
         raise ValueError(f"ssd: inter_chunk must be 'associative', 'sequential' or 'dense', got {method!r}")
@@ -153,9 +154,10 @@ def _inter_chunk_states(
 _GROUP_SCORES = 1 << 22
 
 
-def _chunk_log_decays(dA: Float[Array, "a c Q g hg"]) -> tuple[Float[Array, "a c Q g hg"], Float[Array, "a c Q g hg"]]:
+def _chunk_log_decays(dA: Float[Array, "b c Q g hg"]) -> tuple[Float[Array, "b c Q g hg"], Float[Array, "b c Q g hg"]]:
     """``(from_start, to_end)``: ``sum_{k<=l} dA_k`` and ``sum_{k>l} dA_k`` within each chunk
-    (axis 2). ``to_end`` is a reverse exclusive cumsum, not a difference: no cancellation."""
+    (axis 2). ``to_end`` is a reverse exclusive cumsum, not a difference: no cancellation.
+    The two leading axes are batch and chunks in either order (the fused scan's are ``[c, b]``)."""
     rev = jnp.flip(jnp.cumsum(jnp.flip(dA, axis=2), axis=2), axis=2)  # sum_{k>=l}
     return jnp.cumsum(dA, axis=2), jnp.concatenate([rev[:, :, 1:], jnp.zeros_like(rev[:, :, :1])], axis=2)
 
@@ -207,24 +209,24 @@ def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
 
 # The fused scan's two state matmuls, with hand-written VJPs. XLA:CPU's dot wants each operand
 # row-major along the contraction; with autodiff's own VJPs of these einsums it transposed the
-# [n, K] state (1.5 MB per chunk at the paper's sizes) twice per chunk in the backward. With
-# these (the products that contract over K written as (S R^T)^T) it transposes it once, and
+# [n, hg*P] state (1.5 MB per chunk at the paper's sizes) twice per chunk in the backward. With
+# these (the products that contract over hg*P written as (S R^T)^T) it transposes it once, and
 # the scan's fwd+bwd at L = 16,384 took 1.33 s against 1.42 s (same run; experiments/README.md).
 
 
-def _state_dot_nt(S: Float[Array, "b g n k"], R: Float[Array, "b l g k"], acc) -> Float[Array, "b l g n"]:
+def _state_dot_nt(S: Float[Array, "b g n hgP"], R: Float[Array, "b Q g hgP"], acc) -> Float[Array, "b Q g n"]:
     """``sum_k R[b, l, g, k] S[b, g, n, k]``, as ``(S R^T)^T``."""
     return jnp.einsum("bgnk,blgk->bgnl", S, R, preferred_element_type=acc).transpose(0, 3, 1, 2)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _state_read(C: Float[Array, "b l g n"], S: Float[Array, "b g n k"], acc) -> Float[Array, "b l g k"]:
+def _state_read(C: Float[Array, "b Q g n"], S: Float[Array, "b g n hgP"], acc) -> Float[Array, "b Q g hgP"]:
     """State -> output: ``C S`` per group."""
     return jnp.einsum("blgn,bgnk->blgk", C, S, preferred_element_type=acc)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _state_write(B: Float[Array, "b l g n"], E: Float[Array, "b l g k"], acc) -> Float[Array, "b g n k"]:
+def _state_write(B: Float[Array, "b Q g n"], E: Float[Array, "b Q g hgP"], acc) -> Float[Array, "b g n hgP"]:
     """Tokens -> state: ``B^T E`` per group."""
     return jnp.einsum("blgn,blgk->bgnk", B, E, preferred_element_type=acc)
 
@@ -496,16 +498,16 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
 
 
 def ssd_scan(
-    x: Float[Array, "... L nh P"],
-    dt: Float[Array, "... L nh"],
+    x: Float[Array, "*batch L nh P"],
+    dt: Float[Array, "*batch L nh"],
     A: Float[Array, " nh"],
-    B: Float[Array, "... L g n"],
-    C: Float[Array, "... L g n"],
+    B: Float[Array, "*batch L g n"],
+    C: Float[Array, "*batch L g n"],
     *,
     chunk_size: int,
-    D: Float[Array, " nh"] | None = None,
+    D: Float[ArrayLike, " nh"] | None = None,
     inter_chunk: Literal["associative", "sequential", "fused"] = "associative",
-) -> Float[Array, "... L nh P"]:
+) -> Float[Array, "*batch L nh P"]:
     """Chunked SSD scan (Mamba-2 Listing 1 with a linear-time inter-chunk step).
 
     Args:
@@ -533,15 +535,15 @@ def ssd_scan(
 
 
 def ssd_dense(
-    x: Float[Array, "... L nh P"],
-    dt: Float[Array, "... L nh"],
+    x: Float[Array, "*batch L nh P"],
+    dt: Float[Array, "*batch L nh"],
     A: Float[Array, " nh"],
-    B: Float[Array, "... L g n"],
-    C: Float[Array, "... L g n"],
+    B: Float[Array, "*batch L g n"],
+    C: Float[Array, "*batch L g n"],
     *,
     chunk_size: int,
-    D: Float[Array, " nh"] | None = None,
-) -> Float[Array, "... L nh P"]:
+    D: Float[ArrayLike, " nh"] | None = None,
+) -> Float[Array, "*batch L nh P"]:
     """Chunked SSD with ``ssd_minimal``'s dense O(chunks^2) inter-chunk einsum (an oracle).
 
     Same arguments and result as :func:`ssd_scan`.
@@ -550,14 +552,14 @@ def ssd_dense(
 
 
 def ssd_sequential(
-    x: Float[Array, "... L nh P"],
-    dt: Float[Array, "... L nh"],
+    x: Float[Array, "*batch L nh P"],
+    dt: Float[Array, "*batch L nh"],
     A: Float[Array, " nh"],
-    B: Float[Array, "... L g n"],
-    C: Float[Array, "... L g n"],
+    B: Float[Array, "*batch L g n"],
+    C: Float[Array, "*batch L g n"],
     *,
-    D: Float[Array, " nh"] | None = None,
-) -> Float[Array, "... L nh P"]:
+    D: Float[ArrayLike, " nh"] | None = None,
+) -> Float[Array, "*batch L nh P"]:
     """The SSM recurrence as a ``lax.scan`` over time (the oracle; no chunking).
 
     ``state_t = exp(dt_t A) state_{t-1} + dt_t x_t B_t^T``, ``y_t = state_t C_t + D x_t``.

@@ -9,10 +9,11 @@ Submodule names mirror the PyTorch ones (``norm1``, ``attn.qkv``, ``attn.proj``,
 
 from __future__ import annotations
 
-import flax.linen as nn
-import jax.numpy as jnp
+from typing import Literal
 
-from llrmpp_jax.array_typing import Array, Float
+import flax.linen as nn
+
+from llrmpp_jax.array_typing import Array, ArrayLike, DTypeLike, Float
 from llrmpp_jax.config import TransformerConfig
 from llrmpp_jax.nn.attention import Attention
 from llrmpp_jax.nn.initializers import DENSE_INIT
@@ -25,7 +26,7 @@ class Mlp(nn.Module):
 
     dim: int
     hidden: int
-    dtype: jnp.dtype | None = None
+    dtype: DTypeLike | None = None
 
     @nn.compact
     def __call__(self, x: Float[Array, "... D"]) -> Float[Array, "... D"]:
@@ -50,13 +51,13 @@ class TransformerBlock(nn.Module):
 
     dim: int
     cfg: TransformerConfig
-    attention: str = "global"
+    attention: Literal["global", "local"] = "global"
     grid: tuple[int, int] | None = None
     num_neighbours: int = 64
-    dtype: jnp.dtype | None = None
+    dtype: DTypeLike | None = None
 
     @nn.compact
-    def __call__(self, x: Float[Array, "... L D"]) -> Float[Array, "... L D"]:
+    def __call__(self, x: Float[ArrayLike, "... L D"]) -> Float[Array, "... L D"]:
         cfg = self.cfg
         if self.attention == "global":
             attn = Attention(

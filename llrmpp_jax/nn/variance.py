@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import lax
 
-from llrmpp_jax.array_typing import Array
+from llrmpp_jax.array_typing import Array, ArrayLike
 
 
 def full_like_varying(ref: Array, shape: tuple[int, ...], value: float, dtype) -> Array:
@@ -21,7 +21,7 @@ def full_like_varying(ref: Array, shape: tuple[int, ...], value: float, dtype) -
     return lax.full_like(ref, value, dtype, shape)
 
 
-def common_variance(*xs: Array | None) -> list[Array | None]:
+def common_variance(*xs: ArrayLike | None) -> list[Array | None]:
     """``xs`` made varying over the union of their varying axes (``None`` passes through).
 
     Before a ``custom_vjp``: a replicated input (a parameter-made bias) beside per-device

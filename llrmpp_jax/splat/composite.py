@@ -58,7 +58,7 @@ _HIGHEST = lax.Precision.HIGHEST
 
 
 class _Groups(NamedTuple):
-    """Tiles in processing order, ``[num_groups, G]`` each."""
+    """Tiles in processing order, ``[groups, group]`` each."""
 
     tile_ids: Int[Array, "groups group"]  # tile index (num_tiles for padding)
     starts: Int[Array, "groups group"]

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from llrmpp_jax.array_typing import Array, Bool, Float, Int
+from llrmpp_jax.array_typing import Array, ArrayLike, Bool, Float, Int
 from llrmpp_jax.splat.binning import SATURATION, bin_gaussians, intersection_counts
 from llrmpp_jax.splat.composite import composite
 from llrmpp_jax.splat.config import SplatConfig
@@ -64,7 +64,7 @@ class SplatOutput(NamedTuple):
 EXPECTED_DEPTH_MIN_ALPHA = 1e-10
 
 
-def expected_depth(out: SplatOutput) -> Float[Array, "*S H W"]:
+def expected_depth(out: SplatOutput) -> Float[Array, "*batch H W"]:
     """gsplat's "ED" render mode: accumulated camera z over accumulated alpha
     (``out.depth / (1 - out.transmittance)``), 0 where nothing was drawn. The one
     definition used by the model's depth, the depth loss, ``llrmpp render --depth`` and
@@ -73,11 +73,11 @@ def expected_depth(out: SplatOutput) -> Float[Array, "*S H W"]:
     return jnp.where(alpha > 0, out.depth / jnp.maximum(alpha, EXPECTED_DEPTH_MIN_ALPHA), 0.0)
 
 
-def _compute_dtype(means: Array) -> jnp.dtype:
+def _compute_dtype(means: ArrayLike) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if means.dtype == jnp.float64 else jnp.dtype(jnp.float32)
 
 
-def _shape(x: Array, name: str) -> tuple[int, ...]:
+def _shape(x: object, name: str) -> tuple[int, ...]:
     shape = getattr(x, "shape", None)
     if shape is None:
         raise ValueError(f"{name} must be an array, got {type(x).__name__}")
@@ -87,9 +87,9 @@ def _shape(x: Array, name: str) -> tuple[int, ...]:
 def _check_shapes(
     height: int,
     width: int,
-    c2w: Array,
-    intrinsics: Array,
-    **per_gaussian: tuple[Array, tuple[int | str, ...]],
+    c2w: ArrayLike,
+    intrinsics: ArrayLike,
+    **per_gaussian: tuple[ArrayLike, tuple[int | str, ...]],
 ) -> int:
     """Check shapes (``"N"`` marks the Gaussian axis, ``"*"`` any size); return N."""
     if not (isinstance(height, (int, np.integer)) and isinstance(width, (int, np.integer))):
@@ -125,7 +125,7 @@ def _check_shapes(
     return n_from[1]
 
 
-def _check_values(c2w: Array, intrinsics: Array, **arrays: Array) -> None:
+def _check_values(c2w: ArrayLike, intrinsics: ArrayLike, **arrays: ArrayLike) -> None:
     """Value checks for concrete (non-traced) inputs; under jit the masking rule applies."""
     if any(isinstance(x, jax.core.Tracer) for x in (c2w, intrinsics, *arrays.values())):
         return
@@ -195,13 +195,13 @@ _render_copies_jit = jax.jit(_render_copies, static_argnames=("height", "width",
 
 
 def render_feature_copies(
-    means: Float[Array, "N 3"],
-    quats: Float[Array, "N 4"],
-    scales: Float[Array, "N 3"],
-    opacities: Float[Array, "S N"],
-    features: Float[Array, "N F"],
-    c2w: Float[Array, "4 4"],
-    intrinsics: Float[Array, "4"],
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, "S N"],
+    features: Float[ArrayLike, "N F"],
+    c2w: Float[ArrayLike, "4 4"],
+    intrinsics: Float[ArrayLike, "4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
@@ -223,13 +223,13 @@ def render_feature_copies(
 
 
 def render_features(
-    means: Float[Array, "N 3"],
-    quats: Float[Array, "N 4"],
-    scales: Float[Array, "N 3"],
-    opacities: Float[Array, "N"],
-    features: Float[Array, "N F"],
-    c2w: Float[Array, "4 4"],
-    intrinsics: Float[Array, "4"],
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, "N"],
+    features: Float[ArrayLike, "N F"],
+    c2w: Float[ArrayLike, "4 4"],
+    intrinsics: Float[ArrayLike, "4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
@@ -256,17 +256,17 @@ def render_features(
 
 
 def render_sh(
-    means: Float[Array, "N 3"],
-    quats: Float[Array, "N 4"],
-    scales: Float[Array, "N 3"],
-    opacities: Float[Array, "N"],
-    sh_coeffs: Float[Array, "N M 3"],
-    c2w: Float[Array, "4 4"],
-    intrinsics: Float[Array, "4"],
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    opacities: Float[ArrayLike, "N"],
+    sh_coeffs: Float[ArrayLike, "N sh 3"],
+    c2w: Float[ArrayLike, "4 4"],
+    intrinsics: Float[ArrayLike, "4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
-    background: Float[Array, "3"] | None = None,
+    background: Float[ArrayLike, "3"] | None = None,
     *,
     sh_degree: int | None = None,
 ) -> tuple[Float[Array, "H W 3"], SplatOutput]:
@@ -274,12 +274,12 @@ def render_sh(
 
     Colour of a Gaussian = ``max(SH(mean - camera centre) + 0.5, 0)`` (gsplat);
     ``rgb = features + transmittance * background`` (default white). ``sh_degree``
-    defaults to ``sqrt(M) - 1``; with fewer, the extra coefficients are ignored.
+    defaults to ``sqrt(sh) - 1``; with fewer, the extra coefficients are ignored.
     Returns ``(rgb [H, W, 3], output)`` where ``output.features`` has no background.
     """
     m = _shape(sh_coeffs, "sh_coeffs")
     if len(m) != 3 or m[2] != 3:
-        raise ValueError(f"sh_coeffs must have shape (N, M, 3), got {m}")
+        raise ValueError(f"sh_coeffs must have shape (N, sh, 3), got {m}")
     degree = round(m[1] ** 0.5) - 1 if sh_degree is None else sh_degree
     if not 0 <= degree <= MAX_DEGREE or num_sh_bases(degree) > m[1]:
         raise ValueError(
@@ -287,7 +287,7 @@ def render_sh(
             f"sh_coeffs has shape {m}"
         )
     if sh_degree is None and num_sh_bases(degree) != m[1]:
-        raise ValueError(f"sh_coeffs has M={m[1]} coefficients, not a square; pass sh_degree")
+        raise ValueError(f"sh_coeffs has sh={m[1]} coefficients, not a square; pass sh_degree")
     background = jnp.ones((3,), jnp.float32) if background is None else background
     if _shape(background, "background") != (3,):
         raise ValueError(f"background must have shape (3,), got {_shape(background, 'background')}")
@@ -324,15 +324,15 @@ _render_sh_jit = jax.jit(_render_sh, static_argnames=("height", "width", "cfg", 
 
 
 def count_intersections(
-    means: Float[Array, "N 3"],
-    quats: Float[Array, "N 4"],
-    scales: Float[Array, "N 3"],
-    c2w: Float[Array, "4 4"],
-    intrinsics: Float[Array, "4"],
+    means: Float[ArrayLike, "N 3"],
+    quats: Float[ArrayLike, "N 4"],
+    scales: Float[ArrayLike, "N 3"],
+    c2w: Float[ArrayLike, "4 4"],
+    intrinsics: Float[ArrayLike, "4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
-    opacities: Float[Array, "N"] | Float[Array, "S N"] | None = None,
+    opacities: Float[ArrayLike, "N"] | Float[ArrayLike, "S N"] | None = None,
 ) -> Int[Array, ""]:
     """(Gaussian, compositor block) pairs a render of this scene needs: size
     ``max_intersections`` by it.

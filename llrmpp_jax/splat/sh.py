@@ -59,7 +59,7 @@ def sh_basis(dirs: Float[Array, "N 3"], degree: int) -> Float[Array, "N bases"]:
 
 
 def eval_sh(
-    dirs: Float[Array, "N 3"], coeffs: Float[Array, "N M 3"], degree: int
+    dirs: Float[Array, "N 3"], coeffs: Float[Array, "N sh 3"], degree: int
 ) -> Float[Array, "N 3"]:
     """``sum_k Y_k(dir / |dir|) coeffs[:, k]`` over the first ``(degree+1)^2`` coefficients.
 
@@ -79,7 +79,7 @@ def eval_sh(
 
 def sh_colors(
     means: Float[Array, "N 3"],
-    sh_coeffs: Float[Array, "N M 3"],
+    sh_coeffs: Float[Array, "N sh 3"],
     c2w: Float[Array, "4 4"],
     degree: int,
 ) -> Float[Array, "N 3"]:

@@ -80,7 +80,7 @@ def warmup_cosine_schedule(
     warm = float(max(1, warmup_steps))
     span = float(max(1, total_steps - warmup_steps))
 
-    def schedule(count: Int[ArrayLike, ""]) -> Float[Array, ""]:
+    def schedule(count: int | Int[ArrayLike, ""]) -> Float[Array, ""]:
         step = jnp.asarray(count).astype(jnp.float32)
         ramp = step / warm
         # 0.5 * (1 + cos(pi p)) written as sin(pi (1 - p) / 2)^2 with 1 - p computed

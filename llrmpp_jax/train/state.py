@@ -7,17 +7,20 @@ the same randomness as an uninterrupted one without storing any per-step key.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
-from jaxtyping import UInt32
 
-from llrmpp_jax.array_typing import Array, Int, KeyArray
+from llrmpp_jax.array_typing import Array, Int, KeyArray, UInt32
 
 
+# Not checked: a pytree, so JAX rebuilds it around whatever a transform carries in its
+# leaves (per-device copies, host arrays, shapes, shardings); the annotations say what one
+# device's state holds.
+@no_type_check
 @struct.dataclass
 class TrainState:
     """Pytree of the run's state (a leaf per array; replicated over data-parallel devices).

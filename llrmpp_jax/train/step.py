@@ -26,7 +26,7 @@ import optax
 from jax import lax
 from jax.sharding import Mesh, PartitionSpec
 
-from llrmpp_jax.array_typing import Array, Float, KeyArray
+from llrmpp_jax.array_typing import Array, DTypeLike, Float, KeyArray
 from llrmpp_jax.train.optimizer import advance_schedule, schedule_count
 from llrmpp_jax.train.state import TrainState, step_key
 
@@ -37,7 +37,7 @@ _RESERVED = ("loss", "grad_norm", "lr", "skipped", "skipped_total", "skipped_gra
              "skipped_grad_norm_total")
 
 
-def _cast_floating(tree, dtype: jnp.dtype):
+def _cast_floating(tree, dtype: DTypeLike):
     """Cast every floating leaf of ``tree`` to ``dtype`` (integer leaves untouched)."""
     return jax.tree.map(
         lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree
@@ -49,7 +49,7 @@ def make_train_step(
     optimizer: optax.GradientTransformation,
     schedule: optax.Schedule,
     *,
-    compute_dtype: jnp.dtype = jnp.float32,
+    compute_dtype: DTypeLike = jnp.float32,
     skip_grad_norm_above: float | None = None,
 ) -> StepFn:
     """Build the per-device train step (to be wrapped by pmap or shard_map over ``"batch"``).

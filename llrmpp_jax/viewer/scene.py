@@ -93,9 +93,9 @@ def procedural_view_scene(params: dict, cfg: ModelConfig, seed: int, num_inputs:
 
 
 def gaussian_centres(cfg: ModelConfig, gaussians: Gaussians, max_points: int,
-                     rng: np.random.Generator) -> tuple[Float[np.ndarray, "M 3"], np.ndarray]:
+                     rng: np.random.Generator) -> tuple[Float[np.ndarray, "pts 3"], np.ndarray]:
     """At most ``max_points`` Gaussian centres (a random subset if there are more) and a
-    ``uint8 [M, 3]`` colour each: the SH DC colour in colour mode; in feature mode the
+    ``uint8 [pts, 3]`` colour each: the SH DC colour in colour mode; in feature mode the
     features' first three principal components, each stretched to [0, 255] (features have
     no colour of their own; similar features get similar colours)."""
     means = np.asarray(gaussians.means[0], np.float32)

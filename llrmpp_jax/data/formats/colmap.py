@@ -31,7 +31,7 @@ class ColmapCamera:
     model: str
     width: int
     height: int
-    params: Float[np.ndarray, "P"]
+    params: Float[np.ndarray, "params"]
 
     def pinhole_and_distortion(self) -> tuple[np.ndarray, np.ndarray]:
         """``(fx, fy, cx, cy)`` and OpenCV ``(k1, k2, p1, p2, k3)`` of this camera."""
@@ -55,8 +55,8 @@ class ColmapImage:
     tvec: Float[np.ndarray, "3"]  # world-to-camera translation
     camera_id: int
     name: str
-    xys: Float[np.ndarray, "P 2"]  # observed (distorted) pixel coordinates
-    point3d_ids: Int[np.ndarray, "P"]  # -1 where the observation has no 3D point
+    xys: Float[np.ndarray, "pts 2"]  # observed (distorted) pixel coordinates
+    point3d_ids: Int[np.ndarray, "pts"]  # -1 where the observation has no 3D point
 
     def c2w(self) -> Float[np.ndarray, "4 4"]:
         """OpenCV camera-to-world."""
@@ -73,8 +73,8 @@ class ColmapPoint3D:
     xyz: Float[np.ndarray, "3"]
     rgb: Int[np.ndarray, "3"]
     error: float
-    image_ids: Int[np.ndarray, "L"]
-    point2d_idxs: Int[np.ndarray, "L"]
+    image_ids: Int[np.ndarray, "track"]
+    point2d_idxs: Int[np.ndarray, "track"]
 
 
 def qvec_to_rotmat(q: Float[np.ndarray, "4"]) -> Float[np.ndarray, "3 3"]:

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import json
 import os
+import typing
 from collections.abc import Callable
+from typing import Literal
 
 from llrmpp_jax.data.formats.colmap import read_colmap_scene
 from llrmpp_jax.data.formats.long_lrm import SCENE_JSON, read_long_lrm_index, read_long_lrm_scene
@@ -103,6 +105,8 @@ def _read_long_lrm(path: str, **kw) -> Scene:
     return read_long_lrm_scene(os.path.join(path, SCENE_JSON) if os.path.isdir(path) else path, **kw)
 
 
+# Formats a dataset may be given in: READERS' keys, or "auto" (detected).
+Format = Literal["auto", "nerfstudio", "colmap", "scannet", "long_lrm", "re10k"]
 READERS: dict[str, Callable[..., Scene]] = {
     "nerfstudio": read_nerfstudio_scene,
     "colmap": _read_colmap,
@@ -110,10 +114,10 @@ READERS: dict[str, Callable[..., Scene]] = {
     "long_lrm": _read_long_lrm,
     "re10k": read_re10k_scene,
 }
-FORMATS = ("auto", *READERS)
+FORMATS: tuple[str, ...] = typing.get_args(Format)
 
 
-def read_scene(path: str, kind: str = "auto", **kwargs) -> Scene:
+def read_scene(path: str, kind: Format = "auto", **kwargs) -> Scene:
     """Read the scene at ``path`` with the reader of ``kind`` (``"auto"``: detected).
     ``kwargs`` go to the reader (e.g. ``missing="error"``)."""
     if kind not in FORMATS:
@@ -123,7 +127,7 @@ def read_scene(path: str, kind: str = "auto", **kwargs) -> Scene:
     return READERS[detect_format(path) if kind == "auto" else kind](path, **kwargs)
 
 
-def dataset_scenes(path: str, kind: str = "auto") -> list[str]:
+def dataset_scenes(path: str, kind: Format = "auto") -> list[str]:
     """Scene paths of a dataset: the entries of a Long-LRM ``.txt`` index, the path itself
     when it is one scene (of format ``kind``, or any with ``"auto"``), else its sub-folders
     (sorted; each is read with :func:`read_scene`, so ``"auto"`` detects per scene)."""
