@@ -61,12 +61,14 @@ def _train_fns(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weig
 
 @dataclass
 class Trained:
-    """A trained row: ``params``, per-step ``losses`` [steps], wall-clock ``seconds``
-    (compile included), ``dropped`` = splat intersections lost to capacity, summed, and
-    ``snapshots``: the params after each step asked for in :func:`train`."""
+    """A trained row: ``params``, per-step ``losses`` and pre-clip ``grad_norms`` [steps],
+    wall-clock ``seconds`` (compile included), ``dropped`` = splat intersections lost to
+    capacity, summed, and ``snapshots``: the params after each step asked for in
+    :func:`train`."""
 
     params: dict
     losses: np.ndarray
+    grad_norms: np.ndarray
     seconds: float
     dropped: int
     snapshots: dict[int, dict] = dataclasses.field(default_factory=dict)
@@ -88,12 +90,13 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
                               size=TRAIN_SCENES)
     batch_cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
                             with_depth=depth, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
-    losses, dropped, kept = [], [], {}
+    losses, grad_norms, dropped, kept = [], [], [], {}
     host_params = lambda state: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's)
 
     def record(info: StepInfo) -> None:  # the loss curve, lost splat intersections, the snapshots asked for
         metrics = jax.device_get(info.metrics)  # host copies: indexing device arrays compiles ops
         losses.append(float(metrics["loss"][0]))
+        grad_norms.append(float(metrics["grad_norm"][0]))
         dropped.append(float(metrics["splat_dropped"][0]) * n_dev)
         if info.step in snapshots:
             kept[info.step] = host_params(info.state)
@@ -101,5 +104,6 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
     with BatchIterator(source, batch_cfg, seed=seed, num_devices=n_dev) as batches:
         done = run_stage(state, step, (T.shard_for_pmap(b, n_dev) for b in batches), steps=scale.steps,
                          hooks=[record])
-    return Trained(host_params(done.state), np.asarray(losses, np.float32), time.perf_counter() - t0,
+    return Trained(host_params(done.state), np.asarray(losses, np.float32), np.asarray(grad_norms, np.float32),
+                   time.perf_counter() - t0,
                    int(sum(dropped)), kept)
