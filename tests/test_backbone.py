@@ -8,11 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import GOLDEN, shared_path, unchecked
 from llrmpp_jax import config as C
 from llrmpp_jax.nn import backbone, remat_loops
 from llrmpp_jax.nn.backbone import Backbone, count_params, parse_block_pattern
 from llrmpp_jax.nn.remat_loops import block_runs, layout_period, remat_blocks
+from tests.helpers.environment import GOLDEN, shared_path
+from tests.helpers.golden import golden_backbone_config
+from tests.helpers.typechecks import unchecked
 
 
 @pytest.mark.parametrize(
@@ -59,15 +61,6 @@ def test_paper_backbone_parameter_count():
     want = 576 * 768 + 2 * 768 + 768 + sum(per[k] for k in parse_block_pattern(cfg.pattern, "TM"))
     assert got == want
     assert abs(got - 104e6) / 104e6 < 0.03, got  # paper: backbone ~104M
-
-
-def golden_backbone_config() -> C.BackboneConfig:
-    """The tiny Long-LRM of ../shared/golden/long_lrm_tiny/config.json."""
-    return C.BackboneConfig(
-        dims=(32, 64), pattern="mmt", num_layers=6, merge_layers=(3,), num_global_tokens=2,
-        mamba=C.Mamba2Config(d_state=16, headdim=16, chunk_size=256),
-        transformer=C.TransformerConfig(head_dim=16, qk_norm=False),
-    )
 
 
 def _rel_err(got, want) -> float:

@@ -14,11 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import unchecked
 from llrmpp_jax.config import TransformerConfig
 from llrmpp_jax.nn.attention import multi_head_attention
 from llrmpp_jax.nn.blockwise_attention import blockwise_attention
 from llrmpp_jax.nn.norms import rms_norm
+from tests.helpers.typechecks import unchecked
 
 NH, HD = 2, 16
 

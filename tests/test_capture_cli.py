@@ -11,7 +11,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import GOLDEN, shared_path
 from llrmpp_jax.capture import load_gs, save_gs
 from llrmpp_jax.cli import main
 from llrmpp_jax.data import in_memory_scene
@@ -19,6 +18,7 @@ from llrmpp_jax.data.formats import write_colmap_scene, write_nerfstudio_scene
 from llrmpp_jax.data.image_io import read_image
 from llrmpp_jax.export_ply import read_ply, standard_fields
 from llrmpp_jax.model import render
+from tests.helpers.environment import GOLDEN, ROOT, shared_path
 
 FOX, BEER = shared_path("data", "fox"), shared_path("data", "beer")
 
@@ -33,8 +33,8 @@ def golden(tmp_path_factory):
     d = tmp_path_factory.mktemp("golden")
     exp = d / "golden_exp.py"
     exp.write_text(
-        "import sys\nsys.path.insert(0, %r)\n" % os.path.dirname(__file__)
-        + "from test_model import golden_model_config\n"
+        "import sys\nsys.path.insert(0, %r)\n" % ROOT
+        + "from tests.helpers.golden import golden_model_config\n"
         "from llrmpp_jax.experiment import ExperimentConfig, StageConfig\n"
         "def get_config():\n"
         "    return ExperimentConfig(name='golden', model=golden_model_config(), stages=(\n"

@@ -15,7 +15,6 @@ import warnings
 import imageio_ffmpeg
 import numpy as np
 import pytest
-from conftest import shared_path
 
 from llrmpp_jax.capture.poses import PosesConfig, estimate_poses, extract_frames
 from llrmpp_jax.cli import main
@@ -23,6 +22,7 @@ from llrmpp_jax.data.formats import read_scene
 from llrmpp_jax.data.image_io import read_image, write_image
 from llrmpp_jax.data.resample import resize_image
 from llrmpp_jax.errors import MissingInputError, UserError
+from tests.helpers.environment import shared_path
 
 FOX = 10  # the first photos of the fox capture: they overlap enough to register
 

@@ -8,12 +8,12 @@ import warnings
 
 import numpy as np
 import pytest
-from conftest import shared_path
 
 from llrmpp_jax.data.distortion import distort_pixels, undistort_pixels
 from llrmpp_jax.data.formats import read_colmap_model, read_colmap_scene, read_nerfstudio_scene
 from llrmpp_jax.data.resample import remap, resize_image
 from llrmpp_jax.geometry import project_points, resize_intrinsics
+from tests.helpers.environment import shared_path
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ import warnings
 
 import numpy as np
 import pytest
-from conftest import shared_path
 from sklearn.cluster import KMeans
 
 from llrmpp_jax.data.camera_paths import look_at
@@ -20,6 +19,7 @@ from llrmpp_jax.data.held_out import eval_split
 from llrmpp_jax.data.scene import in_memory_scene
 from llrmpp_jax.data.selection import eval_views, every_nth, kmeans_inputs, training_views, uniform_inputs
 from llrmpp_jax.experiment import DataConfig
+from tests.helpers.environment import shared_path
 
 
 def cameras_from_features(pos, fwd):

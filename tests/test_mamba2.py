@@ -23,7 +23,6 @@ import numpy as np
 import pytest
 import scipy.stats
 import torch
-from conftest import GOLDEN, shared_path, unchecked
 
 from llrmpp_jax.config import Mamba2Config
 from llrmpp_jax.convert.long_lrm import mamba2_block_rules
@@ -39,6 +38,8 @@ from llrmpp_jax.nn.mamba2 import (
     mamba2_scan_direction,
 )
 from llrmpp_jax.nn.norms import rms_norm
+from tests.helpers.environment import GOLDEN, shared_path
+from tests.helpers.typechecks import unchecked
 
 
 def _golden_config() -> dict:

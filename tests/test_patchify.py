@@ -3,9 +3,10 @@ and their error messages."""
 
 import numpy as np
 import pytest
-from conftest import shared_path, unchecked
 
 from llrmpp_jax.nn.patchify import patchify, unpatchify
+from tests.helpers.environment import shared_path
+from tests.helpers.typechecks import unchecked
 
 
 def loop_patchify(x: np.ndarray, p: int) -> np.ndarray:

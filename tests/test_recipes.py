@@ -7,12 +7,12 @@ import os
 
 import pytest
 
-from conftest import unchecked
 import llrmpp_jax
 from llrmpp_jax.benchmarks.suite import BENCHMARKS
 from llrmpp_jax.cli import main
 from llrmpp_jax.experiment import ExperimentConfig, load_experiment
 from llrmpp_jax.recipes import recipe_names, recipe_path
+from tests.helpers.typechecks import unchecked
 
 PACKAGE = os.path.dirname(os.path.abspath(llrmpp_jax.__file__))
 

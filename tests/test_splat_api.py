@@ -6,10 +6,10 @@ import re
 import jax
 import numpy as np
 import pytest
-from test_splat_oracle import BLOCK, assert_render_close, oracle_project, oracle_render, oracle_tile_lists, random_scene
 
-from conftest import unchecked
 from llrmpp_jax.splat import SplatConfig, render_features
+from tests.helpers.typechecks import unchecked
+from tests.oracles.splat import BLOCK, assert_render_close, oracle_project, oracle_render, oracle_tile_lists, random_scene
 
 H, W, N, F = 37, 53, 300, 3
 

@@ -6,11 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_splat_oracle import BLOCK, oracle_project, oracle_tile_lists, random_scene
 
 from llrmpp_jax.splat import SplatConfig, count_intersections
 from llrmpp_jax.splat.binning import bin_gaussians, depth_order
 from llrmpp_jax.splat.projection import project_gaussians
+from tests.oracles.splat import BLOCK, oracle_project, oracle_tile_lists, random_scene
 
 H, W, N = 37, 53, 300
 

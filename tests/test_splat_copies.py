@@ -5,10 +5,10 @@ equal the sums over copies."""
 import jax
 import jax.numpy as jnp
 import numpy as np
-import test_splat_grad as smooth
-from test_splat_oracle import assert_render_close, oracle_render, random_scene
 
 from llrmpp_jax.splat import render_feature_copies, render_features
+from tests.helpers import smooth_splat as smooth
+from tests.oracles.splat import assert_render_close, oracle_render, random_scene
 
 H, W, N, F = 37, 53, 300, 3
 
@@ -25,7 +25,7 @@ def test_feature_copies_equal_separate_renders(rng):
 
 
 def test_copies_grads_equal_sum_of_separate_renders(rng):
-    """On the smooth scenes of test_splat_grad: shared inputs get the sum over copies."""
+    """On the smooth scenes of the gradient tests: shared inputs get the sum over copies."""
     means, quats, scales, opac, feats, c2w, intr = smooth.smooth_scene(rng)
     h, w = smooth.H, smooth.W
     copies = jnp.asarray(np.stack([opac, opac * rng.uniform(0.2, 1.0, smooth.N)]))
@@ -38,7 +38,7 @@ def test_copies_grads_equal_sum_of_separate_renders(rng):
         return sum(jnp.sum(x * g) for x, g in zip(out[:3], cot))
 
     got = jax.jit(jax.grad(loss_copies, argnums=tuple(range(5))))(*args, copies, jnp.asarray(feats))
-    per_copy = [smooth._value_and_grad(*args, copies[s], jnp.asarray(feats), *camera, [g[s] for g in cot])[1] for s in range(2)]
+    per_copy = [smooth.value_and_grad(*args, copies[s], jnp.asarray(feats), *camera, [g[s] for g in cot])[1] for s in range(2)]
     for i in (0, 1, 2, 4):  # shared inputs: gradients add up over the copies
         np.testing.assert_allclose(np.asarray(got[i]), np.asarray(per_copy[0][i] + per_copy[1][i]), rtol=1e-9, atol=1e-12)
     for s in range(2):

@@ -2,66 +2,21 @@
 
 Oracles: autodiff of the brute-force reference (``splat.reference``, a ``lax.scan`` over
 depth-sorted Gaussians in gsplat's formulation) and central finite differences, both in
-float64, on smooth scenes: every alpha at least 0.1 % (relative) away from 1/255, no pixel
-near the 1e-4 transmittance stop, no alpha clamped, no screen radius or tile box near an
-integer boundary, centres inside the field of view -- so the piecewise rules cannot switch
-between the evaluation points (gsplat's tests stay away from the same thresholds).
+float64, on smooth scenes (``tests/helpers/smooth_splat.py``): every alpha at least 0.1 %
+(relative) away from 1/255, no pixel near the 1e-4 transmittance stop, no alpha clamped, no
+screen radius or tile box near an integer boundary, centres inside the field of view -- so
+the piecewise rules cannot switch between the evaluation points (gsplat's tests stay away
+from the same thresholds).
 """
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
-from test_splat_oracle import TILE, oracle_project, oracle_render
 
 from llrmpp_jax.splat import render_features
 from llrmpp_jax.splat.reference import render_features_reference
-
-H, W, N, F = 21, 35, 40, 3
-
-
-def smooth_scene(rng):
-    """A posed random scene satisfying the smoothness conditions above (resampled until so)."""
-    while True:
-        fx, fy = 0.8 * W, 0.85 * W
-        intr = np.array([fx, fy, 0.52 * W, 0.47 * H])
-        z = rng.uniform(1.5, 5.0, N)
-        u, v = rng.uniform(0.15 * W, 0.85 * W, N), rng.uniform(0.15 * H, 0.85 * H, N)
-        means_c = np.stack([(u - intr[2]) / fx * z, (v - intr[3]) / fy * z, z], -1)
-        c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
-        means = means_c @ c2w[:3, :3].T + c2w[:3, 3]
-        quats = rng.normal(size=(N, 4))
-        scales = np.exp(rng.uniform(-3.0, -1.5, (N, 3)))
-        opac = rng.uniform(0.05, 0.6, N)
-        feats = rng.normal(size=(N, F))
-        scene = (means, quats, scales, opac, feats, c2w, intr)
-
-        proj = oracle_project(means, quats, scales, c2w, intr, H, W)
-        a, b, c = proj["conics"].T
-        det = a * c - b * b
-        sxx, sxy, syy = c / det, -b / det, a / det  # the 2D covariance
-        half = 0.5 * (sxx + syy)
-        r_exact = 3.0 * np.sqrt(half + np.sqrt(np.maximum(half * half - (sxx * syy - sxy * sxy), 0.01)))
-        edges = np.concatenate([(proj["means2d"] + s * proj["radii"][:, None]) / TILE for s in (-1, 1)], -1)
-        *_, margin = oracle_render(*scene, H, W, with_margin=True)
-        if (
-            proj["visible"].all()
-            and np.min(np.abs(r_exact - np.round(r_exact))) > 1e-3
-            and np.min(np.abs(edges - np.round(edges))) > 1e-4
-            and margin.min() > 1e-3
-        ):
-            return scene
-
-
-def _loss(means, quats, scales, opac, feats, c2w, intr, cot):
-    """sum(cot * (features, transmittance, depth)) of one render (cot: the cotangents)."""
-    d = means.dtype
-    out = render_features(means, quats, scales, opac, feats, c2w.astype(d), intr.astype(d), H, W)
-    return sum(jnp.sum(x * g.astype(d)) for x, g in zip(out[:3], cot))
-
-
-_value_and_grad = jax.jit(jax.value_and_grad(_loss, argnums=tuple(range(5))))
+from tests.helpers.smooth_splat import F, H, W, smooth_scene, value_and_grad
 
 
 def _cotangents(rng):
@@ -73,7 +28,7 @@ def test_grads_match_reference_autodiff_float64(rng):
     cot = _cotangents(rng)
     args = [jnp.asarray(a) for a in (means, quats, scales, opac, feats)]
     camera = (jnp.asarray(c2w), jnp.asarray(intr))
-    _, got = _value_and_grad(*args, *camera, cot)
+    _, got = value_and_grad(*args, *camera, cot)
 
     def ref_loss(*a):
         out = render_features_reference(*a, jnp.asarray(c2w), jnp.asarray(intr), H, W)
@@ -90,13 +45,13 @@ def test_grads_match_finite_differences_float64(rng):
     cot = _cotangents(rng)
     args = [jnp.asarray(a) for a in (means, quats, scales, opac, feats)]
     camera = (jnp.asarray(c2w), jnp.asarray(intr))
-    _, grads = _value_and_grad(*args, *camera, cot)
+    _, grads = value_and_grad(*args, *camera, cot)
     h = 1e-6
     for i, name in enumerate(("means", "quats", "scales", "opacities", "features")):
         direction = rng.normal(size=args[i].shape)
         plus = [a + h * direction if j == i else a for j, a in enumerate(args)]
         minus = [a - h * direction if j == i else a for j, a in enumerate(args)]
-        fd = (float(_value_and_grad(*plus, *camera, cot)[0]) - float(_value_and_grad(*minus, *camera, cot)[0])) / (2 * h)
+        fd = (float(value_and_grad(*plus, *camera, cot)[0]) - float(value_and_grad(*minus, *camera, cot)[0])) / (2 * h)
         ad = float(jnp.sum(grads[i] * direction))
         assert abs(fd - ad) <= 1e-4 * abs(ad), (name, fd, ad)
 
@@ -106,8 +61,8 @@ def test_grads_float32_close_to_float64(rng):
     cot = _cotangents(rng)
     camera = (jnp.asarray(c2w), jnp.asarray(intr))
     args64 = [jnp.asarray(np.asarray(a, np.float32), jnp.float64) for a in (means, quats, scales, opac, feats)]
-    _, g64 = _value_and_grad(*args64, *camera, cot)
-    _, g32 = _value_and_grad(*(a.astype(jnp.float32) for a in args64), *camera, cot)
+    _, g64 = value_and_grad(*args64, *camera, cot)
+    _, g32 = value_and_grad(*(a.astype(jnp.float32) for a in args64), *camera, cot)
     for name, a, b in zip(("means", "quats", "scales", "opacities", "features"), g32, g64):
         assert a.dtype == jnp.float32
         rel = float(jnp.linalg.norm((a.astype(jnp.float64) - b).ravel()) / jnp.linalg.norm(b.ravel()))

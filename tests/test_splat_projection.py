@@ -4,10 +4,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
-from test_splat_oracle import oracle_project, random_scene
 
 from llrmpp_jax.splat import SplatConfig
 from llrmpp_jax.splat.projection import project_gaussians, quat_to_rotmat
+from tests.oracles.splat import oracle_project, random_scene
 
 H, W, N = 37, 53, 300
 _project = jax.jit(project_gaussians, static_argnames=("height", "width", "cfg"))

@@ -13,9 +13,9 @@ pixels must stay under 1 % of the canvas.
 
 import numpy as np
 import pytest
-from test_splat_oracle import oracle_render, random_scene
 
 from llrmpp_jax.splat import render_features
+from tests.oracles.splat import oracle_render, random_scene
 
 N = 300  # Gaussians on a 37x53 canvas; smaller canvases get proportionally fewer
 

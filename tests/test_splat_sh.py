@@ -4,26 +4,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.special as sp
-from test_splat_grad import H, W, N, smooth_scene
-from test_splat_oracle import oracle_render
 
-from conftest import unchecked
 from llrmpp_jax.splat import render_sh
 from llrmpp_jax.splat.sh import sh_basis
-
-
-def scipy_real_sh(dirs: np.ndarray, degree: int) -> np.ndarray:
-    """[N, (degree+1)^2] real SH, index l^2 + l + m: sqrt(2) Re / Im of scipy's complex
-    Y_l^|m| (Condon-Shortley phase included) for m > 0 / m < 0, Y_l^0 for m = 0."""
-    d = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
-    theta, phi = np.arccos(np.clip(d[:, 2], -1, 1)), np.arctan2(d[:, 1], d[:, 0])
-    cols = []
-    for l in range(degree + 1):
-        for m in range(-l, l + 1):
-            y = sp.sph_harm_y(l, abs(m), theta, phi)
-            cols.append(np.sqrt(2) * y.imag if m < 0 else np.sqrt(2) * y.real if m > 0 else y.real)
-    return np.stack(cols, -1)
+from tests.helpers.smooth_splat import H, N, W, smooth_scene
+from tests.helpers.typechecks import unchecked
+from tests.oracles.sh import scipy_real_sh
+from tests.oracles.splat import oracle_render
 
 
 def oracle_colors(means, coeffs, c2w, degree):

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import unchecked
 from llrmpp_jax.nn import ssd as ssd_module
 from llrmpp_jax.nn.ssd import segment_sum, ssd_dense, ssd_scan, ssd_sequential
+from tests.helpers.typechecks import unchecked
 
 
 def _rel(a, b) -> float:

@@ -2,8 +2,8 @@
 training subprocess), corrupted/truncated/incomplete steps fall back to the previous
 good one, incompatible trees fail in one line, keep-last-N.
 
-Run as a script (``python tests/test_train_checkpoint.py DIR``) this file is the
-training process that the kill test starts and kills.
+Run as a module (``python -m tests.test_train_checkpoint DIR`` in the checkout) this file is
+the training process that the kill test starts and kills.
 """
 
 import dataclasses
@@ -15,12 +15,11 @@ import subprocess
 import sys
 import warnings
 
-import conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a script)
+import tests.conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a module)
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_train_step import CFG, assert_tree_equal, toy_batch, toy_loss, toy_params
 
 from llrmpp_jax.train.checkpoint import (
     MANIFEST,
@@ -40,6 +39,8 @@ from llrmpp_jax.train.sharding import (
 )
 from llrmpp_jax.train.state import init_train_state
 from llrmpp_jax.train.step import make_train_step, pmap_train_step, sharded_train_step
+from tests.helpers.environment import ROOT
+from tests.helpers.toy_train import CFG, assert_tree_equal, toy_batch, toy_loss, toy_params
 
 SEED = 1234
 NAN_POSITION = 2  # the data stream's batch 2 holds a NaN image: that step is skipped
@@ -110,9 +111,8 @@ def test_resume_after_sigkill(tmp_path):
     """A pmap training subprocess saving every step is SIGKILLed (possibly mid-save);
     resuming from whatever survives and training to 2j reproduces an uninterrupted run."""
     proc = subprocess.Popen(
-        [sys.executable, __file__, str(tmp_path)],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        [sys.executable, "-m", __name__, str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=ROOT,
     )
     try:
         for line in proc.stdout:

@@ -5,8 +5,8 @@ full-batch oracle, and the checkpoint both processes wrote restores in one proce
 A process killed mid-run ends the other within the watchdog's bound, in one line naming
 it (exit status 4); starting both again resumes to the oracle's parameters.
 
-Run as a script (``python tests/test_train_multihost.py MODE PROCESS_ID PORT DIR``) this
-file is one of the two processes.
+Run as a module (``python -m tests.test_train_multihost MODE PROCESS_ID PORT DIR`` in the
+checkout) this file is one of the two processes.
 """
 
 import os
@@ -18,10 +18,18 @@ import sys
 import time
 
 import pytest
-import conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a script)
+import tests.conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a module)
 import jax
 import numpy as np
-from test_train_step import (
+
+from llrmpp_jax.train.checkpoint import restore_checkpoint, save_checkpoint
+from llrmpp_jax.train.peers import jax_heartbeat_timeout, watch_peers
+from llrmpp_jax.train.optimizer import make_optimizer, make_schedule
+from llrmpp_jax.train.sharding import make_data_mesh, replicate_on_mesh, shard_for_mesh
+from llrmpp_jax.train.state import init_train_state
+from llrmpp_jax.train.step import make_train_step, sharded_train_step
+from tests.helpers.environment import ROOT
+from tests.helpers.toy_train import (
     CFG,
     assert_tree_close,
     assert_tree_equal,
@@ -30,13 +38,6 @@ from test_train_step import (
     toy_loss,
     toy_params,
 )
-
-from llrmpp_jax.train.checkpoint import restore_checkpoint, save_checkpoint
-from llrmpp_jax.train.peers import jax_heartbeat_timeout, watch_peers
-from llrmpp_jax.train.optimizer import make_optimizer, make_schedule
-from llrmpp_jax.train.sharding import make_data_mesh, replicate_on_mesh, shard_for_mesh
-from llrmpp_jax.train.state import init_train_state
-from llrmpp_jax.train.step import make_train_step, sharded_train_step
 
 N_PROCESSES, GLOBAL_BATCH, STEPS = 2, 8, 3
 PEER_TIMEOUT_S, LONG_STEPS = 4.0, 12  # the watchdog's bound; the run the kill interrupts
@@ -58,8 +59,8 @@ def _free_port() -> int:
 
 def _start(mode: str, directory, stderr=subprocess.STDOUT) -> list[subprocess.Popen]:
     port = _free_port()
-    return [subprocess.Popen([sys.executable, __file__, mode, str(i), str(port), str(directory)],
-                             stdout=subprocess.PIPE, stderr=stderr, text=True)
+    return [subprocess.Popen([sys.executable, "-m", __name__, mode, str(i), str(port), str(directory)],
+                             stdout=subprocess.PIPE, stderr=stderr, text=True, cwd=ROOT)
             for i in range(N_PROCESSES)]
 
 

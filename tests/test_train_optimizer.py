@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import unchecked
 from llrmpp_jax.train.optimizer import (
     OptimizerConfig,
     make_optimizer,
     warmup_cosine_schedule,
     weight_decay_mask,
 )
+from tests.helpers.typechecks import unchecked
 
 
 def hf_cosine_with_warmup(step: int, warmup: int, total: int) -> float:

@@ -10,6 +10,7 @@ import time
 import pytest
 
 from llrmpp_jax.train.workdir_lock import LOCK_NAME, WorkdirBusyError, workdir_lock
+from tests.helpers.environment import ROOT
 
 HOLD = """
 import sys, time
@@ -50,7 +51,7 @@ def test_llrmpp_train_on_a_busy_workdir_is_one_line(tmp_path):
         t0 = time.time()
         res = subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", "demo",
                               "--workdir", work], capture_output=True, text=True, timeout=300,
-                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+                             cwd=ROOT)
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()

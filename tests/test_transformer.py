@@ -7,13 +7,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import shared_path
-from test_attention import attention_module_oracle, gelu, randomize, rel_err
-from test_local_attention import module_mask_bias
 
 from llrmpp_jax.config import TransformerConfig
 from llrmpp_jax.convert.table import Rule, convert_state_dict, linear
 from llrmpp_jax.nn.transformer import TransformerBlock
+from tests.helpers.environment import shared_path
+from tests.oracles.attention import attention_module_oracle, gelu, randomize, rel_err
+from tests.oracles.local_attention import module_mask_bias
 
 
 def layer_norm(x: np.ndarray, scale: np.ndarray, eps: float = 1e-5) -> np.ndarray:

@@ -23,8 +23,7 @@ from llrmpp_jax.splat.reference import render_features_reference
 from llrmpp_jax.viewer.render import ViewKey, ViewRenderer, display_image, render_view, viewport_camera
 from llrmpp_jax.viewer.scene import check_gaussians, gaussian_centres, procedural_view_scene, saved_view_scene
 from llrmpp_jax.viewer.server import PortInUseError, RenderWorker, Viewer, ViewerSettings, ViewRequest, check_port
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from tests.helpers.environment import ROOT
 
 
 @pytest.fixture(scope="module")
