@@ -2,7 +2,7 @@
 training subprocess), corrupted/truncated/incomplete steps fall back to the previous
 good one, incompatible trees fail in one line, keep-last-N.
 
-Run as a module (``python -m tests.test_train_checkpoint DIR`` in the checkout) this file is
+Run as a module (``python -m tests.train.test_checkpoint DIR`` in the checkout) this file is
 the training process that the kill test starts and kills.
 """
 

@@ -5,7 +5,7 @@ full-batch oracle, and the checkpoint both processes wrote restores in one proce
 A process killed mid-run ends the other within the watchdog's bound, in one line naming
 it (exit status 4); starting both again resumes to the oracle's parameters.
 
-Run as a module (``python -m tests.test_train_multihost MODE PROCESS_ID PORT DIR`` in the
+Run as a module (``python -m tests.train.test_multihost MODE PROCESS_ID PORT DIR`` in the
 checkout) this file is one of the two processes.
 """
 
