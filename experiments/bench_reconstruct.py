@@ -37,8 +37,8 @@ def main() -> None:
     ap.add_argument("--inputs", type=int, default=8, help="input views")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per setting (median reported)")
     args = ap.parse_args()
-    sys.path.insert(0, os.path.join(ROOT, "tests"))
-    from test_model import golden_model_config
+    sys.path.insert(0, ROOT)
+    from tests.helpers.golden import golden_model_config
 
     cfg = golden_model_config()
     params = convert_long_lrm(load_torch_state_dict(os.path.join(SHARED, "golden", "long_lrm_tiny", "state_dict.npz")), cfg)

@@ -15,14 +15,16 @@
   ``llrmpp_jax.array_typing``'s legend, everything else by type. Functions under ``jit`` are
   checked when traced. The hook only instruments modules imported after it is installed,
   hence before any test module imports the package.
+* What the tests import lives beside this file, not in it: ``tests/helpers`` (``shared_path``,
+  ``unchecked``, scenes, toy training) and ``tests/oracles``.
 """
 
-import contextlib
 import os
 import sys
 import zlib
 
-QUICK_XLA_FLAGS = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+from tests.helpers.environment import QUICK_XLA_FLAGS
+
 os.environ["XLA_FLAGS"] = " ".join([
     QUICK_XLA_FLAGS,
     os.environ.get("XLA_FLAGS", ""),
@@ -45,27 +47,11 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_default_matmul_precision", "highest")
 
-SHARED = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "shared"))
-GOLDEN = os.path.join(SHARED, "golden", "long_lrm_tiny")
-
 
 def _seed(request) -> int:
     """Per-test seed from the test's id (crc32: stable across runs, unlike ``hash``), mixed
     with ``LLRMPP_TEST_SEED`` (default 0) so a sweep over fresh draws is one variable away."""
     return zlib.crc32(request.node.nodeid.encode()) ^ int(os.environ.get("LLRMPP_TEST_SEED", "0"))
-
-
-@contextlib.contextmanager
-def unchecked():
-    """The annotation checks off inside the block: for a test that passes what the
-    annotations rule out on purpose, to reach the library's own error for it (what a user
-    sees: nothing is checked outside the tests)."""
-    before = jaxtyping.config.jaxtyping_disable
-    jaxtyping.config.update("jaxtyping_disable", True)
-    try:
-        yield
-    finally:
-        jaxtyping.config.update("jaxtyping_disable", before)
 
 
 @pytest.fixture
@@ -78,14 +64,3 @@ def key(request) -> jax.Array:
 def rng(request) -> np.random.Generator:
     """A NumPy generator seeded from the test's id, for oracle-side random data."""
     return np.random.default_rng(_seed(request))
-
-
-def shared_path(*parts: str) -> str:
-    """Path inside ``../shared``; skips the test (or, called at import, the module) if the
-    folder is absent -- except under ``CI=true``, where that fails the test."""
-    p = os.path.join(SHARED, *parts)
-    if not os.path.exists(p):
-        if os.environ.get("CI"):  # CI has ../shared beside the clone: its absence is a failure
-            pytest.fail(f"CI=true but shared data not found: {p} (clone next to ../shared)", pytrace=False)
-        pytest.skip(f"shared data not found: {p}", allow_module_level=True)
-    return p

@@ -11,10 +11,10 @@ import jaxtyping
 import pytest
 
 import llrmpp_jax
-from conftest import unchecked
 from llrmpp_jax import array_typing
 from llrmpp_jax.nn.norms import rms_norm
 from llrmpp_jax.splat.projection import camera_is_valid
+from tests.helpers.typechecks import unchecked
 
 PACKAGE = pathlib.Path(llrmpp_jax.__file__).parent
 ARRAY_KINDS = {"Float", "Int", "Bool", "Shaped", "UInt32"}

@@ -12,10 +12,9 @@ import pytest
 
 from llrmpp_jax import config as C
 from llrmpp_jax.cli import main
-from llrmpp_jax.data import ProceduralConfig
-from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from llrmpp_jax.experiment import DataConfig, load_experiment
+from tests.helpers.environment import ROOT
+from tests.helpers.micro_experiment import micro_experiment
 
 
 def _is_experiment(path: str) -> bool:
@@ -82,7 +81,7 @@ def test_bad_input_is_one_clear_line(args, message):
 def _bad_files(tmp_path) -> list[tuple[list[str], str]]:
     """Files that are not what they claim, each with the command that reads it and the start
     of the one line it must give."""
-    from conftest import shared_path
+    from tests.helpers.environment import shared_path
 
     golden = shared_path("golden", "long_lrm_tiny", "state_dict.npz")
     data = open(golden, "rb").read()
@@ -152,7 +151,7 @@ def test_wrong_vgg19_file_is_one_line_naming_the_first_mismatching_key(tmp_path)
 
 
 def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
-    exp = _micro_experiment()
+    exp = micro_experiment()
     bad = C.replace(exp, data=DataConfig(kind="colmap", path=str(tmp_path / "missing")))
     from llrmpp_jax.trainer import train
 
@@ -163,24 +162,11 @@ def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
         train(odd, str(tmp_path / "w"))
 
 
-def _micro_experiment(steps: int = 2) -> ExperimentConfig:
-    model = C.replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8, max_dist=8.0,
-                                                           scale_bias=-2.5))
-    return ExperimentConfig(
-        name="micro", model=model,
-        stages=(StageConfig("s1", steps=steps, global_batch=2, num_inputs=2, num_targets=1, resize_h=32,
-                            square_crop=True, lr=1e-3, warmup_steps=1),),
-        data=DataConfig(procedural=ProceduralConfig(height=32, width=32, num_frames=6), num_eval_scenes=1,
-                        workers=1),
-        perceptual_weight=0.0, log_every=1, eval_every=2, checkpoint_every=1,
-    )
-
-
 def _micro_experiment_file(tmp_path, steps: int):
-    """An experiment file (for ``--config``) whose ``get_config`` is ``_micro_experiment(steps)``."""
+    """An experiment file (for ``--config``) whose ``get_config`` is ``micro_experiment(steps)``."""
     path = tmp_path / "micro.py"
-    path.write_text("import sys\nsys.path.insert(0, %r)\nfrom test_cli import _micro_experiment\n"
-                    "def get_config():\n    return _micro_experiment(%d)\n" % (os.path.dirname(__file__), steps))
+    path.write_text("import sys\nsys.path.insert(0, %r)\nfrom tests.helpers.micro_experiment import micro_experiment\n"
+                    "def get_config():\n    return micro_experiment(%d)\n" % (ROOT, steps))
     return path
 
 
@@ -191,12 +177,12 @@ def test_train_resume_and_eval(tmp_path, capsys):
     from llrmpp_jax.trainer import train
 
     work = str(tmp_path / "run")
-    first = train(_micro_experiment(2), work, progress=False)
+    first = train(micro_experiment(2), work, progress=False)
     assert first["stages"][0]["steps"] == 2
     log = json.load(open(os.path.join(work, "train_log.json")))
     assert [h["step"] for h in log["history"]] == [1, 2]
     assert all(h["loss"] > 0 and h["skipped_total"] == h["skipped_grad_norm_total"] == 0 for h in log["history"])
-    second = train(_micro_experiment(3), work, progress=False)
+    second = train(micro_experiment(3), work, progress=False)
     assert [h["step"] for h in second["history"]] == [3]  # resumed, not restarted
     assert os.listdir(os.path.join(work, "tb"))
     cfg_file = _micro_experiment_file(tmp_path, 3)
@@ -218,7 +204,7 @@ def test_train_resume_and_eval(tmp_path, capsys):
     assert capsys.readouterr().err.strip().splitlines() == [
         "llrmpp: error: --refine-perceptual-weight must be >= 0, got -0.5"]
     assert not os.path.exists(tmp_path / "ev3")
-    n_in = _micro_experiment(3).stages[-1].num_inputs
+    n_in = micro_experiment(3).stages[-1].num_inputs
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
                  "--refine-views-per-step", str(n_in + 1), "--out", str(tmp_path / "ev3")]) == 2
     assert capsys.readouterr().err.strip().splitlines() == [
@@ -268,7 +254,7 @@ def test_workdir_reconstruct_render_export_feature_mode(tmp_path):
     from llrmpp_jax.params_io import load_params
     from llrmpp_jax.trainer import train
 
-    exp = _micro_experiment(1)
+    exp = micro_experiment(1)
     work = str(tmp_path / "run")
     train(exp, work, progress=False)
     _, cfg = load_params(work)
@@ -294,8 +280,8 @@ def test_workdir_reconstruct_render_export_feature_mode(tmp_path):
 def test_train_data_reads_any_capture_through_read_scene():
     """``train --data PATH --format auto``: the trainer's scenes come from read_scene, so a
     COLMAP folder and a nerfstudio folder both load (the old COLMAP image_dir crash)."""
-    from conftest import shared_path
     from llrmpp_jax.data.sources import scene_source
+    from tests.helpers.environment import shared_path
 
     for name, frames in (("beer", 71), ("fox", 50)):
         data = DataConfig(kind="auto", path=shared_path("data", name))
@@ -318,10 +304,10 @@ def test_evaluation_on_the_training_scenes_is_flagged(tmp_path):
 def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
     """``train --data beer``: the evaluation targets every 8th of beer's 71 frames; the
     training scene holds the other 62, camera for camera, and none of the targets."""
-    from conftest import shared_path
     from llrmpp_jax.data.formats import read_scene
     from llrmpp_jax.data.held_out import eval_samples
     from llrmpp_jax.data.sources import scene_source
+    from tests.helpers.environment import shared_path
     from llrmpp_jax.experiment import ExperimentConfig
 
     data = DataConfig(kind="auto", path=shared_path("data", "beer"), num_eval_scenes=1)
@@ -330,7 +316,7 @@ def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
     targets = [i for i in range(len(full)) if i % 8 == 0]
     assert len(full) == 71 and len(trained) == 71 - len(targets) == 62
     np.testing.assert_array_equal(trained.c2w, np.delete(full.c2w, targets, axis=0))
-    exp = _micro_experiment()
+    exp = micro_experiment()
     exp = C.replace(exp, data=data, stages=(C.replace(exp.stages[0], num_inputs=8),))
     held_out, _ = eval_samples(exp, exp.stages[0])
     for t in held_out[0]["target_c2w"]:  # every evaluated camera is absent from training
@@ -343,11 +329,11 @@ def test_eval_on_a_capture_says_and_takes_the_view_size(tmp_path, capsys):
     config's height 32 would give 32 x 16, cropped to 16 x 16). A bad size is one line."""
     import jax
 
-    from conftest import shared_path
     from llrmpp_jax.model import init_params
     from llrmpp_jax.params_io import save_params
+    from tests.helpers.environment import shared_path
 
-    exp = _micro_experiment()
+    exp = micro_experiment()
     save_params(str(tmp_path / "p"), init_params(jax.random.key(3), exp.model, 2, 32, 32), exp.model)
     cfg_file = _micro_experiment_file(tmp_path, 2)
     base = ["eval", "--config", str(cfg_file), "--checkpoint", str(tmp_path / "p"), "--data",
@@ -370,10 +356,10 @@ def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
     ScanNet export, ``--split val`` evaluates the val list's room and the output names the split."""
     import jax
 
-    from conftest import unchecked
     from llrmpp_jax.model import init_params
     from llrmpp_jax.params_io import save_params
-    from test_data_sources import fake_scannet
+    from tests.helpers.fake_scannet import fake_scannet
+    from tests.helpers.typechecks import unchecked
 
     out = ["--out", str(tmp_path / "ev")]
     monkeypatch.chdir(tmp_path)  # the recipe's data/scannet/... paths are relative: absent here
@@ -387,9 +373,10 @@ def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
                         lists={"val": ["scene0011_00"], "test": ["scene0707_00", "scene0710_00"]})
     cfg_file = tmp_path / "micro_scannet.py"
     cfg_file.write_text(
-        f"import dataclasses, sys\nsys.path.insert(0, {os.path.dirname(__file__)!r})\n"
-        "from test_cli import _micro_experiment\nfrom test_data_sources import split_data\n"
-        "def get_config():\n    exp = _micro_experiment(1)\n"
+        f"import dataclasses, sys\nsys.path.insert(0, {ROOT!r})\n"
+        "from tests.helpers.fake_scannet import split_data\n"
+        "from tests.helpers.micro_experiment import micro_experiment\n"
+        "def get_config():\n    exp = micro_experiment(1)\n"
         f"    data = dataclasses.replace(split_data({root!r}, 'test'), eval_inputs='uniform', workers=1)\n"
         "    return dataclasses.replace(exp, data=data)\n")
     cases.append((["--config", str(cfg_file), "--checkpoint", "pretrained:small"],
@@ -427,7 +414,7 @@ def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_
     from llrmpp_jax.trainer import train
 
     def frozen(steps):
-        exp = _micro_experiment(steps)
+        exp = micro_experiment(steps)
         return dataclasses.replace(exp, eval_every=0, stages=(dataclasses.replace(exp.stages[0], lr=0.0),))
 
     exp = frozen(1)
@@ -462,7 +449,7 @@ def test_train_init_of_another_architecture_is_one_line(tmp_path):
     from llrmpp_jax.model import init_params
     from llrmpp_jax.params_io import save_params
 
-    exp = _micro_experiment(1)
+    exp = micro_experiment(1)
     wide = C.replace(exp.model, head=C.replace(exp.model.head, feature_dim=16))
     save_params(str(tmp_path / "wide"), init_params(jax.random.key(0), wide, 2, 32, 32), wide)
     res = _run_cli("train", "--config", str(_micro_experiment_file(tmp_path, 1)), "--workdir",
@@ -485,7 +472,7 @@ def test_workdir_params_come_from_the_curriculum_s_last_stage(tmp_path):
     from llrmpp_jax.model import init_params
     from llrmpp_jax.params_io import load_params
 
-    whole = _micro_experiment(1)
+    whole = micro_experiment(1)
     whole = dataclasses.replace(whole, stages=(dataclasses.replace(whole.stages[0], name="a"),
                                                dataclasses.replace(whole.stages[0], name="b")))
     first = dataclasses.replace(whole, stages=whole.stages[:1])

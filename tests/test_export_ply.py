@@ -6,12 +6,12 @@ import plyfile
 import pytest
 from scipy.spatial.transform import Rotation
 from scipy.special import expit, logit
-from test_splat_sh import scipy_real_sh
 
 from llrmpp_jax import config as C
 from llrmpp_jax.export_ply import export_ply, ply_fields, read_ply
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import partition_logits
+from tests.oracles.sh import scipy_real_sh
 
 N = 40
 COLOUR = C.ModelConfig(head=C.GaussianHeadConfig(mode="color", sh_degree=3))

@@ -9,14 +9,14 @@ from llrmpp_jax import config as C
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss, splatted_depth
 from llrmpp_jax.losses import depth_loss
 from llrmpp_jax.splat.reference import render_features_reference
-from tests.test_model import _golden_colour_scene
+from tests.helpers.golden import golden_colour_scene
 
 
 def test_splatted_depth_and_loss_match_brute_force_and_numpy_area_mean(rng):
     """Expected depth = accumulated z / alpha of ``render_features_reference`` (1e-9, float64)
     at the canvas size H/r; the loss equals ``depth_loss`` on that depth against the r x r
     block means of a random positive ground truth computed in NumPy (1e-9)."""
-    _, g, c2w, intr = _golden_colour_scene()  # cameras of 32 x 48 images
+    _, g, c2w, intr = golden_colour_scene()  # cameras of 32 x 48 images
     cfg = C.tiny()  # feature mode, canvas ratio 2
     r = cfg.decoder.canvas_ratio
     h, w, intr = 64, 96, intr * r  # the canvas is the cameras' own 32 x 48 (the depth loss needs >= 32)
@@ -43,7 +43,7 @@ def test_splatted_depth_and_loss_match_brute_force_and_numpy_area_mean(rng):
 
 def test_gaussian_depth_gradient_moves_the_means(rng):
     """Finite, non-zero gradients reach the Gaussian centres (what the term is for)."""
-    _, g, c2w, intr = _golden_colour_scene()
+    _, g, c2w, intr = golden_colour_scene()
     cfg = C.tiny()
     one = jax.tree.map(lambda a: a[:1], g)
     gt = jnp.asarray(rng.uniform(0.5, 4.0, size=(1, 1, 64, 96)))

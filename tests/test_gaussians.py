@@ -4,9 +4,9 @@ import jax
 import numpy as np
 import pytest
 
-from conftest import unchecked
 from llrmpp_jax import config as C
 from llrmpp_jax.gaussians import GaussianHead, decode_gaussians
+from tests.helpers.typechecks import unchecked
 
 
 def oracle_means(raw, c2w, intr, s, f, offset_scale, max_dist, grid=False):

@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import skimage.transform
-from conftest import GOLDEN, shared_path, unchecked
 
 from llrmpp_jax import geometry as G
+from tests.helpers.environment import GOLDEN, shared_path
+from tests.helpers.typechecks import unchecked
 
 
 def random_c2w(rng, shape):

@@ -8,10 +8,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import unchecked
 from llrmpp_jax.convert.vgg import convert_vgg
 from llrmpp_jax.losses import depth_loss, depth_to_normals, rgb_loss, sobel
-from test_perceptual import random_torchvision_state_dict, torch_vgg_taps
+from tests.helpers.typechecks import unchecked
+from tests.oracles.torch_vgg import random_torchvision_state_dict, torch_vgg_taps
 
 # ---------------------------------------------------------------- perceptual / RGB
 
@@ -86,11 +86,11 @@ def test_stage_perceptual_weight_overrides_the_experiments(rng, vgg19):
     from llrmpp_jax.experiment import ExperimentConfig, StageConfig
     from llrmpp_jax.model import init_params, reconstruct, render
     from llrmpp_jax.objective import load_perceptual, make_loss_fn
-    from test_model import _scene
+    from tests.helpers.scenes import orbit_scene
 
     sd, params = vgg19
     cfg = C.tiny()
-    images, c2w, intr = _scene(jax.random.key(int(rng.integers(1 << 30))), 1, 3, 16, 16)
+    images, c2w, intr = orbit_scene(jax.random.key(int(rng.integers(1 << 30))), 1, 3, 16, 16)
     model = init_params(jax.random.key(1), cfg, 2, 16, 16)
     batch = {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
              "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:]}

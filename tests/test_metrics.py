@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from conftest import unchecked
 from llrmpp_jax.metrics import depth_metrics, load_lpips_params, lpips, psnr, ssim
+from tests.helpers.typechecks import unchecked
 
 
 def _pair(rng, shape, noise=0.1):

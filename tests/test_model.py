@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import GOLDEN, shared_path, unchecked
 from llrmpp_jax import config as C
 from llrmpp_jax import decoder
 from llrmpp_jax.decoder import TargetDecoder
@@ -21,11 +20,10 @@ from llrmpp_jax.nn.backbone import count_params
 from llrmpp_jax.nn.remat_loops import remat_blocks
 from llrmpp_jax.perceptual import load_vgg16_lpips
 from llrmpp_jax.splat import render_features
-from test_backbone import golden_backbone_config
-
-
-def golden_model_config() -> C.ModelConfig:
-    return C.ModelConfig(backbone=golden_backbone_config(), head=C.GaussianHeadConfig(mode="color"))
+from tests.helpers.environment import GOLDEN, shared_path
+from tests.helpers.golden import golden_colour_scene, golden_model_config
+from tests.helpers.scenes import orbit_scene
+from tests.helpers.typechecks import unchecked
 
 
 def _rel_err(got, want) -> float:
@@ -75,25 +73,11 @@ def test_paper_model_size_and_forward_shapes():
     assert out.images["rgb"].shape == (1, t, h, w, 3)
 
 
-def _scene(key, b, v, h, w):
-    """Random images and cameras looking at the origin from ~2 units (non-degenerate)."""
-    k1, k2 = jax.random.split(key)
-    images = jax.random.uniform(k1, (b, v, h, w, 3), jnp.float32)
-    angles = jax.random.uniform(k2, (b, v), jnp.float32, -0.4, 0.4)
-    c, s = jnp.cos(angles), jnp.sin(angles)
-    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
-    rot = jnp.stack([jnp.stack([c, zero, -s], -1), jnp.stack([zero, one, zero], -1), jnp.stack([s, zero, c], -1)], -2)
-    centre = jnp.stack([2.0 * s, zero, -2.0 * c], -1)
-    c2w = jnp.zeros((b, v, 4, 4), jnp.float32).at[..., :3, :3].set(rot).at[..., :3, 3].set(centre).at[..., 3, 3].set(1.0)
-    intr = jnp.broadcast_to(jnp.array([w, w, w / 2, h / 2], jnp.float32), (b, v, 4))
-    return images, c2w, intr
-
-
 def test_tiny_loss_gradient_reaches_every_parameter(key):
     cfg = C.replace(C.tiny(), outputs=("rgb", "depth"),
                     head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
     k0, k1 = jax.random.split(key)
-    images, c2w, intr = _scene(k1, 1, 3, 32, 32)
+    images, c2w, intr = orbit_scene(k1, 1, 3, 32, 32)
     params = init_params(k0, cfg, 3, 32, 32)
     vgg = load_vgg16_lpips()
     depth_target = jax.random.uniform(k1, (1, 2, 32, 32), jnp.float32, 1.0, 3.0)
@@ -120,7 +104,7 @@ def test_single_partition_equals_no_partition(key):
     cfg = C.replace(C.tiny(), decoder=C.replace(C.tiny().decoder, partitions=1),
                     head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
     k0, k1 = jax.random.split(key)
-    images, c2w, intr = _scene(k1, 1, 3, 32, 48)
+    images, c2w, intr = orbit_scene(k1, 1, 3, 32, 48)
     params = init_params(k0, cfg, 2, 32, 48)
     g = reconstruct(params, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
     got = render(params, cfg, g, c2w[:, 2:], intr[:, 2:], 32, 48).images["rgb"]
@@ -192,9 +176,9 @@ def test_model_rejects_mismatched_cameras():
 
 def test_absolute_positions_add_the_sincos_embedding(key):
     """``absolute_positions``: the first block sees tokenizer output + the 2-D sin-cos table
-    (an independent formula in test_position_embedding), at two canvas sizes with one
+    (an independent formula, tests/oracles/position_embedding.py), at two canvas sizes with one
     parameter set; off, it sees the tokenizer output alone."""
-    from test_position_embedding import oracle
+    from tests.oracles.position_embedding import sincos_2d_oracle
 
     seen = []
 
@@ -213,7 +197,7 @@ def test_absolute_positions_add_the_sincos_embedding(key):
             out = with_pe.apply({"params": params}, x)["rgb"]
             TargetDecoder(cfg).apply({"params": params}, x)
         assert out.shape == (1, hc * 2, wc * 2, 3) and bool(jnp.all(jnp.isfinite(out)))
-        np.testing.assert_allclose(seen[0] - seen[1], oracle(hc // 4, wc // 4, 32)[None], atol=1e-6)
+        np.testing.assert_allclose(seen[0] - seen[1], sincos_2d_oracle(hc // 4, wc // 4, 32)[None], atol=1e-6)
     with pytest.raises(ValueError, match=r"absolute_positions needs dim % 4 == 0, got dim=30"):
         C.DecoderConfig(dim=30, absolute_positions=True)
 
@@ -251,26 +235,13 @@ def test_paper_scannet_depth_head_starts_at_its_typical_depth(key):
     assert abs(np.log(np.median(depth)) - np.log(4.0)) < np.log(1.15), np.median(depth)
 
 
-def _golden_colour_scene():
-    """The golden Long-LRM Gaussians (float64) and their input cameras as render targets."""
-    from llrmpp_jax.gaussians import Gaussians
-
-    out = np.load(shared_path("golden", "long_lrm_tiny", "outputs.npz"))
-    g = Gaussians(jnp.asarray(out["xyz"]), jnp.asarray(out["render_quats"]), jnp.asarray(out["render_scales"]),
-                  jnp.asarray(out["render_opacities"]), jnp.asarray(out["feature"].reshape(2, 3072, 48)))
-    c2w = jnp.asarray(np.linalg.inv(out["render_viewmats"]))
-    ks = out["render_Ks"]
-    intr = jnp.asarray(np.stack([ks[..., 0, 0], ks[..., 1, 1], ks[..., 0, 2], ks[..., 1, 2]], -1))
-    return C.replace(golden_model_config(), outputs=("rgb", "depth")), g, c2w, intr
-
-
 def test_colour_mode_depth_equals_brute_force():
     """Colour-mode depth = accumulated camera z / accumulated alpha of the brute-force
     splatter (``splat/reference.py``), on the golden Long-LRM Gaussians seen from their input
     cameras (float64)."""
     from llrmpp_jax.splat.reference import render_features_reference
 
-    cfg, g, c2w, intr = _golden_colour_scene()
+    cfg, g, c2w, intr = golden_colour_scene()
     h, w = 32, 48
     got = render({}, cfg, g, c2w, intr, h, w, ("depth",)).images
     assert set(got) == {"depth"} and got["depth"].shape == (2, 2, h, w, 1)
@@ -287,7 +258,7 @@ def test_colour_mode_depth_equals_brute_force():
 @pytest.mark.slow  # ~40 s idle: compiles the splatter's backward pass
 def test_colour_mode_depth_trains_with_the_depth_loss():
     """The depth loss on colour-mode depth has finite, non-zero gradients w.r.t. the means."""
-    cfg, g, c2w, intr = _golden_colour_scene()
+    cfg, g, c2w, intr = golden_colour_scene()
     h, w = 32, 48
     one = jax.tree.map(lambda a: a[:1], g)  # one scene, one target
     target = render({}, cfg, one, c2w[:1, :1], intr[:1, :1], h, w, ("depth",)).images["depth"][..., 0] * 1.1

@@ -26,9 +26,8 @@ import tempfile
 
 import pytest
 
-from conftest import QUICK_XLA_FLAGS, shared_path
+from tests.helpers.environment import QUICK_XLA_FLAGS, ROOT, shared_path
 
-ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 NB_DIR = os.path.join(ROOT, "notebooks")
 
 # notebook -> (label of its table in the .tex, its label columns, rows run by the smoke test)

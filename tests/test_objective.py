@@ -23,7 +23,7 @@ from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.objective import LossWeights, make_loss_fn, make_objective
 from llrmpp_jax.pruning import prune_gaussians
-from test_model import _scene
+from tests.helpers.scenes import orbit_scene
 
 SIZE = 32  # the depth loss's coarsest gradient scale needs 32 pixels (the Gaussians' depth: a 32-pixel canvas)
 
@@ -37,7 +37,7 @@ def _batch(key, size: int = SIZE) -> dict:
     """One scene: 2 input and 2 target views of ``size`` x ``size`` with random colours and
     ground-truth depth."""
     k_scene, k_depth = jax.random.split(key)
-    images, c2w, intr = _scene(k_scene, 1, 4, size, size)
+    images, c2w, intr = orbit_scene(k_scene, 1, 4, size, size)
     depth = jax.random.uniform(k_depth, (1, 2, size, size), jnp.float32, 0.5, 4.0)
     return {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
             "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:],

@@ -15,8 +15,8 @@ from llrmpp_jax.model import init_params
 from llrmpp_jax.model import flatten_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.pretrained import WEIGHTS_DIR, export_pretrained, load_pretrained, reference_forward
+from tests.helpers.environment import ROOT
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REFERENCE = {"seed": 5, "height": 64, "width": 64, "num_frames": 6, "inputs": [0, 4], "target": 2}
 
 

@@ -11,13 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import shared_path
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
-from test_model import _scene
+from tests.helpers.environment import shared_path
+from tests.helpers.scenes import orbit_scene
 
 
 def official_counts(n: int, prune_ratio: float, random_ratio: float) -> tuple[int, int]:
@@ -95,7 +95,7 @@ def test_training_and_evaluation_prune_and_log_usage(key):
 
     cfg = C.replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0,
                                                          prune_ratio=0.6, prune_random_ratio=0.1))
-    images, c2w, intr = _scene(key, 1, 3, 16, 16)
+    images, c2w, intr = orbit_scene(key, 1, 3, 16, 16)
     params = init_params(jax.random.key(1), cfg, 2, 16, 16)
     sample = {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
               "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:]}

@@ -13,7 +13,7 @@ Ship: python experiments/ship_weights.py --workdir runs/small --config small --n
   at batch 2, lr 5e-4 (the CPU recipe's ``polish`` rate; its 1e-3 at batch 2 cost the
   width-64 network 0.26 dB after a batch-16 stage), warmup 100, cosine. Trained on this 2-core
   CPU in 70 minutes (~1 step/s) with ``workers=2`` threads in place of the processes (the same
-  batches, ``tests/test_data_batching.py``; on 2 cores the ~1 s step, not the ~47 ms samples,
+  batches, ``tests/data/test_batching.py``; on 2 cores the ~1 s step, not the ~47 ms samples,
   is the bottleneck). On the 16 held-out scenes:
 
   | after ``sharpen`` step | 0 | 1,000 | 2,000 | 3,000 | 4,000 (shipped) |

@@ -31,7 +31,7 @@ JAX needs it as a static shape, so it is a capacity:
   one canvas pixel (16 Gaussians per 8x8-pixel token rendered at half resolution), i.e.
   2-4 blocks each, and not all of them are in a target's frustum. The default of
   8 slots per Gaussian leaves a 2x margin there (tested at that density in
-  ``tests/test_splat_binning.py``); colour mode (one Gaussian per pixel) is similar.
+  ``tests/splat/test_binning.py``); colour mode (one Gaussian per pixel) is similar.
 * Measure a real model with :func:`llrmpp_jax.splat.count_intersections` on a few
   scenes and set ``max_intersections`` to ~1.25x the largest count; every render also
   reports ``stats.num_intersections`` and ``stats.overflow``. Memory is about 12 bytes

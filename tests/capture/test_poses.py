@@ -1,0 +1,147 @@
+"""Camera poses from photos or a video (``llrmpp_jax.capture.poses``, pycolmap): a real
+capture's photos register and read back as a capture; a video's frames too; photos that
+share nothing fail in one line; bad inputs are one line; importing pycolmap leaves the
+process's crash handlers as they were."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import warnings
+
+import imageio_ffmpeg
+import numpy as np
+import pytest
+
+from llrmpp_jax.capture.poses import PosesConfig, estimate_poses, extract_frames
+from llrmpp_jax.cli import main
+from llrmpp_jax.data.formats import read_scene
+from llrmpp_jax.data.image_io import read_image, write_image
+from llrmpp_jax.data.resample import resize_image
+from llrmpp_jax.errors import MissingInputError, UserError
+from tests.helpers.environment import shared_path
+
+FOX = 10  # the first photos of the fox capture: they overlap enough to register
+
+
+def _fox_photos(tmp_path, size: int = 480) -> list[str]:
+    """The first FOX photos of ../shared's fox capture, shrunk to ``size`` px high."""
+    src = shared_path("data", "fox", "images")
+    out = tmp_path / "photos"
+    out.mkdir()
+    names = sorted(os.listdir(src))[:FOX]
+    for n in names:
+        image = read_image(os.path.join(src, n))
+        h, w = image.shape[:2]
+        write_image(str(out / n), resize_image(image, (size, round(w * size / h))))
+    return names
+
+
+def test_photos_register_and_read_back_as_a_capture(tmp_path, capsys):
+    names = _fox_photos(tmp_path)
+    out = str(tmp_path / "capture")
+    assert main(["poses", "--images", str(tmp_path / "photos"), "--out", out, "--max-image-size", "480"]) == 0
+    printed = capsys.readouterr().out
+    report = json.load(open(os.path.join(out, "poses_report.json")))
+    assert report["given"] == FOX and report["registered"] >= FOX - 1, report
+    assert report["matcher"] == "exhaustive" and report["shared_camera"]
+    assert 0 < report["mean_reprojection_error_px"] < 2.0 and report["mean_track_length"] > 2.0, report
+    assert f"registered {report['registered']} of {FOX} images" in printed
+    scene = read_scene(out, "auto")  # the standard COLMAP layout every command reads
+    assert len(scene) == report["registered"]
+    # The recovered cameras are a rigid motion + scale of the capture's own (nerfstudio) poses:
+    # the ratios of camera-centre distances agree.
+    with warnings.catch_warnings():  # the fox capture lists 17 frames it does not ship
+        warnings.simplefilter("ignore", UserWarning)
+        fox = read_scene(shared_path("data", "fox"), "auto")
+    ours = {os.path.basename(n): c[:3, 3] for n, c in zip(scene.frame_names, scene.c2w)}
+    theirs = {os.path.basename(n): c[:3, 3] for n, c in zip(fox.frame_names, fox.c2w) if os.path.basename(n) in ours}
+    keys = sorted(set(ours) & set(theirs))
+    a = np.array([ours[k] for k in keys])
+    b = np.array([theirs[k] for k in keys])
+    da = np.linalg.norm(a[:, None] - a[None], axis=-1)
+    db = np.linalg.norm(b[:, None] - b[None], axis=-1)
+    iu = np.triu_indices(len(keys), 1)
+    ratio = da[iu] / db[iu]
+    assert np.std(ratio) / np.mean(ratio) < 0.05, ratio  # 5%: COLMAP vs nerfstudio's own solve
+    assert sorted(os.listdir(os.path.join(out, "images"))) == names
+
+
+def test_a_video_becomes_frames_and_poses(tmp_path):
+    _fox_photos(tmp_path, size=320)
+    frames = [read_image(str(p)) for p in sorted((tmp_path / "photos").iterdir())]
+    h, w = frames[0].shape[:2]
+    w -= w % 2  # yuv420p needs even sides
+    video = str(tmp_path / "walk.mp4")
+    writer = imageio_ffmpeg.write_frames(video, (w, h), fps=5, quality=9, macro_block_size=1)
+    writer.send(None)
+    for f in frames:
+        writer.send(np.ascontiguousarray((f[:, :w] * 255).round().astype(np.uint8)))
+    writer.close()
+    names = extract_frames(video, str(tmp_path / "frames"), fps=5, progress=lambda _: None)
+    assert len(names) == FOX  # 2 s at 5 frames a second
+    report = estimate_poses(None, str(tmp_path / "capture"), PosesConfig(max_image_size=320), video=video, fps=5,
+                            progress=lambda _: None)
+    assert report.matcher == "sequential" and report.registered >= FOX - 2, report
+
+
+def test_photos_that_share_nothing_fail_in_one_line(tmp_path, rng, capsys):
+    folder = tmp_path / "noise"
+    folder.mkdir()
+    for i in range(4):
+        write_image(str(folder / f"{i}.png"), rng.uniform(size=(96, 128, 3)).astype(np.float32))
+    out = tmp_path / "capture"
+    assert main(["poses", "--images", str(folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "of 4 images registered (need 3)" in err[0] and "overlap" in err[0], err
+    assert not (out / "sparse").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--images", "/nonexistent/photos"], "--images: folder not found"),
+    (["--video", "/nonexistent/walk.mp4"], "--video: file not found"),
+    (["--images", "{empty}"], "no images"),
+    (["--images", "{empty}", "--max-image-size", "8"], "--max-image-size must be >= 64"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, args, message):
+    (tmp_path / "empty").mkdir()
+    args = [a.format(empty=tmp_path / "empty") for a in args]
+    assert main(["poses", *args, "--out", str(tmp_path / "capture")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def test_not_a_video_is_one_line(tmp_path):
+    fake = tmp_path / "walk.mp4"
+    fake.write_bytes(b"not a video")
+    with pytest.raises(UserError, match="not a video ffmpeg can read"):
+        extract_frames(str(fake), str(tmp_path / "frames"), 2.0, progress=lambda _: None)
+    with pytest.raises(MissingInputError):
+        extract_frames(str(tmp_path / "missing.mp4"), str(tmp_path / "frames"), 2.0)
+
+
+_CRASH = """
+import faulthandler, sys, ctypes
+faulthandler.enable()
+if sys.argv[1] == "plain":
+    import pycolmap
+else:
+    from llrmpp_jax.capture.poses import _import_pycolmap
+    _import_pycolmap()
+ctypes.string_at(0)  # a segmentation fault
+"""
+
+
+@pytest.mark.parametrize("how", ["plain", "ours"])
+def test_pycolmap_leaves_the_crash_handlers_alone(how):
+    """A plain ``import pycolmap`` replaces the crash handlers with glog's (which can
+    deadlock inside the C++ unwinder); ``_import_pycolmap`` keeps the ones from before:
+    a segfault afterwards is reported by Python's faulthandler and ends the process."""
+    proc = subprocess.run([sys.executable, "-c", _CRASH, how], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == -signal.SIGSEGV, proc.stderr[-2000:]
+    by_faulthandler = "Fatal Python error: Segmentation fault" in proc.stderr
+    by_glog = "SIGSEGV (@0x0) received" in proc.stderr
+    assert (by_faulthandler, by_glog) == ((False, True) if how == "plain" else (True, False)), proc.stderr[-2000:]

@@ -1,0 +1,2 @@
+"""What several test modules share besides oracles: the suite's environment, small scenes,
+toy training states and golden configurations."""
