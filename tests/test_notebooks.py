@@ -15,6 +15,7 @@ as printed in the paper's .tex, and a smoke run per notebook.
   trainings run in the notebook's own process.
 """
 
+import dataclasses
 import json
 import math
 import os
@@ -24,6 +25,7 @@ import subprocess
 import sys
 import tempfile
 
+import numpy as np
 import pytest
 
 from tests.helpers.environment import QUICK_XLA_FLAGS, ROOT, shared_path
@@ -238,7 +240,55 @@ def test_compare_verdicts(ablation):
     assert got[1]["diff"] == pytest.approx(-0.3) and got[0]["diff_ci"] == pytest.approx(got[1]["diff_ci"])
     assert got[2]["diff"] == pytest.approx(0.1037, abs=1e-3) and got[2]["paper_diff"] == pytest.approx(0.02)
     table = ablation.format_orderings(got)
-    assert "| 2 > 0 | psnr | +0.900 | -0.200 ± " in table and table.count("\n") == 6
+    assert "| 2 > 0 | psnr | +0.900 | -0.200 ± " in table and "| 3 | not resolved |" in table
+    assert table.splitlines()[-1] == "Intervals: paired differences over seeds, Student-t, 95% two-sided."
+    # Rows that ran different numbers of seeds are paired over the seeds both ran.
+    results[1] = _row(1, [20.3, 20.9, 21.2, 30.0], [0.40, 0.30, 0.34, 0.1], "28.5", "0.08")
+    assert ablation.compare(results, [O("1 > 0", 1, 0)])[0]["seeds"] == 3
+    assert ablation.compare(results, [O("1 > 0", 1, 0)])[0]["diff"] == pytest.approx(0.3)
+
+
+def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablation, monkeypatch):
+    """Rows 1 and 0 differ by 1 dB +- 0.1 (resolved with the first 3 seeds); rows 2 and 0 by
+    noise of sd 1 around 0 (never resolved: seeds are added up to the cap); row 3 is in no
+    ordering (never more than the first seeds). Trainings are replaced by draws."""
+    from llrmpp_jax import config as C
+    from llrmpp_jax.ablation import tables
+
+    rng = np.random.default_rng(0)
+    calls = []
+
+    def fake_run_seed(cfg, scale, variant, seed, keep_params=False):
+        row = cfg.decoder.dim // 8 - 1
+        calls.append((row, seed))
+        psnr = 20.0 + {0: 0.0, 1: 1.0 + 0.1 * rng.standard_normal(), 2: rng.standard_normal(), 3: 5.0}[row]
+        return tables.SeedRun({"psnr": psnr, "eval_dropped": 0}, np.zeros(4, np.float32), 1.0, 0, {} if keep_params else None)
+
+    monkeypatch.setattr(tables, "run_seed", fake_run_seed)
+    monkeypatch.setattr(tables, "time_model", lambda *a: {})
+    monkeypatch.setattr(tables, "references", lambda *a: [])
+    monkeypatch.setattr(tables, "_held_out", lambda scale, depth: [None])
+    monkeypatch.delenv("LLRMPP_NOTEBOOK_ROWS", raising=False)
+    scale = dataclasses.replace(ablation.make_scale("smoke", paper_views=4), seeds=3, max_seeds=6, workers=1)
+    V, O = ablation.Variant, ablation.Ordering
+    variants = [V({"x": str(i)}, lambda base, i=i: C.replace(base, decoder=C.replace(base.decoder, dim=8 * (i + 1))),
+                  {}) for i in range(4)]
+    orderings = [O("1 > 0", 1, 0), O("2 > 0", 2, 0)]
+    monkeypatch.setattr(tables, "count_params", lambda p: 0)
+    run = ablation.run_table(variants, scale, orderings)
+    seeds = {r["row"]: r["seeds"] for r in run.results}
+    assert seeds == {0: 6, 1: 3, 2: 6, 3: 3}
+    assert sorted(calls) == sorted({(row, s) for row, n in seeds.items() for s in range(n)})  # each once
+    by = {c["ordering"]: c for c in run.comparisons}
+    assert by["1 > 0"]["verdict"] == "reproduced" and by["1 > 0"]["stopped"] == "resolved at 3 seeds"
+    assert by["1 > 0"]["confidence"] == 0.99
+    assert by["2 > 0"]["seeds"] == 6 and by["2 > 0"]["stopped"] == "the cap of 6 seeds"
+    assert "3-6 seeds per row" in ablation.format_table(run, ["x"])
+    # Out of time after the first round: no seed is added, and the reason is given.
+    calls.clear()
+    run = ablation.run_table(variants, dataclasses.replace(scale, budget_min=0.0), orderings)
+    assert len(calls) == 12 and {c["stopped"] for c in run.comparisons} == {
+        "resolved at 3 seeds", "the 0-minute budget, at 3 seeds"}
 
 
 @pytest.mark.parametrize("env, value, message", [

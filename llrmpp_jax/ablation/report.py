@@ -76,13 +76,17 @@ def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Col
               f"intersections dropped per training step, {r['eval_dropped'] / run.scale.eval_scenes:,.0f} "
               "per held-out scene (mean over seeds)"
               for r in run.results if r["status"] == "ok" and (r["train_dropped"] > 0 or r["eval_dropped"] > 0)]
-    footer = (f"{run.scale.name} scale, {run.scale.seeds} seed(s) per row, {run.scale.steps} steps, "
+    counts = sorted({r.get("seeds", run.scale.seeds) for r in run.results if r["status"] == "ok"}) or [run.scale.seeds]
+    seeds = (f"{counts[0]} seed(s) per row" if len(counts) == 1 else
+             f"{counts[0]}-{counts[-1]} seeds per row (added while an ordering was unresolved)")
+    footer = (f"{run.scale.name} scale, {seeds}, {run.scale.steps} steps, "
               f"wall time {run.seconds / 60:.1f} min, commit {commit()}")
     return "\n".join(lines + [""] + notes + ([""] if notes else []) + [footer])
 
 
 def ordering_cells(c: dict[str, Any]) -> tuple[str, str]:
-    """The paper's difference and ours (mean paired difference over seeds ± 95% half-width)
+    """The paper's difference and ours (mean paired difference over seeds ± the half-width
+    of its interval)
     of one :func:`compare` entry, as printed ("-" where there is none)."""
     ours = (f"{c['diff']:+.3f} ± {c['diff_ci']:.3f}" if "diff" in c and np.isfinite(c["diff_ci"])
             else f"{c['diff']:+.3f}" if "diff" in c else "-")
@@ -92,11 +96,19 @@ def ordering_cells(c: dict[str, Any]) -> tuple[str, str]:
 
 def format_orderings(comparisons: Sequence[dict[str, Any]]) -> str:
     """A Markdown table of :func:`compare`'s verdicts: the paper's difference, ours
-    (:func:`ordering_cells`; > 0 = the paper's ordering holds)."""
-    lines = ["| paper ordering | metric | paper diff | our diff (95% interval) | verdict |", "|---|---|---|---|---|"]
+    (:func:`ordering_cells`; > 0 = the paper's ordering holds), the seeds paired and, for a
+    :func:`run_table` result, what stopped them; a last line gives the interval's level."""
+    stopped = any("stopped" in c for c in comparisons)
+    lines = ["| paper ordering | metric | paper diff | our diff (± interval) | seeds | verdict |"
+             + (" stopped by |" if stopped else ""), "|---|---|---|---|---|---|" + ("---|" if stopped else "")]
     for c in comparisons:
         paper, ours = ordering_cells(c)
-        lines.append(f"| {c['ordering']} | {c['metric']} | {paper} | {ours} | {c['verdict']} |")
+        lines.append(f"| {c['ordering']} | {c['metric']} | {paper} | {ours} | {c.get('seeds', '-')} | {c['verdict']} |"
+                     + (f" {c.get('stopped', '')} |" if stopped else ""))
+    levels = sorted({c["confidence"] for c in comparisons if "confidence" in c})
+    if levels:
+        lines += ["", "Intervals: paired differences over seeds, Student-t, "
+                  + " / ".join(f"{100 * lv:g}%" for lv in levels) + " two-sided."]
     return "\n".join(lines)
 
 

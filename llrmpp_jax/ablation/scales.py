@@ -16,6 +16,8 @@ TRAIN_SCENES = 100_000  # training seeds are [0, TRAIN_SCENES)
 EVAL_SEED = 1_000_000  # held-out seeds start here (disjoint from training)
 SCALES = ("smoke", "cpu", "paper")
 CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
+CPU_MAX_SEEDS = 10  # the cpu scale adds seeds to an unresolved ordering up to this many ...
+CPU_BUDGET_MIN = 90.0  # ... within this many minutes per table
 CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu scale (memory)
 # Every table at the smoke and cpu scales keeps the procedural rooms' world units
 # (Scale.rescale False). Long-LRM's per-window rescaling (input cameras into [-1, 1]^3) gives
@@ -69,6 +71,8 @@ class Scale:
     max_span: int | None = None
     eval_span: int | None = None
     workers: int = 1
+    max_seeds: int = 0  # sequential: add seeds to unresolved orderings up to this many (0: fixed seeds)
+    budget_min: float | None = None  # sequential: add no seed after this many minutes of the table
     rescale: bool = True  # Long-LRM's per-window scale normalisation (geometry.normalize_scene)
 
     def __str__(self) -> str:
@@ -162,6 +166,7 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
         scale = Scale(name="cpu", base=cpu_base(), size=64, num_inputs=4, num_targets=2, batch=2, steps=cpu_steps,
                       lr=2e-3, warmup=50, perceptual_weight=0.0, eval_scenes=16, frames=16, lpips=True,
                       timing_repeats=3, width_divisor=4, seeds=cpu_seeds, min_span=6, max_span=10, eval_span=8,
+                      max_seeds=CPU_MAX_SEEDS, budget_min=CPU_BUDGET_MIN,
                       workers=min(CPU_WORKERS, len(os.sched_getaffinity(0))))
     elif name == "paper":
         base = C.paper_scannet() if depth else C.paper_dl3dv()
@@ -187,4 +192,10 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     workers = _env_int("LLRMPP_NOTEBOOK_WORKERS", 1)
     if workers is not None:
         scale = dataclasses.replace(scale, workers=workers)
+    max_seeds = _env_int("LLRMPP_NOTEBOOK_MAX_SEEDS", 0)
+    if max_seeds is not None:
+        scale = dataclasses.replace(scale, max_seeds=max_seeds)
+    budget = _env_int("LLRMPP_NOTEBOOK_BUDGET_MIN", 1)
+    if budget is not None:
+        scale = dataclasses.replace(scale, budget_min=float(budget))
     return scale

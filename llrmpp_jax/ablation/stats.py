@@ -12,7 +12,7 @@ from scipy import stats
 
 from llrmpp_jax.ablation.rows import METRICS, Ordering
 
-def interval(values: Sequence[float], confidence: float = 0.95) -> dict[str, float]:
+def interval(values: Sequence[float] | np.ndarray, confidence: float = 0.95) -> dict[str, float]:
     """Mean, sample standard deviation and the half-width of the two-sided Student-t
     ``confidence`` interval of the mean (NaN for fewer than 2 values)."""
     x = np.asarray(values, np.float64)
@@ -35,10 +35,12 @@ def summarise(per_seed: Sequence[dict[str, float]]) -> dict[str, Any]:
     return out
 
 
-def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering]) -> list[dict[str, Any]]:
-    """For each ordering, the paired per-seed difference ``better - worse`` (sign flipped for
-    lower-is-better metrics, so > 0 means the paper's ordering holds) with its 95% interval,
-    and a verdict: ``reproduced`` (interval above 0), ``reversed`` (below 0), ``not resolved``
+def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering], confidence: float = 0.95
+            ) -> list[dict[str, Any]]:
+    """For each ordering, the paired per-seed difference ``better - worse`` over the seeds
+    both rows ran (sign flipped for lower-is-better metrics, so > 0 means the paper's
+    ordering holds) with its ``confidence`` interval, the number of ``seeds`` paired, and a
+    verdict: ``reproduced`` (interval above 0), ``reversed`` (below 0), ``not resolved``
     (contains 0, or fewer than 2 seeds), ``not run`` (a row did not run)."""
     by_row = {r["row"]: r for r in results}
     out = []
@@ -49,16 +51,23 @@ def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering]) ->
             out.append({**entry, "verdict": "not run"})
             continue
         sign = 1.0 if METRICS[o.metric] else -1.0
-        diffs = sign * (np.asarray(a[f"{o.metric}_seeds"]) - np.asarray(b[f"{o.metric}_seeds"]))
-        iv = interval(diffs)
+        n = min(len(a[f"{o.metric}_seeds"]), len(b[f"{o.metric}_seeds"]))
+        diffs = sign * (np.asarray(a[f"{o.metric}_seeds"][:n]) - np.asarray(b[f"{o.metric}_seeds"][:n]))
+        iv = interval(diffs, confidence)
         paper = _paper_number(a, o.metric), _paper_number(b, o.metric)
-        if len(diffs) < 2 or not abs(iv["mean"]) > iv["ci"]:
-            verdict = "not resolved"
-        else:
-            verdict = "reproduced" if iv["mean"] > 0 else "reversed"
-        out.append({**entry, "diff": iv["mean"], "diff_ci": iv["ci"], "diff_seeds": diffs.tolist(),
-                    "paper_diff": None if None in paper else sign * (paper[0] - paper[1]), "verdict": verdict})
+        out.append({**entry, "diff": iv["mean"], "diff_ci": iv["ci"], "confidence": confidence,
+                    "diff_seeds": diffs.tolist(), "seeds": n,
+                    "paper_diff": None if None in paper else sign * (paper[0] - paper[1]),
+                    "verdict": verdict(iv, n)})
     return out
+
+
+def verdict(iv: dict[str, float], n: int) -> str:
+    """``reproduced`` / ``reversed`` when the :func:`interval` ``iv`` of ``n`` paired
+    differences lies above / below 0, else ``not resolved``."""
+    if n < 2 or not abs(iv["mean"]) > iv["ci"]:
+        return "not resolved"
+    return "reproduced" if iv["mean"] > 0 else "reversed"
 
 
 _PAPER_KEY = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "abs_diff": "Abs Diff", "delta_1_25": "delta<1.25"}
