@@ -74,6 +74,9 @@ class Scale:
     max_seeds: int = 0  # sequential: add seeds to unresolved orderings up to this many (0: fixed seeds)
     budget_min: float | None = None  # sequential: add no seed after this many minutes of the table
     rescale: bool = True  # Long-LRM's per-window scale normalisation (geometry.normalize_scene)
+    # Skip updates whose gradient norm is this many times the recent mean (train/spikes.py):
+    # at the small scales the usual norm is ~0.03, far below Long-LRM's absolute guards.
+    spike_factor: float | None = 10.0
 
     def __str__(self) -> str:
         m = self.base

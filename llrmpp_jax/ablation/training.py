@@ -50,7 +50,7 @@ def _train_fns(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weig
     """``(optimizer, pmapped step)`` of a row, built once so its seeds share one compilation."""
     vgg = load_vgg16_lpips() if scale.perceptual_weight else None
     opt_cfg = T.OptimizerConfig(lr=scale.lr, warmup_steps=scale.warmup, total_steps=max(scale.steps, 1),
-                                no_decay_names=("global_tokens",))
+                                no_decay_names=("global_tokens",), spike_factor=scale.spike_factor)
     optimizer = T.make_optimizer(opt_cfg)
     step = T.pmap_train_step(T.make_train_step(
         row_objective(cfg, scale, grad_weight, normal_weight, vgg),

@@ -24,6 +24,7 @@ import optax
 
 from llrmpp_jax.array_typing import Array, ArrayLike, Float, Int
 from llrmpp_jax.errors import UserError
+from llrmpp_jax.train.spikes import skip_gradient_spikes
 
 
 # Long-LRM's ``training.train_steps`` in every released config: the horizon of its cosine.
@@ -48,6 +49,9 @@ class OptimizerConfig:
     warmup_steps: int = 2000
     total_steps: int = LONG_LRM_TRAIN_STEPS
     grad_clip_norm: float | None = 10.0
+    # Skip updates whose gradient norm exceeds this many times the recent (geometric) mean
+    # norm (train/spikes.py); None: Long-LRM's absolute guards only.
+    spike_factor: float | None = None
 
     def __post_init__(self) -> None:
         if self.warmup_steps < 0:
@@ -57,6 +61,8 @@ class OptimizerConfig:
                 f"OptimizerConfig: total_steps={self.total_steps} must be >= max(1, "
                 f"warmup_steps={self.warmup_steps})"
             )
+        if self.spike_factor is not None and self.spike_factor <= 1:
+            raise UserError(f"OptimizerConfig: spike_factor={self.spike_factor} must be > 1 or None")
         if self.grad_clip_norm is not None and self.grad_clip_norm <= 0:
             raise UserError(
                 f"OptimizerConfig: grad_clip_norm={self.grad_clip_norm} must be > 0 or None"
@@ -123,7 +129,9 @@ def make_schedule(cfg: OptimizerConfig) -> optax.Schedule:
 
 
 def make_optimizer(cfg: OptimizerConfig) -> optax.GradientTransformation:
-    """Global-norm clip, then AdamW (decoupled decay on :func:`weight_decay_mask` leaves).
+    """Global-norm clip, then AdamW (decoupled decay on :func:`weight_decay_mask` leaves),
+    inside :func:`~llrmpp_jax.train.spikes.skip_gradient_spikes` when ``cfg.spike_factor``
+    is set.
 
     Matches ``clip_grad_norm_`` + ``torch.optim.AdamW`` + the HF schedule step for step
     (the clip factor differs from torch's ``max / (norm + 1e-6)`` by ~1e-6 relative).
@@ -136,9 +144,8 @@ def make_optimizer(cfg: OptimizerConfig) -> optax.GradientTransformation:
         weight_decay=cfg.weight_decay,
         mask=functools.partial(weight_decay_mask, no_decay_names=cfg.no_decay_names),
     )
-    if cfg.grad_clip_norm is None:
-        return adamw
-    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip_norm), adamw)
+    opt = adamw if cfg.grad_clip_norm is None else optax.chain(optax.clip_by_global_norm(cfg.grad_clip_norm), adamw)
+    return opt if cfg.spike_factor is None else skip_gradient_spikes(opt, cfg.spike_factor)
 
 
 def _is_schedule_state(node) -> bool:
