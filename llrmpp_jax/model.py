@@ -203,8 +203,9 @@ def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2
                                 method="splat_intersections")
 
 
-def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Float[Array, "B N S"]:
-    """Feature mode: each Gaussian's S partition logits (``render`` splits its opacity by their softmax)."""
+def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Float[Array, "... N S"]:
+    """Feature mode: each Gaussian's S partition logits (``render`` splits its opacity by their
+    softmax); the Gaussians may be batched ``[B, N]`` or one scene's ``[N]`` (a .gs file)."""
     if cfg.head.mode != "feature":
         raise ValueError(f"partition logits exist only in feature mode, the model is in {cfg.head.mode!r} mode")
     return LongLRMPP(cfg).apply({"params": params}, gaussians.features, method=lambda m, f: m.partition(f))

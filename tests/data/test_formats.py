@@ -139,7 +139,7 @@ def test_scannet_registers_depth_into_the_colour_camera(tmp_path, rng):
     kd = np.array([15.5, 15.2, 8.2, 5.9])
     for d in ("color", "depth", "pose", "intrinsic"):
         os.makedirs(tmp_path / d)
-    depth = rng.uniform(0.5, 5.0, size=(hd, wd))
+    depth = rng.uniform(0.5, 5.0, size=(hd, wd)).astype(np.float32)  # write_depth stores float32 depths
     from llrmpp_jax.data.image_io import write_depth
 
     for i in range(2):
@@ -152,7 +152,7 @@ def test_scannet_registers_depth_into_the_colour_camera(tmp_path, rng):
     k_out = kc / 2
     np.testing.assert_allclose(s.intrinsics[0], k_out)
     got = s.depth(1)
-    stored = np.rint(depth * 1000) / 1000
+    stored = np.rint(depth.astype(np.float64) / 1e-3) * 1e-3  # write_depth's rounding, at its precision
     for i in range(hd):
         for j in range(wd):
             xd = (j + 0.5 - k_out[2]) / k_out[0] * kd[0] + kd[2]
