@@ -6,9 +6,9 @@ are its hooks) and the objective (:mod:`llrmpp_jax.objective`).
 optimizer and schedule from the previous stage's parameters (Long-LRM's
 ``reset_training_state``) and checkpoints to ``workdir/checkpoints/<stage>``; a rerun
 resumes from the newest verified checkpoint (parameters, optimizer, step, data position,
-PRNG), so a killed run continues exactly. Steps run as ``jit`` of a ``shard_map`` over every
-device (``"batch"`` axis; multi-host after ``jax.distributed.initialize``), or under
-``pmap`` with ``use_pmap=True``.
+PRNG), so a killed run continues exactly. Steps run under ``pmap`` over the local devices
+(``use_pmap=True``, the default), or as ``jit`` of a ``shard_map`` over every device
+(``use_pmap=False``; the ``"batch"`` axis, multi-host after ``jax.distributed.initialize``).
 
 Logged: a console progress bar (loss, PSNR, steps/s, ETA), TensorBoard scalars and image
 grids in ``workdir/tb``, periodic evaluation on held-out scenes.
