@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from dataclasses import replace
 import json
 import os
 import time
@@ -40,8 +41,8 @@ def chosen_row(name: str, scale: A.Scale) -> tuple[A.Scale, A.Variant]:
     """The chosen row ``name`` of :data:`CHOSEN`, as its notebook builds it at ``scale``."""
     blocks, depth = CHOSEN[name]
     if depth:
-        scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
-    build = lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks))  # noqa: E731
+        scale = dataclasses.replace(scale, base=replace(scale.base, outputs=("rgb", "depth")))
+    build = lambda base: replace(base, decoder=replace(base.decoder, blocks=blocks))  # noqa: E731
     return scale, A.Variant({"row": name}, build, {}, chosen=True)
 
 

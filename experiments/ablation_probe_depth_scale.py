@@ -29,6 +29,7 @@ Writes ``OUT/probe_depth_scale_{mode}.json`` with the commit.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import replace
 import json
 import os
 import sys
@@ -56,7 +57,7 @@ def main() -> None:
 
     scale = A.make_scale(A.scale_name(), paper_views=8, depth=True)
     if mode != "metric":  # Long-LRM's rescaling; the head starts at those windows' mean log depth
-        base = C.replace(scale.base, decoder=C.replace(scale.base.decoder, depth_bias=RESCALED_DEPTH_BIAS))
+        base = replace(scale.base, decoder=replace(scale.base.decoder, depth_bias=RESCALED_DEPTH_BIAS))
         scale = dataclasses.replace(scale, base=base, rescale=True)
     bias = scale.base.decoder.depth_bias
     if mode == "fixed":
@@ -79,7 +80,7 @@ def main() -> None:
 
     variants = [  # Table 7's first three rows; LLRMPP_NOTEBOOK_ROWS=2 runs the last
         A.Variant({"method": "Long-LRM 2DGS"}, None, {}, note="not run here"),
-        A.Variant({"method": "Long-LRM 3DGS"}, lambda b: C.replace(b, head=C.replace(b.head, mode="color")), {}),
+        A.Variant({"method": "Long-LRM 3DGS"}, lambda b: replace(b, head=replace(b.head, mode="color")), {}),
         A.Variant({"method": "Ours w/o aux losses"}, lambda b: b, {}, grad_weight=0.0, normal_weight=0.0),
     ]
     t0 = time.perf_counter()

@@ -9,6 +9,7 @@ Run (from the repository root; one core, ~5 min per seed on the 2-core developme
     SPIKE_FACTOR=none ...  s1.json                                # without the spike guard
 """
 import dataclasses
+from dataclasses import replace
 import json
 import os
 import sys
@@ -28,8 +29,8 @@ scale = A.make_scale("cpu", paper_views=4, cpu_steps=steps)
 spike = os.environ.get("SPIKE_FACTOR")
 if spike:
     scale = dataclasses.replace(scale, spike_factor=None if spike == "none" else float(spike))
-cfg = C.replace(scale.base, head=C.replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
-                decoder=C.replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
+cfg = replace(scale.base, head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
+                decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
                                   canvas_ratio=round(1 / canvas), partitions=S))
 variant = A.Variant({}, lambda b: cfg, {})
 samples = A.eval_samples(scale, depth=False)[:4]

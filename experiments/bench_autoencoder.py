@@ -23,6 +23,7 @@ rank-64 linear code (PCA) of its 8x8 patches 25.9 / 33.9 dB.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 import os
 import time
@@ -50,13 +51,13 @@ SIZE, FRAMES, BATCH = 64, 16, 2
 def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
     m = load_experiment("demo").model
-    head = C.replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
+    head = replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
                      scale_bias=args.scale_bias,
                      anchors=args.anchors,
                      gaussians_per_token=m.head.gaussians_per_token if args.k is None else args.k,
                      feature_dim=m.head.feature_dim if args.feature_dim is None else args.feature_dim)
-    return C.replace(m, backbone=C.replace(m.backbone, pattern=args.pattern), head=head,
-                     decoder=C.replace(m.decoder, init_std=args.init_std))
+    return replace(m, backbone=replace(m.backbone, pattern=args.pattern), head=head,
+                     decoder=replace(m.decoder, init_std=args.init_std))
 
 
 def ideal_canvas_render(params: dict, cfg: C.ModelConfig, g: Gaussians, c2w: jax.Array,

@@ -30,6 +30,7 @@ shown view: target, prediction, |error| x4, nearest input; with depth also
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import glob
 import json
 import os
@@ -69,11 +70,11 @@ def model_config(args: argparse.Namespace) -> C.ModelConfig:
         max_dist=args.max_dist, scale_bias=args.scale_bias, scale_max=args.scale_max,
         opacity_bias=args.opacity_bias, init_std=args.init_std, anchors=args.anchors,
     )
-    decoder = C.replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim,
+    decoder = replace(base.decoder, canvas_ratio=args.ratio, token_stride=args.stride, dim=args.dec_dim,
                         init_std=head.init_std, depth_bias=args.depth_bias)
-    backbone = C.replace(base.backbone, dims=(args.dim,), pattern=args.pattern, num_layers=args.layers)
+    backbone = replace(base.backbone, dims=(args.dim,), pattern=args.pattern, num_layers=args.layers)
     outputs = ("rgb", "depth") if args.decoder_depth_weight else ("rgb",)
-    return C.replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch, outputs=outputs)
+    return replace(base, head=head, decoder=decoder, backbone=backbone, patch_size=args.patch, outputs=outputs)
 
 
 def split_frames(num_frames: int, num_inputs: int, dense: int = 1,

@@ -29,7 +29,8 @@ import os
 import time
 
 from llrmpp_jax.evaluate import evaluate
-from llrmpp_jax.experiment import load_experiment, replace
+from llrmpp_jax.experiment import load_experiment
+from dataclasses import replace
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.refine import RefineConfig

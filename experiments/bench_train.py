@@ -69,6 +69,7 @@ of (depth, op name, bytes), a loop's row being its body's peak).
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 import os
 import platform
@@ -110,23 +111,23 @@ def mid_experiment(size: int = 256) -> ExperimentConfig:
     procedural scenes."""
     base = load_experiment("dl3dv")
     paper = C.paper_dl3dv()
-    model = C.replace(
+    model = replace(
         paper,
-        backbone=C.replace(paper.backbone, dims=(256,), pattern="{1T3M}x2", num_layers=8,
-                           mamba=C.replace(paper.backbone.mamba, d_state=64)),
-        decoder=C.replace(paper.decoder, dim=128),
+        backbone=replace(paper.backbone, dims=(256,), pattern="{1T3M}x2", num_layers=8,
+                           mamba=replace(paper.backbone.mamba, d_state=64)),
+        decoder=replace(paper.decoder, dim=128),
     )
-    stage = C.replace(base.stages[0], name=f"mid_{size}", global_batch=1, num_targets=4,
+    stage = replace(base.stages[0], name=f"mid_{size}", global_batch=1, num_targets=4,
                       resize_h=size, min_span=None, max_span=None)
     data = DataConfig(procedural=ProceduralConfig(height=size, width=size, num_frames=16))
-    return C.replace(base, name=f"mid_{size}", model=model, stages=(stage,), data=data,
+    return replace(base, name=f"mid_{size}", model=model, stages=(stage,), data=data,
                      perceptual_weight=0.0, bf16=False)
 
 
 def with_remat(model: C.ModelConfig) -> C.ModelConfig:
     """Remat every backbone and decoder block."""
-    return C.replace(model, backbone=C.replace(model.backbone, remat=True),
-                     decoder=C.replace(model.decoder, remat=True))
+    return replace(model, backbone=replace(model.backbone, remat=True),
+                     decoder=replace(model.decoder, remat=True))
 
 
 # XLA:CPU's default concurrency-optimised scheduler runs every remat'd block's recomputation
@@ -157,7 +158,7 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     only when XLA's peak (``xla_peak_bytes``) is at most ``max_step_bytes``."""
     exp = case_experiment(name)
     if remat:
-        exp = C.replace(exp, model=with_remat(exp.model))
+        exp = replace(exp, model=with_remat(exp.model))
     stage = exp.stages[0]
     h, w = stage.resize_h, stage.resize_w or stage.resize_h
     bcfg = batch_config(exp, stage)

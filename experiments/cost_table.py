@@ -36,7 +36,7 @@ import argparse
 import json
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import jax.numpy as jnp
@@ -175,7 +175,7 @@ def _splat_composite():
 def _decoder_block(kind: str):
     def build():
         dcfg = CFG.decoder
-        block = TransformerBlock(dim=dcfg.dim, cfg=C.replace(dcfg.transformer, attention_impl="xla"),
+        block = TransformerBlock(dim=dcfg.dim, cfg=replace(dcfg.transformer, attention_impl="xla"),
                                  attention=kind, grid=DEC_GRID, num_neighbours=dcfg.num_neighbours)
         x = sds(S, DEC_GRID[0] * DEC_GRID[1], dcfg.dim)  # the S copies of one target, float32 as it runs
         params = jax.eval_shape(lambda x: block.init(jax.random.key(0), x), x)["params"]

@@ -22,7 +22,8 @@ from llrmpp_jax.cli import parse_size, with_data
 from llrmpp_jax.data.held_out import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import baseline_predictions, predict, predict_refined
-from llrmpp_jax.experiment import load_experiment, replace
+from llrmpp_jax.experiment import load_experiment
+from dataclasses import replace
 from llrmpp_jax.pretrained import load_pretrained
 
 

@@ -45,7 +45,7 @@ def _load_params(checkpoint: str, config: str | None):
 
 
 def cmd_train(args) -> int:
-    from llrmpp_jax.experiment import replace
+    from dataclasses import replace
     from llrmpp_jax.trainer import train
 
     exp = _experiment(args.config)
@@ -77,7 +77,7 @@ def cmd_train(args) -> int:
 def with_data(exp, path: str, kind: str, max_scenes: int):
     """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``), all
     of them: no split, no scene list."""
-    from llrmpp_jax.experiment import replace
+    from dataclasses import replace
 
     if not os.path.exists(path):
         raise UserError(f"dataset path does not exist: {path}")
@@ -112,20 +112,20 @@ def cmd_eval(args) -> int:
     if args.data:
         exp = with_data(exp, args.data, args.format, args.max_scenes)
     if args.split:
-        exp = E.replace(exp, data=E.replace(exp.data, eval_split=args.split))
+        exp = replace(exp, data=replace(exp.data, eval_split=args.split))
     last = exp.stages[-1]  # the evaluation reads the last stage's view count and size
     if args.num_inputs:
-        last = E.replace(last, num_inputs=args.num_inputs)
+        last = replace(last, num_inputs=args.num_inputs)
     if args.size:
         resize_h, resize_w = parse_size(args.size)
-        last = E.replace(last, resize_h=resize_h, resize_w=resize_w)
-    exp = E.replace(exp, stages=(*exp.stages[:-1], last))
+        last = replace(last, resize_h=resize_h, resize_w=resize_w)
+    exp = replace(exp, stages=(*exp.stages[:-1], last))
     refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight",
                                    args.refine_views_per_step, "--refine-views-per-step", last.num_inputs)
     scene_source(exp.data, held_out=True)  # a missing split, list or scene fails before the weights load
     print(f"held-out data: {held_out_description(exp.data)}")
     params, cfg = _load_params(args.checkpoint, args.config)
-    exp = E.replace(exp, model=cfg)
+    exp = replace(exp, model=cfg)
     samples, names = eval_samples(exp, last)
     # the last stage's model: its Gaussian pruning too (Long-LRM prunes in its 960x540 evaluation)
     rows, summary, _ = evaluate(params, exp.model_of(last), samples, load_lpips_params(), names,

@@ -148,11 +148,6 @@ class BackboneConfig:
             )
 
 
-def replace(cfg, **changes):
-    """``dataclasses.replace`` re-exported so notebooks need one import."""
-    return dataclasses.replace(cfg, **changes)
-
-
 def from_dict(cls: type, data: dict):
     """Rebuild a (nested) config dataclass from ``dataclasses.asdict`` output read back
     from JSON (lists become tuples). ``ValueError`` naming an unknown field."""
@@ -321,11 +316,12 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
 
         backend = jax.default_backend()
     model = with_attention(model, "cudnn" if backend == "gpu" else "blockwise")
-    return replace(
+    return dataclasses.replace(
         model,
-        backbone=replace(model.backbone, mamba=replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True),
-                         remat=True),
-        decoder=replace(model.decoder, remat=True),
+        backbone=dataclasses.replace(
+            model.backbone, remat=True,
+            mamba=dataclasses.replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True)),
+        decoder=dataclasses.replace(model.decoder, remat=True),
     )
 
 
@@ -333,11 +329,12 @@ def with_attention(model: ModelConfig, impl: str, block: tuple[int, int] | None 
     """``model`` with ``impl`` as the global-attention kernel of the backbone's and the
     decoder's transformers and, given ``block`` (queries, keys), the blockwise kernel's blocks."""
     def kernel(t: TransformerConfig) -> TransformerConfig:
-        t = replace(t, attention_impl=impl)
-        return replace(t, attention_block_q=block[0], attention_block_k=block[1]) if block else t
+        t = dataclasses.replace(t, attention_impl=impl)
+        return dataclasses.replace(t, attention_block_q=block[0], attention_block_k=block[1]) if block else t
 
-    return replace(model, backbone=replace(model.backbone, transformer=kernel(model.backbone.transformer)),
-                   decoder=replace(model.decoder, transformer=kernel(model.decoder.transformer)))
+    return dataclasses.replace(
+        model, backbone=dataclasses.replace(model.backbone, transformer=kernel(model.backbone.transformer)),
+        decoder=dataclasses.replace(model.decoder, transformer=kernel(model.decoder.transformer)))
 
 
 def paper_dl3dv() -> ModelConfig:
@@ -380,7 +377,7 @@ def long_lrm_i540() -> ModelConfig:
     """Long-LRM's stage 3 at 960x540 (``dl3dv_i540_32input_8target.yaml``, the released
     checkpoint): :func:`long_lrm` with Gaussian pruning 0.6 / random 0.1 (facts §1.6)."""
     base = long_lrm()
-    return replace(base, head=replace(base.head, prune_ratio=0.6, prune_random_ratio=0.1))
+    return dataclasses.replace(base, head=dataclasses.replace(base.head, prune_ratio=0.6, prune_random_ratio=0.1))
 
 
 def tiny() -> ModelConfig:

@@ -245,10 +245,6 @@ class ExperimentConfig:
                 )
 
 
-def replace(cfg, **changes):
-    return dataclasses.replace(cfg, **changes)
-
-
 def load_experiment(name_or_path: str) -> ExperimentConfig:
     """The config of a shipped recipe (``"small"``, ``"demo"``, ...: :mod:`llrmpp_jax.recipes`)
     or of a Python file with ``get_config()``. Neither: one line listing the recipes."""

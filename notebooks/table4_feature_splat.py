@@ -15,6 +15,8 @@
 # paper's values at every scale. `LLRMPP_NOTEBOOK_ROWS=0,3` (row indices) runs a subset.
 
 # %%
+from dataclasses import replace
+
 from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
@@ -31,10 +33,10 @@ print(f"commit {A.commit()} | {A.machine()}")
 
 # %%
 def feature_splat(k: int, f: int, canvas: float):
-    return lambda base: C.replace(
+    return lambda base: replace(
         base,
-        head=C.replace(base.head, gaussians_per_token=k, feature_dim=f),
-        decoder=C.replace(base.decoder, blocks="LLG", dim=scale.width(256), canvas_ratio=round(1 / canvas),
+        head=replace(base.head, gaussians_per_token=k, feature_dim=f),
+        decoder=replace(base.decoder, blocks="LLG", dim=scale.width(256), canvas_ratio=round(1 / canvas),
                           partitions=1),
     )
 

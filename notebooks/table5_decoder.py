@@ -15,6 +15,8 @@
 # `LLRMPP_NOTEBOOK_ROWS=0,3` (row indices) runs a subset.
 
 # %%
+from dataclasses import replace
+
 from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
@@ -35,11 +37,11 @@ print(f"commit {A.commit()} | {A.machine()}")
 
 # %%
 def colour(base: C.ModelConfig) -> C.ModelConfig:
-    return C.replace(base, head=C.replace(base.head, mode="color"))
+    return replace(base, head=replace(base.head, mode="color"))
 
 
 def decoder(blocks: str, dim: int, absolute_positions: bool = False):
-    return lambda base: C.replace(base, decoder=C.replace(base.decoder, blocks=blocks, dim=scale.width(dim),
+    return lambda base: replace(base, decoder=replace(base.decoder, blocks=blocks, dim=scale.width(dim),
                                                           absolute_positions=absolute_positions, partitions=1))
 
 

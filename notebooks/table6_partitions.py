@@ -15,6 +15,8 @@
 # model, accelerators). `LLRMPP_NOTEBOOK_ROWS=0,2` (row indices) runs a subset.
 
 # %%
+from dataclasses import replace
+
 from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
@@ -30,8 +32,8 @@ print(f"commit {A.commit()} | {A.machine()}")
 
 # %%
 def partitions(s: int):
-    return lambda base: C.replace(
-        base, decoder=C.replace(base.decoder, blocks="LLGGG", dim=scale.width(256), partitions=s))
+    return lambda base: replace(
+        base, decoder=replace(base.decoder, blocks="LLGGG", dim=scale.width(256), partitions=s))
 
 
 PAPER_KEYS = ("PSNR", "SSIM", "LPIPS", "PSNR 540p", "SSIM 540p", "LPIPS 540p", "recon 540p", "FPS 540p")

@@ -20,6 +20,8 @@
 # subset.
 
 # %%
+from dataclasses import replace
+
 from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
@@ -48,7 +50,7 @@ print(f"commit {A.commit()} | {A.machine()}")
 
 # %%
 def colour(base: C.ModelConfig) -> C.ModelConfig:
-    return C.replace(base, head=C.replace(base.head, mode="color"))
+    return replace(base, head=replace(base.head, mode="color"))
 
 
 PAPER_KEYS = ("PSNR", "SSIM", "LPIPS", "Abs Diff", "delta<1.25")

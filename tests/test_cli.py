@@ -1,5 +1,6 @@
 """Command line and training loop: experiment files, one-line errors, train -> resume -> eval."""
 
+from dataclasses import replace
 import glob
 import json
 import os
@@ -152,12 +153,12 @@ def test_wrong_vgg19_file_is_one_line_naming_the_first_mismatching_key(tmp_path)
 
 def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
     exp = micro_experiment()
-    bad = C.replace(exp, data=DataConfig(kind="colmap", path=str(tmp_path / "missing")))
+    bad = replace(exp, data=DataConfig(kind="colmap", path=str(tmp_path / "missing")))
     from llrmpp_jax.trainer import train
 
     with pytest.raises(FileNotFoundError, match="dataset path does not exist"):
         train(bad, str(tmp_path / "w"))
-    odd = C.replace(exp, stages=(C.replace(exp.stages[0], global_batch=3),))
+    odd = replace(exp, stages=(replace(exp.stages[0], global_batch=3),))
     with pytest.raises(ValueError, match="global_batch=3 does not split over 2 devices"):
         train(odd, str(tmp_path / "w"))
 
@@ -317,7 +318,7 @@ def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
     assert len(full) == 71 and len(trained) == 71 - len(targets) == 62
     np.testing.assert_array_equal(trained.c2w, np.delete(full.c2w, targets, axis=0))
     exp = micro_experiment()
-    exp = C.replace(exp, data=data, stages=(C.replace(exp.stages[0], num_inputs=8),))
+    exp = replace(exp, data=data, stages=(replace(exp.stages[0], num_inputs=8),))
     held_out, _ = eval_samples(exp, exp.stages[0])
     for t in held_out[0]["target_c2w"]:  # every evaluated camera is absent from training
         assert not any(np.allclose(t, c, atol=1e-5) for c in trained.c2w)
@@ -450,7 +451,7 @@ def test_train_init_of_another_architecture_is_one_line(tmp_path):
     from llrmpp_jax.params_io import save_params
 
     exp = micro_experiment(1)
-    wide = C.replace(exp.model, head=C.replace(exp.model.head, feature_dim=16))
+    wide = replace(exp.model, head=replace(exp.model.head, feature_dim=16))
     save_params(str(tmp_path / "wide"), init_params(jax.random.key(0), wide, 2, 32, 32), wide)
     res = _run_cli("train", "--config", str(_micro_experiment_file(tmp_path, 1)), "--workdir",
                    str(tmp_path / "run"), "--init", str(tmp_path / "wide"))

@@ -1,5 +1,6 @@
 """Evaluation diagnostics (input-view re-render PSNR, Gaussian statistics) and the refined rows, against NumPy."""
 
+from dataclasses import replace
 import jax
 import numpy as np
 import pytest
@@ -23,7 +24,7 @@ def _setup():
     """A tiny model with a perturbed head and one random two-view sample (cfg, params, sample)."""
     # Opacity bias -4.6 puts sigmoid(bias) at ~0.01, so with a perturbed head the
     # opacities straddle the 0.01 threshold and the fraction is neither 0 nor 1.
-    cfg = C.replace(C.tiny(), head=C.replace(C.tiny().head, max_dist=4.0, scale_bias=-3.0, opacity_bias=-4.6))
+    cfg = replace(C.tiny(), head=replace(C.tiny().head, max_dist=4.0, scale_bias=-3.0, opacity_bias=-4.6))
     v, h, w = 2, 16, 16
     params = init_params(jax.random.key(0), cfg, v, h, w)
     proj = params["head"]["proj"]["kernel"]

@@ -1,5 +1,6 @@
 """The composed model: Long-LRM golden Gaussians, paper sizes, gradients, partition, decoder."""
 
+from dataclasses import replace
 import functools
 import os
 
@@ -74,7 +75,7 @@ def test_paper_model_size_and_forward_shapes():
 
 
 def test_tiny_loss_gradient_reaches_every_parameter(key):
-    cfg = C.replace(C.tiny(), outputs=("rgb", "depth"),
+    cfg = replace(C.tiny(), outputs=("rgb", "depth"),
                     head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
     k0, k1 = jax.random.split(key)
     images, c2w, intr = orbit_scene(k1, 1, 3, 32, 32)
@@ -101,7 +102,7 @@ def test_tiny_loss_gradient_reaches_every_parameter(key):
 
 def test_single_partition_equals_no_partition(key):
     """S=1: render == splat with the raw opacities -> rays -> decoder (no partition, no merge)."""
-    cfg = C.replace(C.tiny(), decoder=C.replace(C.tiny().decoder, partitions=1),
+    cfg = replace(C.tiny(), decoder=replace(C.tiny().decoder, partitions=1),
                     head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
     k0, k1 = jax.random.split(key)
     images, c2w, intr = orbit_scene(k1, 1, 3, 32, 48)
@@ -141,7 +142,7 @@ def test_decoder_remat_loops_match_unrolled(key, monkeypatch):
                           transformer=C.TransformerConfig(head_dim=16))
     k_init, k_noise, k_x, k_ct = jax.random.split(key, 4)
     canvas = jax.random.normal(k_x, (1, 2, 16, 24, 7), jnp.float32)
-    unrolled, looped = TargetDecoder(cfg), TargetDecoder(C.replace(cfg, remat=True))
+    unrolled, looped = TargetDecoder(cfg), TargetDecoder(replace(cfg, remat=True))
     params = jax.jit(unrolled.init)(k_init, canvas)["params"]
     leaves, tree = jax.tree.flatten(params)
     params = tree.unflatten([p + 0.1 * jax.random.normal(k, p.shape, p.dtype)
@@ -188,7 +189,7 @@ def test_absolute_positions_add_the_sincos_embedding(key):
         return next_fun(*args, **kwargs)
 
     cfg = C.DecoderConfig(dim=32, blocks="GGG", partitions=1, transformer=C.TransformerConfig(head_dim=16))
-    with_pe = TargetDecoder(C.replace(cfg, absolute_positions=True))
+    with_pe = TargetDecoder(replace(cfg, absolute_positions=True))
     params = with_pe.init(key, jnp.zeros((1, 1, 16, 24, 7), jnp.float32))["params"]
     for hc, wc in ((16, 24), (28, 12)):  # token grids 4x6 and 7x3
         x = jax.random.normal(jax.random.fold_in(key, hc), (1, 1, hc, wc, 7), jnp.float32)
@@ -211,7 +212,7 @@ def test_depth_bias_offsets_the_log_depth_head(key):
     canvas = jax.random.normal(k_x, (2, 2, 16, 24, 7), jnp.float32)
     params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
     base = TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))
-    biased = TargetDecoder(C.replace(cfg, depth_bias=1.7)).apply({"params": params}, canvas, ("rgb", "depth"))
+    biased = TargetDecoder(replace(cfg, depth_bias=1.7)).apply({"params": params}, canvas, ("rgb", "depth"))
     assert base["depth"].shape == (2, 32, 48, 1)
     np.testing.assert_allclose(np.asarray(biased["depth"], np.float64),
                                np.exp(1.7) * np.asarray(base["depth"], np.float64), rtol=1e-5)

@@ -16,6 +16,7 @@ as printed in the paper's .tex, and a smoke run per notebook.
 """
 
 import dataclasses
+from dataclasses import replace
 import json
 import math
 import os
@@ -271,7 +272,7 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     monkeypatch.delenv("LLRMPP_NOTEBOOK_ROWS", raising=False)
     scale = dataclasses.replace(ablation.make_scale("smoke", paper_views=4), seeds=3, max_seeds=6, workers=1)
     V, O = ablation.Variant, ablation.Ordering
-    variants = [V({"x": str(i)}, lambda base, i=i: C.replace(base, decoder=C.replace(base.decoder, dim=8 * (i + 1))),
+    variants = [V({"x": str(i)}, lambda base, i=i: replace(base, decoder=replace(base.decoder, dim=8 * (i + 1))),
                   {}) for i in range(4)]
     orderings = [O("1 > 0", 1, 0), O("2 > 0", 2, 0)]
     monkeypatch.setattr(tables, "count_params", lambda p: 0)

@@ -10,6 +10,7 @@ Inputs are fresh random draws (images, cameras, depths in [0.5, 4)); tolerance 1
 relative (float32: the same ops on the same values, so equal up to XLA's fusion order).
 """
 
+from dataclasses import replace
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,7 +30,7 @@ SIZE = 32  # the depth loss's coarsest gradient scale needs 32 pixels (the Gauss
 
 
 def _depth_model() -> C.ModelConfig:
-    return C.replace(C.tiny(), outputs=("rgb", "depth"),
+    return replace(C.tiny(), outputs=("rgb", "depth"),
                      head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
 
 
@@ -110,7 +111,7 @@ def test_opacity_term_and_a_stage_s_pruning(key):
     stage that sets pruning 0.6 / 0.1 trains the pruned set (the same parameters), the
     others the whole one. Oracle: reconstruct, prune_gaussians with the same key, render,
     rgb_loss, each from its own function (rtol 1e-6)."""
-    cfg = C.replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0))
+    cfg = replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0))
     k_params, k_batch, k_loss = jax.random.split(key, 3)
     params, batch = init_params(k_params, cfg, 2, 16, 16), _batch(k_batch, 16)
     plain = StageConfig("plain", 1, 1, 2, 2, 16)

@@ -1,6 +1,7 @@
 """Shipped weights (pretrained.py): checksum, config match, and one forward pass equal to the
 one recorded when they were shipped."""
 
+from dataclasses import replace
 import json
 import os
 import shutil
@@ -58,7 +59,7 @@ def test_wrong_checksum_is_one_line_naming_the_file(shipped_tmp, tmp_path):
 
 def test_another_config_is_one_line_naming_the_field(shipped_tmp):
     d, cfg, _, _ = shipped_tmp
-    other = C.replace(cfg, head=C.replace(cfg.head, feature_dim=8))
+    other = replace(cfg, head=replace(cfg.head, feature_dim=8))
     with pytest.raises(ValueError, match=r"tiny\.npz: weights are for another model config: "
                                          r"model\.head\.feature_dim: shipped 16, expected 8$"):
         load_pretrained("tiny", other, weights_dir=d)
@@ -80,7 +81,7 @@ def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
         json.dump(meta, f)
     _, got_cfg = load_pretrained("tiny", cfg, weights_dir=old)
     assert got_cfg == cfg
-    other = C.replace(cfg, backbone=C.replace(cfg.backbone, mamba=C.replace(cfg.backbone.mamba, inter_chunk="sequential")))
+    other = replace(cfg, backbone=replace(cfg.backbone, mamba=replace(cfg.backbone.mamba, inter_chunk="sequential")))
     with pytest.raises(ValueError, match=r"model\.backbone\.mamba\.inter_chunk: shipped 'auto', expected 'sequential'$"):
         load_pretrained("tiny", other, weights_dir=old)
 

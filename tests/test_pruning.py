@@ -6,6 +6,7 @@ Oracles: the official code's arithmetic and ranking written out here (Python flo
 the golden ``gaussian_usage`` computed by the official code.
 """
 
+from dataclasses import replace
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -93,7 +94,7 @@ def test_training_and_evaluation_prune_and_log_usage(key):
     from llrmpp_jax.evaluate import predict
     from llrmpp_jax.objective import make_loss_fn
 
-    cfg = C.replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0,
+    cfg = replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0,
                                                          prune_ratio=0.6, prune_random_ratio=0.1))
     images, c2w, intr = orbit_scene(key, 1, 3, 16, 16)
     params = init_params(jax.random.key(1), cfg, 2, 16, 16)

@@ -1,5 +1,6 @@
 """Post-prediction refinement: it recovers known Gaussians and lowers the feature-mode loss."""
 
+from dataclasses import replace
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -83,7 +84,7 @@ def test_refine_recovers_perturbed_known_gaussians(rng):
 def test_refine_lowers_feature_mode_loss_with_frozen_decoder(key):
     """Tiny feature model, random init: 5 steps strictly lower the input-view loss, the
     decoder is untouched (params are an input only), every optimised field moves."""
-    cfg = C.replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0,
+    cfg = replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0,
                                                          scale_bias=-3.0))
     k0, k1 = jax.random.split(key)
     images = jax.random.uniform(k1, (1, 2, H, W, 3), jnp.float32)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment
@@ -97,7 +97,7 @@ def smoke_base() -> C.ModelConfig:
     ``exp(-6.9)`` (visible at 32x32 from the start); :func:`make_scale` sets their distance
     range (:data:`PROCEDURAL_MAX_DIST`)."""
     base = C.tiny()
-    return C.replace(base, head=C.replace(base.head, scale_bias=-3.0))
+    return replace(base, head=replace(base.head, scale_bias=-3.0))
 
 
 def cpu_base() -> C.ModelConfig:
@@ -122,10 +122,10 @@ def cpu_base() -> C.ModelConfig:
     base = load_experiment("demo").model
     # The tables were run with the demo's earlier head start (every Gaussian at its patch
     # centre, scale_bias -2.5); the demo's grid start needs a square K, and Table 4 has K = 8, 32.
-    head = C.replace(base.head, gaussians_per_token=16, feature_dim=32, anchors="centre", scale_bias=-2.5)
-    return C.replace(base, head=head,
-                     decoder=C.replace(base.decoder, blocks="LLGGG", dim=64, partitions=2),
-                     splat=C.replace(base.splat, intersections_per_gaussian=16.0, tiles_per_group=2))
+    head = replace(base.head, gaussians_per_token=16, feature_dim=32, anchors="centre", scale_bias=-2.5)
+    return replace(base, head=head,
+                     decoder=replace(base.decoder, blocks="LLGGG", dim=64, partitions=2),
+                     splat=replace(base.splat, intersections_per_gaussian=16.0, tiles_per_group=2))
 
 
 def _env_int(name: str, minimum: int) -> int | None:
@@ -180,12 +180,12 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     else:
         raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
     if name != "paper":  # the paper scale keeps its data's normalisation, range and depth_bias
-        base = C.replace(scale.base, head=C.replace(scale.base.head, max_dist=PROCEDURAL_MAX_DIST))
+        base = replace(scale.base, head=replace(scale.base.head, max_dist=PROCEDURAL_MAX_DIST))
         if depth:
-            base = C.replace(base, decoder=C.replace(base.decoder, depth_bias=PROCEDURAL_DEPTH_BIAS))
+            base = replace(base, decoder=replace(base.decoder, depth_bias=PROCEDURAL_DEPTH_BIAS))
         scale = dataclasses.replace(scale, base=base, rescale=False)
     if depth:
-        scale = dataclasses.replace(scale, base=C.replace(scale.base, outputs=("rgb", "depth")))
+        scale = dataclasses.replace(scale, base=replace(scale.base, outputs=("rgb", "depth")))
     steps = _env_int("LLRMPP_NOTEBOOK_STEPS", 0)
     if steps is not None:
         scale = dataclasses.replace(scale, steps=steps, warmup=min(scale.warmup, steps))

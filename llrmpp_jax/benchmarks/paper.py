@@ -29,7 +29,7 @@ reconstruct + render: :func:`profile_reconstruct_render`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import jax
 import jax.numpy as jnp
@@ -124,9 +124,9 @@ def counting_config(model: C.ModelConfig) -> C.ModelConfig:
     product in sight at its true count) and no remat (no recomputation). Same function,
     same parameters."""
     model = C.with_attention(model, "xla")
-    mamba = C.replace(model.backbone.mamba, inter_chunk="associative", remat_directions=False)
-    return C.replace(model, backbone=C.replace(model.backbone, mamba=mamba, remat=False),
-                     decoder=C.replace(model.decoder, remat=False))
+    mamba = replace(model.backbone.mamba, inter_chunk="associative", remat_directions=False)
+    return replace(model, backbone=replace(model.backbone, mamba=mamba, remat=False),
+                     decoder=replace(model.decoder, remat=False))
 
 
 def host_init_params(model: C.ModelConfig, seed: int = 0) -> dict:
@@ -294,7 +294,7 @@ def train_step_model_flops(exp, vgg_params: dict | None, batch: dict) -> float:
     only). The optimizer's update (~10 elementwise FLOPs a parameter) is not a matmul."""
     from llrmpp_jax.objective import make_loss_fn
 
-    exp = C.replace(exp, model=counting_config(exp.model))
+    exp = replace(exp, model=counting_config(exp.model))
 
     def grads(params, batch, vgg):
         loss_fn = make_loss_fn(exp, vgg)

@@ -46,6 +46,7 @@ milliseconds as JSON and prints them as Markdown.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
 import os
 import subprocess
@@ -122,7 +123,7 @@ def experiment(scale: str, impl: str, block: tuple[int, int] | None = None):
     kernel's ``block``) in every global-attention block; at ``scale="cpu"`` with ``config.tiny()``."""
     exp, stage = paper_stage4_experiment()
     model = exp.model if scale == "paper" else C.for_accelerators(C.tiny())
-    return C.replace(exp, model=C.with_attention(model, impl, block)), stage
+    return replace(exp, model=C.with_attention(model, impl, block)), stage
 
 
 def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int],

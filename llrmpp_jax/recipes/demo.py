@@ -37,6 +37,7 @@ time. Long-LRM's zoom and input-order augmentations and its gradient-norm guard 
 defaults): the paper configs (dl3dv.py, scannet.py) turn them on.
 """
 
+from dataclasses import replace
 from llrmpp_jax import config as C
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
@@ -44,12 +45,12 @@ from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
 def get_config() -> ExperimentConfig:
     tiny = C.tiny()
-    model = C.replace(
+    model = replace(
         tiny,
-        backbone=C.replace(tiny.backbone, pattern="{4T}x1"),
+        backbone=replace(tiny.backbone, pattern="{4T}x1"),
         head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=3.0, scale_bias=-3.0,
                                   init_std=None, anchors="grid"),
-        decoder=C.replace(tiny.decoder, init_std=None),
+        decoder=replace(tiny.decoder, init_std=None),
     )
     stage = StageConfig(
         name="demo", steps=1200, global_batch=2, num_inputs=4, num_targets=2, resize_h=64,

@@ -46,19 +46,20 @@ evidence in the ``demo`` recipe's docstring.
 
 from llrmpp_jax import config as C
 from llrmpp_jax.data import ProceduralConfig
-from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, replace
+from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+from dataclasses import replace
 
 
 def get_config() -> ExperimentConfig:
     """The demo's model at width 128 and decoder token stride 4; 2k MSE steps at batch 16 (data
     from 14 processes), then 4k of MSE + 0.5 x perceptual at batch 2."""
     tiny = C.tiny()
-    model = C.replace(
+    model = replace(
         tiny,
-        backbone=C.replace(tiny.backbone, pattern="{4T}x1", dims=(128,)),
+        backbone=replace(tiny.backbone, pattern="{4T}x1", dims=(128,)),
         head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=3.0, scale_bias=-3.0,
                                   init_std=None, anchors="grid"),
-        decoder=C.replace(tiny.decoder, init_std=None, dim=128, token_stride=4),
+        decoder=replace(tiny.decoder, init_std=None, dim=128, token_stride=4),
     )
     accel = StageConfig(
         name="accel", steps=2_000, global_batch=16, num_inputs=8, num_targets=2, resize_h=64,

@@ -29,7 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
-from llrmpp_jax.config import ModelConfig, replace
+from llrmpp_jax.config import ModelConfig
+from dataclasses import replace
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import render

@@ -1,6 +1,7 @@
 """``llrmpp bench``: bad input is one line; the attention benchmark's memory numbers; FLOP
 counts against analytic ones; the Table-1 cases, the stage-4 step and the profile at CPU scale."""
 
+from dataclasses import replace
 import json
 import math
 import os
@@ -203,7 +204,7 @@ def test_paper_step_at_cpu_scale(tmp_path):
     from llrmpp_jax.benchmarks.paper_step import paper_stage4_experiment, perceptual_for_compile
 
     exp, _ = paper_stage4_experiment()
-    exp = C.replace(exp, model=counting_config(C.tiny()))
+    exp = replace(exp, model=counting_config(C.tiny()))
     f32 = lambda *s: jax.ShapeDtypeStruct(s, jnp.float32)  # noqa: E731
     batch = {"input_images": f32(1, 2, 32, 32, 3), "input_c2w": f32(1, 2, 4, 4), "input_intrinsics": f32(1, 2, 4),
              "target_images": f32(1, 1, 32, 32, 3), "target_c2w": f32(1, 1, 4, 4), "target_intrinsics": f32(1, 1, 4)}

@@ -2,6 +2,7 @@
 camera paths (spline through the inputs, orbit around their look-at point), the ``.gs``
 file and params folders."""
 
+from dataclasses import replace
 import os
 
 import jax
@@ -169,7 +170,7 @@ def test_params_folder_round_trip_and_fit_check(tmp_path, key):
     back, cfg_back = load_params(str(tmp_path / "p"))
     assert cfg_back == cfg
     jax.tree.map(np.testing.assert_array_equal, back, params)
-    other = C.replace(cfg, head=C.replace(cfg.head, feature_dim=8))
+    other = replace(cfg, head=replace(cfg.head, feature_dim=8))
     with pytest.raises(ValueError, match=r"first mismatch 'decoder/.*': model \(.*\), checkpoint \(.*\)"):
         load_params(str(tmp_path / "p"), other)
     with pytest.raises(ValueError, match="first mismatch"):

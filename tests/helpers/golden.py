@@ -1,6 +1,7 @@
 """The tiny Long-LRM of ``../shared/golden/long_lrm_tiny``: its configuration, and its
 official Gaussians as a colour-mode scene with their input cameras as render targets."""
 
+from dataclasses import replace
 import jax.numpy as jnp
 import numpy as np
 
@@ -31,4 +32,4 @@ def golden_colour_scene():
     c2w = jnp.asarray(np.linalg.inv(out["render_viewmats"]))
     ks = out["render_Ks"]
     intr = jnp.asarray(np.stack([ks[..., 0, 0], ks[..., 1, 1], ks[..., 0, 2], ks[..., 1, 2]], -1))
-    return C.replace(golden_model_config(), outputs=("rgb", "depth")), g, c2w, intr
+    return replace(golden_model_config(), outputs=("rgb", "depth")), g, c2w, intr

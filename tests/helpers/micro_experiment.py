@@ -2,13 +2,14 @@
 single stage of a few steps (checkpoint every step, evaluation every 2), no perceptual loss.
 Experiment files written by the tests import it from here (``sys.path`` holds the checkout)."""
 
+from dataclasses import replace
 from llrmpp_jax import config as C
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
 
 def micro_experiment(steps: int = 2) -> ExperimentConfig:
-    model = C.replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8, max_dist=8.0,
+    model = replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8, max_dist=8.0,
                                                            scale_bias=-2.5))
     return ExperimentConfig(
         name="micro", model=model,

@@ -1,5 +1,6 @@
 """Backbone: block-pattern parsing, paper parameter count, and the Long-LRM golden run."""
 
+from dataclasses import replace
 import functools
 import os
 
@@ -115,7 +116,7 @@ def test_block_runs_and_period():
 @pytest.mark.parametrize(
     "cfg, size, calls",
     [
-        pytest.param(C.replace(golden_backbone_config(), mamba=C.Mamba2Config(d_state=16, headdim=16, chunk_size=4)),
+        pytest.param(replace(golden_backbone_config(), mamba=C.Mamba2Config(d_state=16, headdim=16, chunk_size=4)),
                      (32, 48), ["MMT", "MM", "M", "T"] * 2, marks=pytest.mark.slow),
         (C.BackboneConfig(dims=(32,), pattern="{1T2M}x2", num_layers=6,
                           mamba=C.Mamba2Config(d_state=8, headdim=16, chunk_size=4),
@@ -129,7 +130,7 @@ def test_remat_loops_match_unrolled(cfg, size, calls, key, monkeypatch):
     (float32, <= 1e-5 relative), on the same randomly perturbed parameters."""
     k_init, k_noise, k_x, k_ct = jax.random.split(key, 4)
     pixels = jax.random.normal(k_x, (1, 2, *size, 9), jnp.float32)
-    unrolled, looped = Backbone(cfg, patch_size=8), Backbone(C.replace(cfg, remat=True), patch_size=8)
+    unrolled, looped = Backbone(cfg, patch_size=8), Backbone(replace(cfg, remat=True), patch_size=8)
     params = jax.jit(unrolled.init)(k_init, pixels)["params"]
     leaves, tree = jax.tree.flatten(params)
     noise = jax.random.split(k_noise, len(leaves))

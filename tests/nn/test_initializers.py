@@ -3,6 +3,7 @@ N(0, 0.02) by default, LeCun normal (std 1/sqrt(fan-in)) with None. Oracle: the 
 of the initialised kernels against the stated std (thousands of draws, so +-10% is more than
 5 sigma; the decoder's merge kernel, 64 weights, is too small to test this way)."""
 
+from dataclasses import replace
 import jax
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ def _kernels(params: dict) -> dict[str, np.ndarray]:
 @pytest.mark.parametrize("std", [0.02, None])
 def test_head_and_decoder_kernels_have_the_configured_std(std):
     cfg = C.tiny()
-    cfg = C.replace(cfg, head=C.replace(cfg.head, init_std=std), decoder=C.replace(cfg.decoder, init_std=std))
+    cfg = replace(cfg, head=replace(cfg.head, init_std=std), decoder=replace(cfg.decoder, init_std=std))
     params = init_params(jax.random.key(3), cfg, 2, 64, 64)
     for name, k in _kernels(params).items():
         k = np.asarray(k, np.float64)

@@ -18,12 +18,14 @@ from llrmpp_jax.params_io import load_params
 # A micro run (tiny model, 32x32 procedural scenes) that checkpoints every step.
 _CONFIG = textwrap.dedent(
     """
+    from dataclasses import replace
+
     from llrmpp_jax import config as C
     from llrmpp_jax.data.synthetic import ProceduralConfig
     from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
     def get_config():
-        model = C.replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8,
+        model = replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=2, feature_dim=8,
                                                                max_dist=8.0, scale_bias=-2.5))
         return ExperimentConfig(
             name="micro", model=model,

@@ -1,6 +1,7 @@
 """Viewer: the rendering function against the model and brute-force oracles, the scene
 checks, and the live page in a real headless browser (Debian's chromium + chromedriver)."""
 
+from dataclasses import replace
 import math
 import os
 import shutil
@@ -68,7 +69,7 @@ def test_render_view_is_the_model_render(demo):
     got = _render_view(params, cfg, scene.gaussians, jnp.asarray(c2w), jnp.asarray(k), 32, 48, "rgb", None)
     np.testing.assert_allclose(got, _model_rgb(params, cfg, scene, c2w, k, 32, 48), atol=1e-6)
 
-    cfg1 = C.replace(cfg, decoder=C.replace(cfg.decoder, partitions=1))
+    cfg1 = replace(cfg, decoder=replace(cfg.decoder, partitions=1))
     kernel = jax.random.normal(jax.random.key(1), (cfg.head.feature_dim, 1), jnp.float32)
     params1 = {**params, "partition": {"kernel": kernel}}
     got1 = _render_view(params, cfg, scene.gaussians, jnp.asarray(c2w), jnp.asarray(k), 32, 48, "rgb", 1)
@@ -122,7 +123,7 @@ def test_renderer_compiles_once_per_key(demo):
 def test_check_gaussians(demo, rng):
     _, cfg, scene = demo
     check_gaussians(cfg, scene.gaussians, "scene.gs")
-    wide = C.replace(cfg, head=C.replace(cfg.head, feature_dim=32))
+    wide = replace(cfg, head=replace(cfg.head, feature_dim=32))
     with pytest.raises(ValueError, match=r"scene.gs: Gaussians carry 16 values .* expects F=32 features"):
         check_gaussians(wide, scene.gaussians, "scene.gs")
     colour = C.long_lrm()
@@ -137,7 +138,7 @@ def test_gaussian_centres_colours(rng):
     n = 300
     sh = rng.normal(size=(1, n, 12)).astype(np.float32)  # degree 1
     g = Gaussians(rng.normal(size=(1, n, 3)), np.zeros((1, n, 4)), np.ones((1, n, 3)), np.ones((1, n)), sh)
-    colour = C.replace(C.long_lrm(), head=C.replace(C.long_lrm().head, sh_degree=1))
+    colour = replace(C.long_lrm(), head=replace(C.long_lrm().head, sh_degree=1))
     pts, cols = gaussian_centres(colour, g, 1000, rng)
     np.testing.assert_array_equal(pts, g.means[0].astype(np.float32))
     want = np.round(np.clip(0.5 + 0.28209479177387814 * sh[0, :, :3], 0, 1) * 255)
@@ -418,7 +419,7 @@ def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):
     save_gs(bad, _saved_scene(rng, cfg, 8))
     one_line(["view", "--gaussians", good], r"good.gs: a feature-mode scene needs --checkpoint")
     one_line(["view", "--gaussians", bad], r"bad.gs: Gaussians carry 8 values per Gaussian .* expects F=16 features")
-    narrow = C.replace(cfg, head=C.replace(cfg.head, feature_dim=8))
+    narrow = replace(cfg, head=replace(cfg.head, feature_dim=8))
     save_params(str(tmp_path / "narrow"), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), expected_shapes(narrow)),
                 narrow)
     one_line(["view", "--gaussians", good, "--checkpoint", str(tmp_path / "narrow")],
