@@ -89,8 +89,9 @@ def main() -> None:
     p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
     p.add_argument("--k", type=int, default=None, help="Gaussians per token (default: the demo model's)")
     p.add_argument("--feature-dim", type=int, default=None, help="feature width F (default: the demo model's)")
-    # The head's start defaults to the demo's before it moved to the grid, so the runs of
-    # experiments/README.md's earlier rounds reproduce with their own command lines.
+    # The head's start defaults to the demo's before it moved to the grid, so the runs of the
+    # earlier rounds (docs/lab-notes.md, "Learning at small scale") reproduce with their own
+    # command lines.
     p.add_argument("--scale-bias", type=float, default=-2.5,
                    help="log-scale bias of the Gaussians (default -2.5; the demo now -3.0; Long-LRM -6.9)")
     p.add_argument("--anchors", default="centre", choices=("centre", "grid"),

@@ -58,7 +58,7 @@ from llrmpp_jax.splat.projection import project_gaussians
 
 H100_FLOPS = PEAK_BF16_TFLOPS["H100"] * 1e12
 # Float32 matrix products run on the tensor cores as TF32 (XLA:GPU's default precision,
-# experiments/README.md "On an H200"): half the bf16 rate.
+# docs/lab-notes.md "On an H200"): half the bf16 rate.
 H100_TF32_FLOPS = H100_FLOPS / 2
 H100_BYTES_PER_S = 3.35e12  # H100 SXM HBM3
 CFG = C.paper_dl3dv()

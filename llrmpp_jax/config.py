@@ -183,7 +183,9 @@ class GaussianHeadConfig:
     sh_degree: int = 3  # color mode
     # Offsets from the patch centre, in pixels: offset_scale * tanh(raw) * patch_size (at most
     # offset_scale patch widths), or raw * patch_size, unbounded, with offset_scale=None (the
-    # paper's "move freely"). Measured on the demo: 19.15 vs 19.18 dB, no difference (gaussians.py).
+    # paper's "move freely"). Bounded by default, so no Gaussian leaves the screen early in
+    # training; unbounding it made no measurable difference (docs/lab-notes.md,
+    # "The Gaussians' offset bound").
     offset_scale: float | None = 1.0
     # Where a token's K Gaussians start: "centre" (all at the patch centre, every head column
     # drawn: Long-LRM++'s head as the paper describes it) or "grid" (K = m*m on the cell
@@ -191,9 +193,8 @@ class GaussianHeadConfig:
     # log-scale columns starting at zero: isotropic, one size, at max_dist / 2; see
     # gaussians.head_kernel_init). The paper says only that they "move freely"; its K = 16 at a
     # 4x4-pixel canvas footprint per token is one Gaussian per canvas pixel, where "grid"
-    # starts. Measured (experiments/README.md, "Fourth round"): with "centre" a patch's
-    # Gaussians cover each other and the canvas carries little more than its mean; a
-    # single-view re-render reaches 26.5 dB in 2,000 steps with "grid", 24.2 with "centre".
+    # starts. The demo and small recipes use "grid": with "centre" a patch's Gaussians cover
+    # each other and the canvas carries little more than its mean (docs/lab-notes.md, "Fourth round").
     anchors: Anchors = "centre"
     max_dist: float = 500.0  # distance = sigmoid(raw) * max_dist (scene units)
     scale_bias: float = -6.9  # log-scale = min(raw + bias, scale_max)
@@ -207,7 +208,7 @@ class GaussianHeadConfig:
     # Std of the head's linear weights: Long-LRM's normal(0.02), or None for 1/sqrt(fan-in)
     # (LeCun normal). At the paper's widths (768-1024) they are within 1.6x; at the width of
     # the CPU models (64) 0.02 is 8x smaller, and the chain of linear maps from head through
-    # splat to decoder output learns slowly (experiments/README.md, "Second round").
+    # splat to decoder output learns slowly (docs/lab-notes.md, "Second round").
     init_std: float | None = 0.02
 
     def __post_init__(self) -> None:
@@ -248,11 +249,10 @@ class DecoderConfig:
     init_std: float | None = 0.02
     # Log-depth offset of the depth head: depth = exp(head(x) + depth_bias) (scene units).
     # The head is bias-free, so with 0 every depth starts at exp(0) = 1 unit and the shared
-    # decoder must bend its features to reach the data's depths, at the expense of RGB and
-    # of depth itself (one procedural scene with depths ~15 units, 300 steps: input PSNR
-    # 16.05 and delta<1.25 0.50 with 0, 17.21 and 0.84 with log 15.5; 17.68 with no depth
-    # head; experiments/README.md). Set it near the log of the training data's typical
-    # depth, as Long-LRM's Gaussian head sets scale_bias and opacity_bias.
+    # decoder must bend its features to reach the data's depths, at the expense of RGB and of
+    # depth itself (docs/lab-notes.md, "The decoder's depth head on one scene"). Set it near
+    # the log of the training data's typical depth, as Long-LRM's Gaussian head sets
+    # scale_bias and opacity_bias.
     depth_bias: float = 0.0
 
     def __post_init__(self) -> None:
@@ -306,7 +306,7 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
 
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
     (``attention_impl="cudnn"``, meant for bf16 runs: it computes in bf16, casting float32
-    q, k, v; ~10x the blockwise kernel's speed on an H200, experiments/README.md), anywhere else
+    q, k, v; ~10x the blockwise kernel's speed on an H200, docs/results.md), anywhere else
     (TPU, CPU) the pure-JAX blockwise kernel, which needs no vendor library and works in
     any dtype. XLA's plain attention would hold [heads, L, L] scores (L = 261K backbone
     tokens at stage 4, ~1.5 TiB per block), see experiments/results/bench_train.json.

@@ -2,7 +2,7 @@
 decoder paints.
 
 The feature model's decoder can paint a target view from Gaussians in the wrong place (on
-one scene it memorises target views, experiments/README.md), so an RGB loss alone moves the
+one scene it memorises target views, docs/lab-notes.md "First round"), so an RGB loss alone moves the
 Gaussians slowly. Where ground-truth depth exists (procedural scenes, ScanNet++), this term
 renders the Gaussians' expected camera z at the decoder's canvas resolution (gsplat's "ED":
 accumulated z over accumulated alpha, as the colour model's depth in ``model.py``) and

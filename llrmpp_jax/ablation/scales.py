@@ -102,7 +102,7 @@ def smoke_base() -> C.ModelConfig:
 
 def cpu_base() -> C.ModelConfig:
     """The demo model (the ``demo`` recipe), whose recipe was measured on this kind of
-    machine (``experiments/README.md``), with the paper's chosen rows: K = 16 Gaussians of
+    machine (``docs/lab-notes.md``), with the paper's chosen rows: K = 16 Gaussians of
     F = 32 features per token (Table 4) and an ``LLGGG`` decoder of width 256 / 4 with S = 2
     partitions (Tables 5, 6). At 64x64 the K = 16 head gives one Gaussian per half-resolution
     canvas pixel (2x2 image pixels) per input view, the paper's density at 256x256. Each row

@@ -211,7 +211,8 @@ def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
 # row-major along the contraction; with autodiff's own VJPs of these einsums it transposed the
 # [n, hg*P] state (1.5 MB per chunk at the paper's sizes) twice per chunk in the backward. With
 # these (the products that contract over hg*P written as (S R^T)^T) it transposes it once, and
-# the scan's fwd+bwd at L = 16,384 took 1.33 s against 1.42 s (same run; experiments/README.md).
+# the scan's fwd+bwd at L = 16,384 took 1.33 s against 1.42 s (same run; docs/lab-notes.md,
+# "SSD scan speed on CPU").
 
 
 def _state_dot_nt(S: Float[Array, "b g n hgP"], R: Float[Array, "b Q g hgP"], acc) -> Float[Array, "b Q g n"]:
@@ -254,7 +255,7 @@ _state_write.defvjp(lambda B, E, acc: (_state_write(B, E, acc), (B, E)), _write_
 # relative error is 2e-7 / 5e-7 / 8e-7 and the VJPs' 3e-6 / 9e-6 / 1.4e-5 at spans of 30 / 60 /
 # 120 nats (per-head form: 1e-7 and <= 8e-6). 120 rather than 60 lets ~half of the layers of
 # a model at Long-LRM's init (dt, A per head) factorise every chunk of 128, not ~4%
-# (experiments/README.md, "SSD scan speed").
+# (docs/lab-notes.md, "SSD scan speed on CPU").
 _FACTOR_SPAN = 120.0
 
 
@@ -326,8 +327,8 @@ def _run_chunks(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None,
 
     One ``lax.cond`` for the whole sequence picks the loop: a per-chunk ``lax.cond`` inside it
     costs fwd+bwd ~13% at L = 16,384 even when every chunk takes the shared form
-    (experiments/README.md), so the loop with the per-chunk choice runs only when some chunk
-    does not factorise. Under ``vmap`` a ``lax.cond`` runs both branches: batch through the
+    (docs/lab-notes.md, "SSD scan speed on CPU"), so the loop with the per-chunk choice runs
+    only when some chunk does not factorise. Under ``vmap`` a ``lax.cond`` runs both branches: batch through the
     leading axes.
     """
     state0 = full_like_varying(xs[0], (meta.b, meta.g, meta.n, meta.hg, meta.P), 0.0, meta.acc)
@@ -347,7 +348,7 @@ def _run_chunks(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None,
 # backward runs the chunks in reverse, recomputing each one's step from its state (the work of
 # a remat'd scan). Autodiff of a `jax.checkpoint`ed step under the whole-sequence `lax.cond`
 # passed the x-, B- and C-sized residuals out of the cond, copied: fwd+bwd at L = 65,536
-# took 5-12% longer than this (experiments/README.md, "SSD scan speed on CPU").
+# took 5-12% longer than this (docs/lab-notes.md, "SSD scan speed on CPU").
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _chunk_loop(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None) -> Array:
     """``y`` ``[nc, b, Q, g, hg, P]`` of every chunk (:func:`_run_chunks`); ``factor`` ``[nc]`` bool."""
@@ -409,8 +410,8 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
     (outside it only ``[L, nh]`` decay factors are computed). The loop's VJP is written out
     (:func:`_chunk_loop`): the backward keeps one state per chunk and recomputes the rest.
     At the paper's block sizes and L = 16,384 the ops outside the loop took half the time of
-    the head-major form this replaced (profiled fwd+bwd: 314 against 630 ms; experiments/README.md,
-    "SSD scan speed").
+    the head-major form this replaced (profiled fwd+bwd: 314 against 630 ms; docs/lab-notes.md,
+    "SSD scan speed on CPU").
     """
     _check_inputs(x, dt, A, B, C, D, chunk_size)
     *batch, L, nh, P = x.shape

@@ -11,10 +11,10 @@ here; the paper's lambda=0.5 is one field away). Gaussians start 1.5 units out (
 the procedural scenes' median depth is ~1.3 units after normalisation, 95% of it under 4) and
 larger than Long-LRM's (scale_bias -3.0 against -6.9: about one cell of the grid below on
 screen), since the demo has minutes, not days, to move them. Measured on one scene with
-fresh inputs every step (experiments/README.md, f09 vs f10): max_dist 3 instead of 8 gives
+fresh inputs every step (docs/lab-notes.md, "First round", f09 vs f10): max_dist 3 instead of 8 gives
 20.9 / 18.9 dB on input / held-out views after 1,600 steps, against 19.6 / 17.3.
 
-Three departures from Long-LRM's recipe, measured in experiments/README.md ("Second round",
+Three departures from Long-LRM's recipe, measured in docs/lab-notes.md ("Second round",
 "Fourth round"): a token's 4 Gaussians start on a 2 x 2 sub-grid of its patch, on-axis and
 isotropic (``anchors="grid"``), not all at the patch centre with drawn offsets, scales and
 rotations (scale_bias -2.5), which cover each other so that the canvas carries little more

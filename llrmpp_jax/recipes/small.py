@@ -36,8 +36,8 @@ The network is the CPU recipe's (``small_cpu.py``, width 64, shipped until 2026-
 history at dce295e) with the decoder's token stride 8 -> 4 and the backbone and decoder widths
 64 -> 128 (1.3M parameters). Through 12,000 CPU samples it trailed the width-64 model; with data
 from an accelerator it leads: 23.29 / 24.12 dB after 16,000 / 32,000 samples against the
-width-64 model's 22.72 / 23.24 at the same samples (and 23.70 after 64,000; experiments/README.md,
-"`small.py`").
+width-64 model's 22.72 / 23.24 at the same samples (and 23.70 after 64,000; docs/lab-notes.md,
+"`small.py`: the shipped small model").
 
 Otherwise the model is the demo's, with its three departures from Long-LRM's recipe (the
 Gaussians' grid start, a ``{4T}x1`` backbone, LeCun-normal head and decoder init), each with its
