@@ -24,7 +24,6 @@ import time
 import jax
 
 from llrmpp_jax import ablation as A
-from llrmpp_jax import config as C
 from llrmpp_jax.metrics import load_lpips_params
 
 

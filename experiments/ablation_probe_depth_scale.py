@@ -52,7 +52,6 @@ def main() -> None:
     import llrmpp_jax.ablation.scoring as scoring
     import llrmpp_jax.data.batching as batching
     from llrmpp_jax import ablation as A
-    from llrmpp_jax import config as C
     from llrmpp_jax.metrics import depth_metrics
 
     scale = A.make_scale(A.scale_name(), paper_views=8, depth=True)

@@ -18,7 +18,6 @@ import jax
 import numpy as np
 
 from llrmpp_jax import ablation as A
-from llrmpp_jax import config as C
 from llrmpp_jax.model import reconstruct
 
 k, f, canvas, blocks, S = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], int(sys.argv[5])

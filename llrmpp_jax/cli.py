@@ -16,6 +16,7 @@ import json
 import os
 import signal
 import sys
+from dataclasses import replace
 
 from llrmpp_jax.errors import OutOfSpaceError, UserError
 
@@ -45,7 +46,6 @@ def _load_params(checkpoint: str, config: str | None):
 
 
 def cmd_train(args) -> int:
-    from dataclasses import replace
     from llrmpp_jax.trainer import train
 
     exp = _experiment(args.config)
@@ -77,7 +77,6 @@ def cmd_train(args) -> int:
 def with_data(exp, path: str, kind: str, max_scenes: int):
     """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``), all
     of them: no split, no scene list."""
-    from dataclasses import replace
 
     if not os.path.exists(path):
         raise UserError(f"dataset path does not exist: {path}")
@@ -98,7 +97,6 @@ def _read_capture(path: str, kind: str):
 
 
 def cmd_eval(args) -> int:
-    from llrmpp_jax import experiment as E
     from llrmpp_jax.evaluate import evaluate, format_table
     from llrmpp_jax.metrics import load_lpips_params
     from llrmpp_jax.data.held_out import eval_samples

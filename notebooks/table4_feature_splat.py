@@ -18,7 +18,6 @@
 from dataclasses import replace
 
 from llrmpp_jax import ablation as A
-from llrmpp_jax import config as C
 
 scale = A.make_scale(A.scale_name(), paper_views=4)
 print(scale)

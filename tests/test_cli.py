@@ -11,7 +11,6 @@ import sys
 import numpy as np
 import pytest
 
-from llrmpp_jax import config as C
 from llrmpp_jax.cli import main
 from llrmpp_jax.experiment import DataConfig, load_experiment
 from tests.helpers.environment import ROOT

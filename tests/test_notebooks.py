@@ -253,7 +253,6 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     """Rows 1 and 0 differ by 1 dB +- 0.1 (resolved with the first 3 seeds); rows 2 and 0 by
     noise of sd 1 around 0 (never resolved: seeds are added up to the cap); row 3 is in no
     ordering (never more than the first seeds). Trainings are replaced by draws."""
-    from llrmpp_jax import config as C
     from llrmpp_jax.ablation import tables
 
     rng = np.random.default_rng(0)
