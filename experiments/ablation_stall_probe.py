@@ -29,10 +29,11 @@ spike = os.environ.get("SPIKE_FACTOR")
 if spike:
     scale = dataclasses.replace(scale, spike_factor=None if spike == "none" else float(spike))
 cfg = replace(scale.base, head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
-                decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
-                                  canvas_ratio=round(1 / canvas), partitions=S))
+              decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
+                              canvas_ratio=round(1 / canvas), partitions=S))
 variant = A.Variant({}, lambda b: cfg, {})
-samples = A.eval_samples(scale, depth=False)[:4]
+held_out = A.eval_samples(scale, depth=False)
+samples = held_out[:4]  # the Gaussian statistics use the first four
 snaps = [0, 10, 25, 50, 100, 200, steps]
 
 recon = jax.jit(lambda p, s: reconstruct(p, cfg, s["input_images"], s["input_c2w"], s["input_intrinsics"]))
@@ -54,7 +55,7 @@ res = {}
 for seed in seeds:
     t = A.train(cfg, scale, variant, seed=seed, snapshots=snaps)
     t.snapshots[0] = A.init_model(cfg, scale, seed)
-    ev = A.evaluate(t.params, cfg, scale, samples=A.eval_samples(scale, depth=False))
+    ev = A.evaluate(t.params, cfg, scale, samples=held_out)
     res[seed] = dict(losses=t.losses.tolist(), grad_norms=t.grad_norms.tolist(), seconds=t.seconds,
                      snap={str(k): stats(v) for k, v in sorted(t.snapshots.items())},
                      eval=ev)

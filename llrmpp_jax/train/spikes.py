@@ -11,6 +11,7 @@ ones (1.9, 6.5) passed untouched (``notebooks/README.md``, "Stalled seeds").
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -50,7 +51,7 @@ def skip_gradient_spikes(
         raise ValueError(f"skip_gradient_spikes: factor={factor} must be > 1")
     if not 0.0 < decay < 1.0:
         raise ValueError(f"skip_gradient_spikes: decay={decay} must be in (0, 1)")
-    log_factor = float(jnp.log(factor))
+    log_factor = math.log(factor)
 
     def init(params) -> SpikeGuardState:
         zero = jnp.zeros((), jnp.int32)
