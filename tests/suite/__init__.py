@@ -1,1 +1,2 @@
-"""Tests of the test suite's own rules (``tests/helpers``), not of the package."""
+"""Tests of the test suite's own rules (``tests/helpers``) and of the repository's (the index of
+``experiments/results/``), not of the package."""
