@@ -15,6 +15,7 @@ import errno
 import json
 import os
 import signal
+import socket
 import sys
 from dataclasses import replace
 
@@ -46,6 +47,7 @@ def _load_params(checkpoint: str, config: str | None):
 
 
 def cmd_train(args) -> int:
+    from llrmpp_jax.train.supervise import run_supervised, supervised
     from llrmpp_jax.trainer import train
 
     exp = _experiment(args.config)
@@ -57,6 +59,13 @@ def cmd_train(args) -> int:
         exp = with_data(exp, args.data, args.format, exp.data.num_eval_scenes)
     if args.heartbeat_timeout < 1:
         raise UserError(f"--heartbeat-timeout must be >= 1 s, got {args.heartbeat_timeout}")
+    if args.distributed and not supervised():
+        # The same command as a child, so that the coordinator's death (a C++ abort inside
+        # the process) still ends in one line (llrmpp_jax.train.supervise).
+        log = os.path.join(args.workdir, "logs", f"jax_abort_{socket.gethostname()}_{os.getpid()}.log")
+        checkpoints = os.path.join(args.workdir, "checkpoints")
+        return run_supervised([sys.executable, "-m", "llrmpp_jax.cli", *args.argv],
+                              f"resume from the last complete checkpoint in {checkpoints}", log)
     if args.distributed:
         import jax
 
@@ -643,7 +652,9 @@ def main(argv: list[str] | None = None) -> int:
     path, a permission, a full disk) is one line on stderr and the error's exit status
     (:mod:`llrmpp_jax.errors`: 2 bad input, 3 out of space, 4 a lost peer); any other
     exception is a bug and keeps its traceback (exit status 1)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv
     try:
         return args.fn(args)
     except UserError as e:

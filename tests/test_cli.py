@@ -486,3 +486,25 @@ def test_workdir_params_come_from_the_curriculum_s_last_stage(tmp_path):
     assert cfg == whole.model
     for g, w in zip(jax.tree.leaves(got), jax.tree.leaves(later)):
         np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+
+
+def test_distributed_train_runs_itself_under_the_supervisor(tmp_path, monkeypatch):
+    """``train --distributed`` re-runs the same command as a supervised child (so the
+    coordinator's death is one line: ``tests/train/test_multihost.py``), and the child, which
+    sees ``LLRMPP_SUPERVISED=1``, does not supervise itself again."""
+    import llrmpp_jax.train.supervise as supervise
+
+    calls = []
+    monkeypatch.setattr(supervise, "run_supervised", lambda command, hint, log: calls.append((command, hint, log)) or 7)
+    monkeypatch.delenv(supervise.ENV, raising=False)
+    argv = ["train", "--config", "demo", "--workdir", str(tmp_path / "w"), "--distributed", "--heartbeat-timeout", "5"]
+    assert main(argv) == 7
+    (command, hint, log), = calls
+    assert command == [sys.executable, "-m", "llrmpp_jax.cli", *argv]
+    assert hint == f"resume from the last complete checkpoint in {tmp_path / 'w' / 'checkpoints'}"
+    assert log.startswith(str(tmp_path / "w" / "logs" / "jax_abort_"))
+    monkeypatch.setenv(supervise.ENV, "1")
+    monkeypatch.setattr("jax.distributed.initialize", lambda **kw: (_ for _ in ()).throw(RuntimeError("initialize")))
+    with pytest.raises(RuntimeError, match="initialize"):  # the child goes on to start JAX's distributed runtime
+        main(argv)
+    assert len(calls) == 1

@@ -20,8 +20,9 @@ exactly.
 
 The coordinator itself (process 0) is the exception: its death closes the connection every
 other process's JAX client polls, and JAX aborts them at once (measured: 0.4 s after a
-SIGKILL; exit status 134 with a stack dump whose first line says the leader task died),
-before any Python code can run. The bound holds; the single line does not.
+SIGKILL; SIGABRT with a stack dump whose first line says the leader task died), before any
+Python code can run. That line comes from outside the process:
+:mod:`llrmpp_jax.train.supervise`, under which ``llrmpp train --distributed`` runs.
 
 The watchdog must fire before JAX's own abort: give ``jax.distributed.initialize`` a
 heartbeat timeout above ``timeout_s`` (:func:`jax_heartbeat_timeout`). A process leaving

@@ -57,11 +57,23 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start(mode: str, directory, stderr=subprocess.STDOUT) -> list[subprocess.Popen]:
+# ``python -c SUPERVISE HINT LOG COMMAND...``: COMMAND under run_supervised, as
+# ``llrmpp train --distributed`` runs every process.
+SUPERVISE = ("import sys; from llrmpp_jax.train.supervise import run_supervised; "
+             "sys.exit(run_supervised(sys.argv[3:], sys.argv[1], sys.argv[2]))")
+
+
+def _start(mode: str, directory, stderr=subprocess.STDOUT, supervised: tuple[bool, ...] = (False,) * N_PROCESSES,
+           ) -> list[subprocess.Popen]:
     port = _free_port()
-    return [subprocess.Popen([sys.executable, "-m", __name__, mode, str(i), str(port), str(directory)],
-                             stdout=subprocess.PIPE, stderr=stderr, text=True, cwd=ROOT)
-            for i in range(N_PROCESSES)]
+    procs = []
+    for i, wrap in enumerate(supervised):
+        command = [sys.executable, "-m", __name__, mode, str(i), str(port), str(directory)]
+        if wrap:
+            hint = "resume from the last complete checkpoint in " + os.path.join(directory, "ckpt")
+            command = [sys.executable, "-c", SUPERVISE, hint, os.path.join(directory, f"jax_abort_{i}.log"), *command]
+        procs.append(subprocess.Popen(command, stdout=subprocess.PIPE, stderr=stderr, text=True, cwd=ROOT))
+    return procs
 
 
 def _run_to_end(mode: str, directory) -> list[str]:
@@ -75,6 +87,39 @@ def _run_to_end(mode: str, directory) -> list[str]:
     for p, log in zip(procs, logs):
         assert p.returncode == 0, log[-3000:]
     return logs
+
+
+def _kill_after_checkpoint(procs: list[subprocess.Popen], victim: int) -> tuple[int, float, str]:
+    """SIGKILL ``procs[victim]`` once the other process has saved step 3; the other's exit
+    status, the seconds it took to end after the kill, and its stderr."""
+    other = procs[1 - victim]
+    try:
+        for line in other.stdout:
+            if line.strip() == "saved 3":
+                break
+        else:
+            pytest.fail(f"the process ended early: {other.wait()} {other.stderr.read()[-3000:]}")
+        procs[victim].send_signal(signal.SIGKILL)
+        killed = time.monotonic()
+        status = other.wait(timeout=PEER_TIMEOUT_S + 60)
+        return status, time.monotonic() - killed, other.stderr.read()
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def _assert_both_resume(directory) -> None:
+    """Both processes started again resume from a checkpoint after step 3 and end at the
+    parameters of an uninterrupted run (the single-device oracle)."""
+    for log in _run_to_end("long", directory):
+        resumed = re.search(r"^resumed at (\d+)$", log, re.MULTILINE)
+        assert resumed and 3 <= int(resumed.group(1)) < LONG_STEPS, log[-3000:]
+    state0 = initial_state()
+    want, _ = oracle_steps(state0.params, make_optimizer(CFG), [global_batch(s) for s in range(LONG_STEPS)])
+    restored = restore_checkpoint(directory / "ckpt", state0)
+    assert restored.step == LONG_STEPS
+    assert_tree_close(restored.state.params, want, atol=1e-5)
 
 
 def test_two_processes_equal_one_device(tmp_path):
@@ -97,21 +142,7 @@ def test_a_killed_peer_ends_the_other_in_one_line_and_both_resume(tmp_path):
     no JAX abort. Both started again resume from the last complete checkpoint and end at
     the parameters of an uninterrupted run (the single-device oracle)."""
     procs = _start("long", tmp_path, stderr=subprocess.PIPE)
-    try:
-        for line in procs[0].stdout:
-            if line.strip() == "saved 3":
-                break
-        else:
-            pytest.fail(f"process 0 ended early: {procs[0].wait()} {procs[0].stderr.read()[-3000:]}")
-        procs[1].send_signal(signal.SIGKILL)
-        killed = time.monotonic()
-        status = procs[0].wait(timeout=PEER_TIMEOUT_S + 60)
-        waited = time.monotonic() - killed
-        stderr = procs[0].stderr.read()
-    finally:
-        for p in procs:
-            p.kill()
-            p.wait()
+    status, waited, stderr = _kill_after_checkpoint(procs, victim=1)
     assert status == 4, stderr[-3000:]
     assert waited < PEER_TIMEOUT_S + 10, waited
     assert "Traceback" not in stderr and "Check failure" not in stderr and "F0000" not in stderr, stderr[-3000:]
@@ -119,14 +150,26 @@ def test_a_killed_peer_ends_the_other_in_one_line_and_both_resume(tmp_path):
     assert len(errors) == 1 and errors[0].startswith("llrmpp: error: lost process 1 of 2 ("), stderr[-3000:]
     assert f"pid {procs[1].pid})" in errors[0] and "resume from the last complete checkpoint" in errors[0], errors[0]
 
-    for log in _run_to_end("long", tmp_path):
-        resumed = re.search(r"^resumed at (\d+)$", log, re.MULTILINE)
-        assert resumed and 3 <= int(resumed.group(1)) < LONG_STEPS, log[-3000:]
-    state0 = initial_state()
-    want, _ = oracle_steps(state0.params, make_optimizer(CFG), [global_batch(s) for s in range(LONG_STEPS)])
-    restored = restore_checkpoint(tmp_path / "ckpt", state0)
-    assert restored.step == LONG_STEPS
-    assert_tree_close(restored.state.params, want, atol=1e-5)
+    _assert_both_resume(tmp_path)
+
+
+def test_a_killed_coordinator_ends_the_others_in_one_line_and_both_resume(tmp_path):
+    """Process 0 (the coordinator, which hosts JAX's coordination service) is SIGKILLed; JAX
+    aborts process 1 from a C++ thread at once. Under ``run_supervised`` process 1 still ends
+    in one line naming the lost coordinator, exit status 4, JAX's stack dump kept in a file.
+    Both started again resume to the parameters of an uninterrupted run."""
+    procs = _start("long", tmp_path, stderr=subprocess.PIPE, supervised=(False, True))
+    status, waited, stderr = _kill_after_checkpoint(procs, victim=0)
+    assert status == 4, stderr[-3000:]
+    assert waited < 10, waited
+    assert "Traceback" not in stderr and "Check failure" not in stderr and "F1" not in stderr, stderr[-3000:]
+    errors = [line for line in stderr.splitlines() if "llrmpp: error:" in line]
+    assert len(errors) == 1 and errors[0].startswith("llrmpp: error: lost the coordinator (process 0)"), stderr
+    log = tmp_path / "jax_abort_1.log"
+    assert str(log) in errors[0] and "resume from the last complete checkpoint in" in errors[0], errors[0]
+    assert b"coordination" in log.read_bytes()
+
+    _assert_both_resume(tmp_path)
 
 
 def _run_process(mode: str, process_id: int, port: str, directory: str) -> None:
