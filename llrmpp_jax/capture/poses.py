@@ -7,7 +7,13 @@ its ``overlap`` successors in name order, for video frames and ordered walks;
 ``"exhaustive"``: every pair, for small unordered sets; ``"auto"``: sequential for video
 frames or more than ``EXHAUSTIVE_UP_TO`` images, else exhaustive), incremental mapping --
 keeps the largest model and writes a standard COLMAP capture that every other command
-reads (``--scene CAPTURE``)::
+reads (``--scene CAPTURE``).
+
+Folds: with a symmetric or repetitive object, exhaustive matching links look-alike views from
+different sides and the model can come out folded (:mod:`llrmpp_jax.capture.pose_check`).
+The model is checked for it; under ``matcher="auto"`` a folded exhaustive model is rebuilt
+from sequential matching (photos in capture order), and the one with fewer breaks is kept.
+Breaks that remain are a warning in the report. The capture::
 
     CAPTURE/images/        the photos (or the video's frames), full size
     CAPTURE/sparse/0/      cameras.bin, images.bin, points3D.bin (COLMAP's binary model)
@@ -23,6 +29,7 @@ otherwise; the readers remove the distortion when loading.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
 import json
@@ -39,6 +46,7 @@ from typing import Literal
 
 import numpy as np
 
+from llrmpp_jax.capture.pose_check import continuity_breaks
 from llrmpp_jax.data.image_io import image_size, write_image
 from llrmpp_jax.errors import MissingInputError, UserError
 
@@ -91,6 +99,8 @@ class PosesReport:
     camera_spread: float  # diagonal of the camera centres' bounding box
     points_extent: float  # diagonal of the 5-95 percentile box of the points
     seconds: dict[str, float]
+    matchers_tried: tuple[str, ...] = ()  # the kept model's matcher is the last unless a retry did worse
+    breaks: tuple[str, ...] = ()  # consecutive photos the kept model puts apart (pose_check): a fold
 
     def lines(self) -> list[str]:
         """Human-readable summary, one fact per line."""
@@ -106,6 +116,15 @@ class PosesReport:
             shown = ", ".join(self.unregistered[:8]) + (f" and {len(self.unregistered) - 8} more"
                                                         if len(self.unregistered) > 8 else "")
             out.insert(1, f"not registered: {shown}")
+        if len(self.matchers_tried) > 1:
+            out.append(f"matching: {' then '.join(self.matchers_tried)} (the first model was folded); kept {self.matcher}")
+        if self.breaks:
+            out.append(
+                f"warning: the model looks folded at {len(self.breaks)} place(s): {'; '.join(self.breaks[:3])}"
+                + (f" and {len(self.breaks) - 3} more" if len(self.breaks) > 3 else "")
+                + ". Photos from different sides of a symmetric or repetitive object were matched; with photos "
+                "named in capture order try --matcher sequential, or add photos of the object's distinctive sides"
+            )
         return out
 
 
@@ -167,6 +186,48 @@ def _diagonal(points: np.ndarray, lo: float = 0.0, hi: float = 100.0) -> float:
         return 0.0
     a, b = np.percentile(points, [lo, hi], axis=0)
     return float(np.linalg.norm(b - a))
+
+
+def _match(pycolmap, database: str, matcher: str, n: int, cfg: PosesConfig, progress: Callable[[str], None]) -> None:
+    """COLMAP's matching and geometric verification of the pairs ``matcher`` chooses.
+
+    Sequential pairing matches each image with its next ``cfg.overlap`` images only: not
+    COLMAP's "quadratic overlap" (also i + 2^k), whose far pairs are the look-alike views that
+    fold a model (:mod:`llrmpp_jax.capture.pose_check`), nor its vocabulary-tree loop detection.
+    """
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.use_gpu = False
+    matching.num_threads = cfg.threads
+    if matcher == "exhaustive":
+        progress(f"matching: exhaustive, {n * (n - 1) // 2} pairs")
+        pycolmap.match_exhaustive(database, matching_options=matching)
+    else:
+        progress(f"matching: sequential, each image with its next {cfg.overlap}")
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = cfg.overlap
+        pairing.quadratic_overlap = False
+        pairing.loop_detection = False
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
+
+
+def _map(pycolmap, database: str, image_dir: str, scratch: str, cfg: PosesConfig,
+         progress: Callable[[str], None]):
+    """Incremental mapping into ``scratch``; ``(largest model or None, all models)``."""
+    progress("mapping: incremental")
+    os.makedirs(scratch, exist_ok=True)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = cfg.threads
+    models = pycolmap.incremental_mapping(database, image_dir, scratch, options=options)
+    return max(models.values(), key=lambda r: r.num_reg_images(), default=None), models
+
+
+@contextlib.contextmanager
+def _open_database(pycolmap, path: str):
+    db = pycolmap.Database.open(path)
+    try:
+        yield db
+    finally:
+        db.close()
 
 
 # glog's failure handler, which pycolmap installs when it is imported.
@@ -254,31 +315,37 @@ def estimate_poses(
                               reader_options=reader, extraction_options=extraction)
     seconds["features"] = time.perf_counter() - t
 
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.use_gpu = False
-    matching.num_threads = cfg.threads
     n = len(names)
-    if matcher == "exhaustive":
-        progress(f"matching: exhaustive, {n * (n - 1) // 2} pairs")
-    else:
-        progress(f"matching: sequential, each image with its next {cfg.overlap}")
     t = time.perf_counter()
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = cfg.overlap
-        pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
+    _match(pycolmap, database, matcher, n, cfg, progress)
     seconds["matching"] = time.perf_counter() - t
-
-    progress("mapping: incremental")
-    t = time.perf_counter()
+    tried = [matcher]
+    sparse = os.path.join(out, "sparse", "0")
     with tempfile.TemporaryDirectory(dir=out) as scratch:
-        options = pycolmap.IncrementalPipelineOptions()
-        options.num_threads = cfg.threads
-        models = pycolmap.incremental_mapping(database, image_dir, scratch, options=options)
+        t = time.perf_counter()
+        best, models = _map(pycolmap, database, image_dir, os.path.join(scratch, matcher), cfg, progress)
         seconds["mapping"] = time.perf_counter() - t
-        best = max(models.values(), key=lambda r: r.num_reg_images(), default=None)
+        breaks = continuity_breaks(best, database) if best is not None else []
+        if breaks and cfg.matcher == "auto" and matcher == "exhaustive":
+            # A fold (pose_check): exhaustive pairs include the look-alike views from other
+            # sides; matching each photo only with its successors in capture order leaves them out.
+            progress(f"the model looks folded at {len(breaks)} place(s) ({breaks[0]}): matching again sequentially")
+            t = time.perf_counter()
+            retry_db = os.path.join(scratch, "sequential.db")
+            shutil.copy2(database, retry_db)
+            with _open_database(pycolmap, retry_db) as db:
+                db.clear_matches()
+                db.clear_two_view_geometries()
+            _match(pycolmap, retry_db, "sequential", n, cfg, progress)
+            seconds["matching (sequential)"] = time.perf_counter() - t
+            t = time.perf_counter()
+            retry, retry_models = _map(pycolmap, retry_db, image_dir, os.path.join(scratch, "sequential"), cfg, progress)
+            seconds["mapping (sequential)"] = time.perf_counter() - t
+            tried.append("sequential")
+            retry_breaks = continuity_breaks(retry, retry_db) if retry is not None else []
+            if retry is not None and retry.num_reg_images() >= cfg.min_registered and len(retry_breaks) < len(breaks):
+                best, models, breaks, matcher = retry, retry_models, retry_breaks, "sequential"
+                os.replace(retry_db, database)  # the kept model's matches
         registered = best.num_reg_images() if best is not None else 0
         if registered < cfg.min_registered:
             raise UserError(
@@ -287,7 +354,6 @@ def estimate_poses(
                 f"{'exhaustive' if matcher == 'sequential' else 'sequential'}"
                 + (", or a higher --fps" if video is not None else " (for ordered photos or frames)")
             )
-        sparse = os.path.join(out, "sparse", "0")
         os.makedirs(sparse)
         best.write_binary(sparse)
 
@@ -301,6 +367,7 @@ def estimate_poses(
         mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
         mean_track_length=float(best.compute_mean_track_length()),
         camera_spread=_diagonal(centres), points_extent=_diagonal(points, 5.0, 95.0), seconds=seconds,
+        matchers_tried=tuple(tried), breaks=tuple(str(b) for b in breaks),
     )
     with open(os.path.join(out, "poses_report.json"), "w") as f:
         json.dump(dataclasses.asdict(report), f, indent=1)
