@@ -161,7 +161,7 @@ class Viewer:
     starts.
     """
 
-    def __init__(self, renderer: ViewRenderer, scene: ViewerScene, *, host: str = "0.0.0.0", port: int = 8080,
+    def __init__(self, renderer: ViewRenderer, scene: ViewerScene, *, host: str = "127.0.0.1", port: int = 8080,
                  settings: ViewerSettings = ViewerSettings()):
         m, most = renderer.cfg.size_multiple, renderer.max_partitions
         if settings.height <= 0 or settings.moving_height <= 0 or settings.height % m or settings.moving_height % m:

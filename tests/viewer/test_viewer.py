@@ -426,27 +426,68 @@ def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):
              r"narrow: parameters do not fit the model config: first mismatch")
 
 
-def test_cli_serves_the_page(tmp_path):
-    """``llrmpp view --procedural`` serves viser's page until interrupted."""
+def _other_address() -> str:
+    """An address of this machine that is not 127.0.0.1: the interface a packet out would
+    leave by, else 127.0.1.1 (a loopback address, but not the one a 127.0.0.1 bind accepts)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("10.255.255.255", 1))  # no packet is sent; picks the outgoing interface
+            address = s.getsockname()[0]
+        except OSError:
+            address = "127.0.0.1"
+    return address if address != "127.0.0.1" else "127.0.1.1"
+
+
+def _view(*args: str):
     import signal
     import subprocess
     import sys
-    import urllib.request
 
-    proc = subprocess.Popen([sys.executable, "-m", "llrmpp_jax.cli", "view", "--procedural", "1", "--random-init",
-                             "--host", "127.0.0.1", "--port", "0", "--height", "64", "--moving-height", "32"],
+    return subprocess.Popen([sys.executable, "-m", "llrmpp_jax.cli", "view", "--procedural", "1", "--random-init",
+                             "--port", "0", "--height", "64", "--moving-height", "32", *args],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             # xdist workers ignore SIGINT and a child inherits that: restore Ctrl-C
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+
+def test_cli_serves_the_page_to_this_machine_only(tmp_path):
+    """``llrmpp view --procedural`` serves viser's page until interrupted; by default on
+    127.0.0.1 only: the same port on another address of this machine refuses the connection."""
+    import signal
+    import urllib.error
+    import urllib.request
+
+    proc = _view()
     try:
         line = ""
         while not line.startswith("llrmpp view:"):  # after viser's own banner
             line = proc.stdout.readline()
             assert line, proc.stderr.read()
-        assert "1,024 feature-mode Gaussians" in line, line
+        assert "1,024 feature-mode Gaussians" in line and "anyone" not in line, line
         url = line.split(" at ")[1].split(" ")[0]
-        page = urllib.request.urlopen(url, timeout=30).read().decode()
+        port = int(url.rsplit(":", 1)[1].strip("/"))
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}", timeout=30).read().decode()
         assert "<html" in page.lower() and "viser" in page.lower()
+        elsewhere = f"http://{_other_address()}:{port}"
+        with pytest.raises(urllib.error.URLError, match="refused"):
+            urllib.request.urlopen(elsewhere, timeout=10)
     finally:
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=60) == 130
+
+
+def test_cli_shared_on_the_network_says_so_first():
+    """``--host 0.0.0.0`` prints, before anything is loaded, that anyone who can reach the port
+    sees the scene and its photos."""
+    import signal
+
+    proc = _view("--host", "0.0.0.0")
+    try:
+        first = proc.stdout.readline()
+        assert first.startswith("llrmpp view: serving on 0.0.0.0: anyone who can reach port"), first
+        assert "sees the scene and its photos" in first
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
