@@ -19,6 +19,7 @@ from llrmpp_jax.data.image_io import read_image
 from llrmpp_jax.export_ply import read_ply, standard_fields
 from llrmpp_jax.model import render
 from tests.helpers.environment import GOLDEN, ROOT, shared_path
+from tests.helpers.photos import fox_video
 
 FOX, BEER = shared_path("data", "fox"), shared_path("data", "beer")
 
@@ -252,3 +253,25 @@ def test_convert_lists_unused_keys(tmp_path, golden, capsys):
     assert cfg.head.mode == "color"
     want = np.load(os.path.join(GOLDEN, "state_dict.npz"))["tokenDecoder.1.weight"].T
     np.testing.assert_array_equal(np.asarray(params["head"]["proj"]["kernel"]), want)
+
+
+def test_reconstruct_from_a_video_end_to_end(golden, tmp_path, capsys):
+    """``reconstruct --video``: frames, poses (COLMAP, sequential matching for a video), the
+    model, a ``.gs`` file; then a held-out frame rendered with its metrics."""
+    params_dir, _ = golden
+    video = str(tmp_path / "walk.mp4")
+    frames = fox_video(video, size=320, fps=5)
+    gs = str(tmp_path / "walk.gs")
+    assert main(["reconstruct", "--video", video, "--fps", "5", "--max-image-size", "320", "--checkpoint",
+                 params_dir, "--num-inputs", "4", "--size", "64", "--out", gs]) == 0
+    out = capsys.readouterr().out
+    assert "matching: sequential" in out and f"of {frames} images" in out, out
+    capture = tmp_path / "walk_capture"
+    assert sorted(os.listdir(capture / "images")) == [f"frame_{i:05d}.jpg" for i in range(frames)]
+    saved = load_gs(gs)
+    assert len(saved.inputs) == 4 and len(saved.targets) >= 1 and saved.image_hw[0] == 64
+    rendered = tmp_path / "targets"
+    assert main(["render", "--gaussians", gs, "--path", "targets", "--quiet", "--out", str(rendered)]) == 0
+    pngs = [f for f in os.listdir(rendered) if f.endswith(".png")]
+    assert len(pngs) == len(saved.targets) and read_image(str(rendered / pngs[0])).shape[:2] == saved.image_hw
+    assert np.isfinite(json.load(open(rendered / "metrics.json"))["mean"]["psnr"])

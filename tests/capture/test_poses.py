@@ -12,36 +12,19 @@ import subprocess
 import sys
 import warnings
 
-import imageio_ffmpeg
 import numpy as np
 import pytest
 
 from llrmpp_jax.capture.poses import PosesConfig, estimate_poses, extract_frames
 from llrmpp_jax.cli import main
 from llrmpp_jax.data.formats import read_scene
-from llrmpp_jax.data.image_io import read_image, write_image
-from llrmpp_jax.data.resample import resize_image
+from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.errors import MissingInputError, UserError
 from tests.helpers.environment import shared_path
-
-FOX = 10  # the first photos of the fox capture: they overlap enough to register
-
-
-def _fox_photos(tmp_path, size: int = 480) -> list[str]:
-    """The first FOX photos of ../shared's fox capture, shrunk to ``size`` px high."""
-    src = shared_path("data", "fox", "images")
-    out = tmp_path / "photos"
-    out.mkdir()
-    names = sorted(os.listdir(src))[:FOX]
-    for n in names:
-        image = read_image(os.path.join(src, n))
-        h, w = image.shape[:2]
-        write_image(str(out / n), resize_image(image, (size, round(w * size / h))))
-    return names
-
+from tests.helpers.photos import FOX, fox_photos, fox_video
 
 def test_photos_register_and_read_back_as_a_capture(tmp_path, capsys):
-    names = _fox_photos(tmp_path)
+    names = fox_photos(tmp_path / "photos")
     out = str(tmp_path / "capture")
     assert main(["poses", "--images", str(tmp_path / "photos"), "--out", out, "--max-image-size", "480"]) == 0
     printed = capsys.readouterr().out
@@ -71,16 +54,8 @@ def test_photos_register_and_read_back_as_a_capture(tmp_path, capsys):
 
 
 def test_a_video_becomes_frames_and_poses(tmp_path):
-    _fox_photos(tmp_path, size=320)
-    frames = [read_image(str(p)) for p in sorted((tmp_path / "photos").iterdir())]
-    h, w = frames[0].shape[:2]
-    w -= w % 2  # yuv420p needs even sides
     video = str(tmp_path / "walk.mp4")
-    writer = imageio_ffmpeg.write_frames(video, (w, h), fps=5, quality=9, macro_block_size=1)
-    writer.send(None)
-    for f in frames:
-        writer.send(np.ascontiguousarray((f[:, :w] * 255).round().astype(np.uint8)))
-    writer.close()
+    assert fox_video(video, size=320, fps=5) == FOX
     names = extract_frames(video, str(tmp_path / "frames"), fps=5, progress=lambda _: None)
     assert len(names) == FOX  # 2 s at 5 frames a second
     report = estimate_poses(None, str(tmp_path / "capture"), PosesConfig(max_image_size=320), video=video, fps=5,
