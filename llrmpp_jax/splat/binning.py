@@ -85,6 +85,46 @@ def screen_extents(
     return jnp.sqrt(two_l * jnp.maximum(c, 0.0) / det), jnp.sqrt(two_l * jnp.maximum(a, 0.0) / det)
 
 
+def _reaches_block(
+    projected: ProjectedGaussians, opacities: Float[Array, "N"], gid: Int[Array, "isect"], bx: Int[Array, "isect"],
+    by: Int[Array, "isect"], cfg: SplatConfig,
+) -> Bool[Array, "isect"]:
+    """Whether Gaussian ``gid`` passes the compositor's ``alpha >= alpha_min`` test at any
+    pixel centre of compositor block ``(bx, by)``, one entry per slot.
+
+    The opacity-trimmed box of :func:`screen_extents` bounds the ellipse
+    ``sigma <= L = ln(o / alpha_min)``; the blocks in its corners can still miss it (a quarter
+    of a large round Gaussian's box, more for a thin slanted one). Here the least
+    ``sigma = 0.5 (a dx^2 + 2 b dx dy + c dy^2)`` over the rectangle of the block's pixel
+    centres is compared with ``L`` (slack 0.01, as the box): the form is convex with its
+    minimum 0 at the mean, so outside the rectangle its least value lies on an edge, where it
+    is a 1-D quadratic minimised in closed form. A block that fails holds no pixel the
+    Gaussian is drawn on, so leaving it out changes no output or gradient.
+    """
+    conics, opacities = lax.stop_gradient(projected.conics), lax.stop_gradient(opacities)
+    dtype = projected.means2d.dtype
+    a, b, c = (conics[gid, i] for i in range(3))
+    mean = lax.stop_gradient(projected.means2d)[gid]
+    bs = cfg.composite_tile
+    lo_x = (bx * bs).astype(dtype) + 0.5 - mean[:, 0]  # pixel-centre rectangle, relative to the mean
+    lo_y = (by * bs).astype(dtype) + 0.5 - mean[:, 1]
+    hi_x, hi_y = lo_x + (bs - 1), lo_y + (bs - 1)
+    a, c = jnp.maximum(a, 1e-30), jnp.maximum(c, 1e-30)
+
+    def on_x_edge(x):  # least sigma on the edge dx = x, dy in [lo_y, hi_y]
+        y = jnp.clip(-b * x / c, lo_y, hi_y)
+        return 0.5 * (a * x * x + 2.0 * b * x * y + c * y * y)
+
+    def on_y_edge(y):
+        x = jnp.clip(-b * y / a, lo_x, hi_x)
+        return 0.5 * (a * x * x + 2.0 * b * x * y + c * y * y)
+
+    inside = (lo_x <= 0) & (hi_x >= 0) & (lo_y <= 0) & (hi_y >= 0)
+    least = jnp.minimum(jnp.minimum(on_x_edge(lo_x), on_x_edge(hi_x)), jnp.minimum(on_y_edge(lo_y), on_y_edge(hi_y)))
+    level = jnp.log(jnp.maximum(opacities[gid].astype(dtype), 1e-30) / cfg.alpha_min) + 0.01
+    return inside | (least <= level)
+
+
 def tile_rects(
     projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
     opacities: Float[Array, "N"] | None = None,
@@ -211,8 +251,11 @@ def bin_gaussians(
     gid = order[src]
     rank = slots - starts[src]
     box_w = jnp.maximum(x1 - x0, 1)[gid]
-    tile = (y0[gid] + rank // box_w) * tiles_x + x0[gid] + rank % box_w
-    tile = jnp.where(slots < needed, tile, num_tiles)  # sentinel sorts after every tile
+    bx, by = x0[gid] + rank % box_w, y0[gid] + rank // box_w
+    used = slots < needed
+    if opacities is not None:  # the box's blocks that the ellipse misses hold nothing
+        used = used & _reaches_block(projected, opacities, gid, bx, by, cfg)
+    tile = jnp.where(used, by * tiles_x + bx, num_tiles)  # sentinel sorts after every tile
 
     with jax.named_scope("splat_sort"):
         if (num_tiles + 1) * n < 2**31:

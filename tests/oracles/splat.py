@@ -90,6 +90,16 @@ def oracle_tile_boxes(proj, height, width, opacities=None, block=TILE):
     return x0, np.where(drawn, x1, x0), y0, np.where(drawn, y1, y0)
 
 
+def oracle_block_reached(proj, opacities, g: int, bx: int, by: int, height: int, width: int, block=BLOCK) -> bool:
+    """Brute force: does Gaussian ``g`` reach ``alpha >= 1/255`` at any pixel centre of block
+    ``(bx, by)`` inside the canvas (float64, the full 2D covariance)."""
+    xs = np.arange(bx * block, min((bx + 1) * block, width)) + 0.5
+    ys = np.arange(by * block, min((by + 1) * block, height)) + 0.5
+    d = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2) - proj["means2d"][g]
+    sigma = 0.5 * np.einsum("pi,ij,pj->p", d, np.linalg.inv(proj["cov2d"][g]), d)
+    return bool(np.any(float(opacities[g]) * np.exp(-sigma) >= 1.0 / 255.0))
+
+
 def oracle_tile_lists(proj, height, width, capacity=None, opacities=None, block=TILE):
     """Per block of ``block`` pixels (row-major), the depth-sorted Gaussian ids; with
     ``capacity``, the entries of the farthest Gaussians beyond that many are dropped
