@@ -14,6 +14,8 @@ two sorts:
    Gaussian its first slot;
 3. every slot finds its Gaussian by a scatter-max of the start slots and a running max
    (no per-slot search), then its block from the slot's rank inside the Gaussian's box;
+   given opacities, a block the Gaussian's ``alpha >= alpha_min`` ellipse misses gets the
+   sentinel instead (:func:`_reaches_block`), so the slot is sorted out of every list;
 4. one sort of the slots by (block, depth rank), so each block's list comes out
    depth-sorted. When ``(blocks + 1) x N < 2**31`` (static) the pair is packed into one
    int32 key, whose sort is 5x faster than sorting two arrays on CPU; otherwise a stable
