@@ -170,8 +170,9 @@ def _forward_group(
     height: int,
     width: int,
     cfg: SplatConfig,
-) -> tuple[Float[Array, "group pix C"], Float[Array, "group pix"], Int[Array, "group pix"]]:
-    """Composite one tile group: features, final T and ``last`` (1 + last used entry)."""
+) -> tuple[Float[Array, "group C pix"], Float[Array, "group pix"], Int[Array, "group pix"]]:
+    """Composite one tile group: features (channel-major), final T and ``last`` (1 + last
+    used entry)."""
     tile_ids, starts, counts = group
     k = cfg.chunk_size
     dtype = geometry.dtype
@@ -210,7 +211,7 @@ def _forward_group(
         jnp.zeros((g, p), jnp.int32) + zero.astype(jnp.int32),
     )
     _, trans, _, acc, last = lax.while_loop(cond, body, init)
-    return jnp.swapaxes(acc, 1, 2), trans, last
+    return acc, trans, last
 
 
 def _backward_group(
@@ -278,24 +279,44 @@ def _backward_group(
     return grads
 
 
-def _to_canvas(tiles: Float[Array, "tiles pix ..."], height: int, width: int, cfg: SplatConfig) -> Array:
-    """``[T, P, ...]`` tile-major values to a ``[H, W, ...]`` canvas."""
+def _to_canvas(tiles: Float[Array, "tiles pix"], height: int, width: int, cfg: SplatConfig) -> Float[Array, "H W"]:
+    """``[T, P]`` tile-major values to a ``[H, W]`` canvas."""
     ts = cfg.composite_tile
     tiles_y, tiles_x = cfg.tile_grid(height, width)
-    rest = tiles.shape[2:]
-    x = tiles.reshape((tiles_y, tiles_x, ts, ts) + rest)
-    x = jnp.swapaxes(x, 1, 2).reshape((tiles_y * ts, tiles_x * ts) + rest)
+    x = jnp.swapaxes(tiles.reshape(tiles_y, tiles_x, ts, ts), 1, 2).reshape(tiles_y * ts, tiles_x * ts)
     return x[:height, :width]
 
 
-def _from_canvas(canvas: Array, height: int, width: int, cfg: SplatConfig) -> Array:
-    """Inverse of :func:`_to_canvas` (padding filled with zeros), plus one zero tile."""
+def _channels_to_canvas(
+    tiles: Float[Array, "tiles C pix"], height: int, width: int, cfg: SplatConfig
+) -> Float[Array, "H W C"]:
+    """``[T, C, P]`` channel-major tiles (the compositor's accumulators) to a ``[H, W, C]``
+    canvas in one transpose."""
     ts = cfg.composite_tile
     tiles_y, tiles_x = cfg.tile_grid(height, width)
-    rest = canvas.shape[2:]
-    pad = [(0, tiles_y * ts - height), (0, tiles_x * ts - width)] + [(0, 0)] * len(rest)
-    x = jnp.pad(canvas, pad).reshape((tiles_y, ts, tiles_x, ts) + rest)
-    x = jnp.swapaxes(x, 1, 2).reshape((tiles_y * tiles_x, ts * ts) + rest)
+    c = tiles.shape[1]
+    x = tiles.reshape(tiles_y, tiles_x, c, ts, ts).transpose(0, 3, 1, 4, 2)
+    return x.reshape(tiles_y * ts, tiles_x * ts, c)[:height, :width]
+
+
+def _from_canvas(canvas: Float[Array, "H W"], height: int, width: int, cfg: SplatConfig) -> Float[Array, "_ pix"]:
+    """Inverse of :func:`_to_canvas` (padding filled with zeros), plus one zero tile: ``[tiles + 1, pix]``."""
+    ts = cfg.composite_tile
+    tiles_y, tiles_x = cfg.tile_grid(height, width)
+    x = jnp.pad(canvas, [(0, tiles_y * ts - height), (0, tiles_x * ts - width)]).reshape(tiles_y, ts, tiles_x, ts)
+    x = jnp.swapaxes(x, 1, 2).reshape(tiles_y * tiles_x, ts * ts)
+    return jnp.concatenate([x, jnp.zeros_like(x[:1])], axis=0)
+
+
+def _channels_from_canvas(
+    canvas: Float[Array, "H W C"], height: int, width: int, cfg: SplatConfig
+) -> Float[Array, "_ C pix"]:
+    """Inverse of :func:`_channels_to_canvas` (padding filled with zeros), plus one zero tile."""
+    ts = cfg.composite_tile
+    tiles_y, tiles_x = cfg.tile_grid(height, width)
+    c = canvas.shape[2]
+    x = jnp.pad(canvas, [(0, tiles_y * ts - height), (0, tiles_x * ts - width), (0, 0)])
+    x = x.reshape(tiles_y, ts, tiles_x, ts, c).transpose(0, 2, 4, 1, 3).reshape(tiles_y * tiles_x, c, ts * ts)
     return jnp.concatenate([x, jnp.zeros_like(x[:1])], axis=0)
 
 
@@ -313,8 +334,8 @@ def _forward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
         tiles_y, tiles_x = cfg.tile_grid(height, width)
         # Position of every real tile in processing order (the inverse permutation).
         where_tile = jnp.argsort(groups.tile_ids.reshape(-1), stable=True)[: tiles_y * tiles_x]
-        p = acc.shape[2]
-        feat = _to_canvas(acc.reshape(-1, p, acc.shape[-1])[where_tile], height, width, cfg)
+        p = acc.shape[-1]
+        feat = _channels_to_canvas(acc.reshape(-1, acc.shape[2], p)[where_tile], height, width, cfg)
         t_canvas = _to_canvas(trans.reshape(-1, p)[where_tile], height, width, cfg)
         return (feat, t_canvas), (trans, last)
 
@@ -329,8 +350,9 @@ def _backward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
     @jax.named_scope("splat_composite")
     def backward(geometry, opacities, features, gaussian_ids, groups, trans, last, g_feat, g_trans):
         flat_ids = groups.tile_ids.reshape(-1)
-        gf = _from_canvas(g_feat, height, width, cfg)[flat_ids].reshape(trans.shape + g_feat.shape[-1:])
-        gf = jnp.swapaxes(gf, -1, -2)  # channel-major, as the forward's accumulator
+        # Channel-major, as the forward's accumulator.
+        gf = _channels_from_canvas(g_feat, height, width, cfg)[flat_ids]
+        gf = gf.reshape(trans.shape[:-1] + gf.shape[1:])
         gt = _from_canvas(g_trans, height, width, cfg)[flat_ids].reshape(trans.shape)
 
         def step(grads, xs):
