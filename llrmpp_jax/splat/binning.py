@@ -87,12 +87,25 @@ def screen_extents(
     return jnp.sqrt(two_l * jnp.maximum(c, 0.0) / det), jnp.sqrt(two_l * jnp.maximum(a, 0.0) / det)
 
 
+def _ellipse_terms(
+    projected: ProjectedGaussians, opacities: Float[Array, "N"], cfg: SplatConfig
+) -> tuple[Float[Array, "N"], ...]:
+    """Per Gaussian, what :func:`_reaches_block` reads: the conic ``(a, b, c)``, the mean
+    ``(x, y)`` and the level ``L = ln(o / alpha_min) + 0.01``."""
+    conics, means = lax.stop_gradient(projected.conics), lax.stop_gradient(projected.means2d)
+    level = jnp.log(jnp.maximum(lax.stop_gradient(opacities).astype(means.dtype), 1e-30) / cfg.alpha_min) + 0.01
+    return (jnp.maximum(conics[:, 0], 1e-30), conics[:, 1], jnp.maximum(conics[:, 2], 1e-30), means[:, 0], means[:, 1],
+            level)
+
+
 def _reaches_block(
-    projected: ProjectedGaussians, opacities: Float[Array, "N"], gid: Int[Array, "isect"], bx: Int[Array, "isect"],
-    by: Int[Array, "isect"], cfg: SplatConfig,
+    a: Float[Array, "isect"], b: Float[Array, "isect"], c: Float[Array, "isect"], mx: Float[Array, "isect"],
+    my: Float[Array, "isect"], level: Float[Array, "isect"], bx: Int[Array, "isect"], by: Int[Array, "isect"],
+    cfg: SplatConfig,
 ) -> Bool[Array, "isect"]:
-    """Whether Gaussian ``gid`` passes the compositor's ``alpha >= alpha_min`` test at any
-    pixel centre of compositor block ``(bx, by)``, one entry per slot.
+    """Whether a Gaussian (per slot: its conic ``a, b, c``, mean and level from
+    :func:`_ellipse_terms`) passes the compositor's ``alpha >= alpha_min`` test at any pixel
+    centre of compositor block ``(bx, by)``.
 
     The opacity-trimmed box of :func:`screen_extents` bounds the ellipse
     ``sigma <= L = ln(o / alpha_min)``; the blocks in its corners can still miss it (a quarter
@@ -103,15 +116,10 @@ def _reaches_block(
     is a 1-D quadratic minimised in closed form. A block that fails holds no pixel the
     Gaussian is drawn on, so leaving it out changes no output or gradient.
     """
-    conics, opacities = lax.stop_gradient(projected.conics), lax.stop_gradient(opacities)
-    dtype = projected.means2d.dtype
-    a, b, c = (conics[gid, i] for i in range(3))
-    mean = lax.stop_gradient(projected.means2d)[gid]
     bs = cfg.composite_tile
-    lo_x = (bx * bs).astype(dtype) + 0.5 - mean[:, 0]  # pixel-centre rectangle, relative to the mean
-    lo_y = (by * bs).astype(dtype) + 0.5 - mean[:, 1]
+    lo_x = (bx * bs).astype(mx.dtype) + 0.5 - mx  # pixel-centre rectangle, relative to the mean
+    lo_y = (by * bs).astype(my.dtype) + 0.5 - my
     hi_x, hi_y = lo_x + (bs - 1), lo_y + (bs - 1)
-    a, c = jnp.maximum(a, 1e-30), jnp.maximum(c, 1e-30)
 
     def on_x_edge(x):  # least sigma on the edge dx = x, dy in [lo_y, hi_y]
         y = jnp.clip(-b * x / c, lo_y, hi_y)
@@ -123,7 +131,6 @@ def _reaches_block(
 
     inside = (lo_x <= 0) & (hi_x >= 0) & (lo_y <= 0) & (hi_y >= 0)
     least = jnp.minimum(jnp.minimum(on_x_edge(lo_x), on_x_edge(hi_x)), jnp.minimum(on_y_edge(lo_y), on_y_edge(hi_y)))
-    level = jnp.log(jnp.maximum(opacities[gid].astype(dtype), 1e-30) / cfg.alpha_min) + 0.01
     return inside | (least <= level)
 
 
@@ -250,13 +257,19 @@ def bin_gaussians(
     slots = jnp.arange(capacity, dtype=jnp.int32)
     src = jnp.zeros((capacity,), jnp.int32).at[starts].max(jnp.arange(n, dtype=jnp.int32), mode="drop")
     src = lax.cummax(src)
-    gid = order[src]
     rank = slots - starts[src]
-    box_w = jnp.maximum(x1 - x0, 1)[gid]
-    bx, by = x0[gid] + rank % box_w, y0[gid] + rank // box_w
+    # Per-Gaussian values put in depth order first and read by ``src`` (non-decreasing, so
+    # the reads are sequential); the barrier keeps XLA from fusing the two gathers back into
+    # one random read per slot.
+    per_gaussian = (x0, y0, jnp.maximum(x1 - x0, 1))
+    if opacities is not None:
+        per_gaussian += tuple(_ellipse_terms(projected, opacities, cfg))
+    per_gaussian = lax.optimization_barrier(tuple(v[order] for v in per_gaussian))
+    x0s, y0s, box_w = (v[src] for v in per_gaussian[:3])
+    bx, by = x0s + rank % box_w, y0s + rank // box_w
     used = slots < needed
     if opacities is not None:  # the box's blocks that the ellipse misses hold nothing
-        used = used & _reaches_block(projected, opacities, gid, bx, by, cfg)
+        used = used & _reaches_block(*(v[src] for v in per_gaussian[3:]), bx, by, cfg)
     tile = jnp.where(used, by * tiles_x + bx, num_tiles)  # sentinel sorts after every tile
 
     with jax.named_scope("splat_sort"):
@@ -265,7 +278,7 @@ def bin_gaussians(
             key = lax.sort(tile * n + src)
             sorted_tile, sorted_gid = key // n, order[key % n]
         else:
-            sorted_tile, sorted_gid = lax.sort((tile, gid), num_keys=1, is_stable=True)
+            sorted_tile, sorted_gid = lax.sort((tile, order[src]), num_keys=1, is_stable=True)
     bounds = jnp.searchsorted(sorted_tile, jnp.arange(num_tiles + 1, dtype=jnp.int32), side="left")
     bounds = bounds.astype(jnp.int32)
     return TileBins(
