@@ -25,7 +25,9 @@ RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
     """Markdown: a line per executed table (wall time, commit, seeds, steps), then one table
     with every ordering of every executed table: the paper's difference, our paired
-    difference with its 95% interval, and the verdict (:func:`llrmpp_jax.ablation.compare`)."""
+    difference with its interval (95% for fixed seeds, 99% for sequential tables), the seeds
+    paired, and the verdict with what stopped a sequential ordering
+    (:func:`llrmpp_jax.ablation.compare`)."""
     runs, missing = [], []
     for name in notebook_names():
         path = os.path.join(folder, f"{name}_{scale}.json")
@@ -34,16 +36,24 @@ def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
                 runs.append((name, json.load(f)))
         else:
             missing.append(name)
-    lines = [f"- `{name}`: {r['wall_s'] / 60:.1f} min, {r['seeds']} seeds x {r['steps']} steps, commit {r['commit']}"
+    def seeds(r: dict) -> str:
+        most = max((c.get("seeds", r["seeds"]) for c in r["orderings"]), default=r["seeds"])
+        return f"{r['seeds']} seeds" if most == r["seeds"] else f"{r['seeds']} to {most} seeds (sequential)"
+
+    lines = [f"- `{name}`: {r['wall_s'] / 60:.1f} min, {seeds(r)} x {r['steps']} steps, commit {r['commit']}"
              for name, r in runs]
     lines += [f"- `{name}`: not executed at the {scale} scale" for name in missing]
-    lines += ["", "| table | paper ordering | metric | paper diff | our diff (95% interval) | verdict |",
-              "|---|---|---|---|---|---|"]
+    lines += ["", "| table | paper ordering | metric | paper diff | our diff (± interval) | level | seeds | verdict |",
+              "|---|---|---|---|---|---|---|---|"]
     for name, r in runs:
         number = re.match(r"table(\d+)", name).group(1)
         for c in r["orderings"]:
             paper, ours = A.ordering_cells(c)
-            lines.append(f"| {number} | {c['ordering']} | {c['metric']} | {paper} | {ours} | {c['verdict']} |")
+            level = f"{100 * c.get('confidence', 0.95):g}%"
+            count = c.get("seeds", r["seeds"])
+            stopped = f", stopped by {c['stopped']}" if "stopped" in c else ""
+            lines.append(f"| {number} | {c['ordering']} | {c['metric']} | {paper} | {ours} | {level} | {count} | "
+                         f"{c['verdict']}{stopped} |")
     return "\n".join(lines)
 
 

@@ -417,8 +417,15 @@ def test_summary_lists_every_table_and_ordering(tmp_path, monkeypatch):
     assert "- `table6_partitions`: 32.1 min, 3 seeds x 400 steps, commit abc1234" in lines
     assert {ln for ln in lines if "not executed" in ln} == {
         f"- `{n}`: not executed at the cpu scale" for n in NOTEBOOKS if n != "table6_partitions"}
-    assert "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | not resolved |" in lines
-    assert "| 6 | x > y | lpips | - | - | not run |" in lines
+    assert "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | 95% | 3 | not resolved |" in lines
+    assert "| 6 | x > y | lpips | - | - | 95% | 3 | not run |" in lines
+    # A sequential table: its level, each ordering's seeds and what stopped it.
+    record["orderings"][0].update(confidence=0.99, seeds=7, stopped="10 seeds")
+    (tmp_path / "table6_partitions_cpu.json").write_text(json.dumps(record))
+    lines = _summary.summary("cpu", str(tmp_path)).splitlines()
+    assert "- `table6_partitions`: 32.1 min, 3 to 7 seeds (sequential) x 400 steps, commit abc1234" in lines
+    assert ("| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | 99% | 7 | not resolved, stopped by 10 seeds |"
+            in lines)
 
 
 def test_table_reports_splat_overflow(ablation):
