@@ -22,6 +22,7 @@ extent (the diagonal of their centres' bounding box).
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,12 +68,9 @@ def continuity_breaks(
     import pycolmap
 
     by_name = {reconstruction.image(i).name: i for i in reconstruction.reg_image_ids()}
-    db = pycolmap.Database.open(database)
-    try:
+    with contextlib.closing(pycolmap.Database.open(database)) as db:
         pair_ids, counts = db.read_two_view_geometry_num_inliers()
         db_ids = {image.name: image.image_id for image in db.read_all_images()}
-    finally:
-        db.close()
     inliers = dict(zip(pair_ids, counts))
     points = {
         name: {p.point3D_id for p in reconstruction.image(i).points2D if p.has_point3D()}

@@ -221,15 +221,6 @@ def _map(pycolmap, database: str, image_dir: str, scratch: str, cfg: PosesConfig
     return max(models.values(), key=lambda r: r.num_reg_images(), default=None), models
 
 
-@contextlib.contextmanager
-def _open_database(pycolmap, path: str):
-    db = pycolmap.Database.open(path)
-    try:
-        yield db
-    finally:
-        db.close()
-
-
 # glog's failure handler, which pycolmap installs when it is imported.
 _GLOG_SIGNALS = (signal.SIGILL, signal.SIGABRT, signal.SIGBUS, signal.SIGFPE, signal.SIGSEGV, signal.SIGTERM)
 
@@ -333,7 +324,7 @@ def estimate_poses(
             t = time.perf_counter()
             retry_db = os.path.join(scratch, "sequential.db")
             shutil.copy2(database, retry_db)
-            with _open_database(pycolmap, retry_db) as db:
+            with contextlib.closing(pycolmap.Database.open(retry_db)) as db:
                 db.clear_matches()
                 db.clear_two_view_geometries()
             _match(pycolmap, retry_db, "sequential", n, cfg, progress)

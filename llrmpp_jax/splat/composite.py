@@ -279,17 +279,7 @@ def _backward_group(
     return grads
 
 
-def _to_canvas(tiles: Float[Array, "tiles pix"], height: int, width: int, cfg: SplatConfig) -> Float[Array, "H W"]:
-    """``[T, P]`` tile-major values to a ``[H, W]`` canvas."""
-    ts = cfg.composite_tile
-    tiles_y, tiles_x = cfg.tile_grid(height, width)
-    x = jnp.swapaxes(tiles.reshape(tiles_y, tiles_x, ts, ts), 1, 2).reshape(tiles_y * ts, tiles_x * ts)
-    return x[:height, :width]
-
-
-def _channels_to_canvas(
-    tiles: Float[Array, "tiles C pix"], height: int, width: int, cfg: SplatConfig
-) -> Float[Array, "H W C"]:
+def _to_canvas(tiles: Float[Array, "tiles C pix"], height: int, width: int, cfg: SplatConfig) -> Float[Array, "H W C"]:
     """``[T, C, P]`` channel-major tiles (the compositor's accumulators) to a ``[H, W, C]``
     canvas in one transpose."""
     ts = cfg.composite_tile
@@ -299,19 +289,9 @@ def _channels_to_canvas(
     return x.reshape(tiles_y * ts, tiles_x * ts, c)[:height, :width]
 
 
-def _from_canvas(canvas: Float[Array, "H W"], height: int, width: int, cfg: SplatConfig) -> Float[Array, "_ pix"]:
-    """Inverse of :func:`_to_canvas` (padding filled with zeros), plus one zero tile: ``[tiles + 1, pix]``."""
-    ts = cfg.composite_tile
-    tiles_y, tiles_x = cfg.tile_grid(height, width)
-    x = jnp.pad(canvas, [(0, tiles_y * ts - height), (0, tiles_x * ts - width)]).reshape(tiles_y, ts, tiles_x, ts)
-    x = jnp.swapaxes(x, 1, 2).reshape(tiles_y * tiles_x, ts * ts)
-    return jnp.concatenate([x, jnp.zeros_like(x[:1])], axis=0)
-
-
-def _channels_from_canvas(
-    canvas: Float[Array, "H W C"], height: int, width: int, cfg: SplatConfig
-) -> Float[Array, "_ C pix"]:
-    """Inverse of :func:`_channels_to_canvas` (padding filled with zeros), plus one zero tile."""
+def _from_canvas(canvas: Float[Array, "H W C"], height: int, width: int, cfg: SplatConfig) -> Float[Array, "_ C pix"]:
+    """Inverse of :func:`_to_canvas` (padding filled with zeros), plus one zero tile:
+    ``[tiles + 1, C, pix]``."""
     ts = cfg.composite_tile
     tiles_y, tiles_x = cfg.tile_grid(height, width)
     c = canvas.shape[2]
@@ -335,8 +315,8 @@ def _forward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
         # Position of every real tile in processing order (the inverse permutation).
         where_tile = jnp.argsort(groups.tile_ids.reshape(-1), stable=True)[: tiles_y * tiles_x]
         p = acc.shape[-1]
-        feat = _channels_to_canvas(acc.reshape(-1, acc.shape[2], p)[where_tile], height, width, cfg)
-        t_canvas = _to_canvas(trans.reshape(-1, p)[where_tile], height, width, cfg)
+        feat = _to_canvas(acc.reshape(-1, acc.shape[2], p)[where_tile], height, width, cfg)
+        t_canvas = _to_canvas(trans.reshape(-1, 1, p)[where_tile], height, width, cfg)[..., 0]
         return (feat, t_canvas), (trans, last)
 
     return sequential_over_batch(forward)
@@ -351,9 +331,9 @@ def _backward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
     def backward(geometry, opacities, features, gaussian_ids, groups, trans, last, g_feat, g_trans):
         flat_ids = groups.tile_ids.reshape(-1)
         # Channel-major, as the forward's accumulator.
-        gf = _channels_from_canvas(g_feat, height, width, cfg)[flat_ids]
+        gf = _from_canvas(g_feat, height, width, cfg)[flat_ids]
         gf = gf.reshape(trans.shape[:-1] + gf.shape[1:])
-        gt = _from_canvas(g_trans, height, width, cfg)[flat_ids].reshape(trans.shape)
+        gt = _from_canvas(g_trans[..., None], height, width, cfg)[flat_ids].reshape(trans.shape)
 
         def step(grads, xs):
             group, t_fin, lst, gfe, gtr = xs
