@@ -674,5 +674,14 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def run() -> None:
+    """The ``llrmpp`` console command: :func:`main` with Ctrl-C leaving at once
+    (:mod:`llrmpp_jax.process_exit`)."""
+    from llrmpp_jax import process_exit
+
+    process_exit.install()
+    process_exit.leave(main())
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()
