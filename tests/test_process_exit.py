@@ -14,13 +14,12 @@ import atexit, gc, os, signal, sys, time
 from llrmpp_jax import process_exit
 atexit.register(lambda: print("teardown ran", file=sys.stderr, flush=True))
 process_exit.install()
-print("ready", flush=True)
 """
 
 
 def _interrupt(body: str, grace_s: float = 10.0) -> tuple[int, str, float]:
     """Start PRELUDE + ``body`` (``GRACE_S`` set to ``grace_s``), send one SIGINT once it
-    prints "ready": (exit status, stderr, seconds from the signal to the exit)."""
+    prints "ready" (inside its ``try``): (exit status, stderr, seconds from the signal to the exit)."""
     program = PRELUDE.replace("process_exit.install()",
                               f"process_exit.GRACE_S = {grace_s}\nprocess_exit.install()") + textwrap.dedent(body)
     proc = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -54,6 +53,7 @@ def test_an_interrupt_python_would_ignore_leaves_at_once():
 def test_a_command_that_swallows_the_interrupt_leaves_after_the_grace():
     status, err, took = _interrupt("""
         try:
+            print("ready", flush=True)
             time.sleep(60)
         except KeyboardInterrupt:
             time.sleep(60)  # a finally block that hangs
@@ -65,6 +65,7 @@ def test_a_command_that_swallows_the_interrupt_leaves_after_the_grace():
 def test_leave_after_an_interrupt_skips_the_teardown_and_otherwise_runs_it():
     status, err, _ = _interrupt("""
         try:
+            print("ready", flush=True)
             time.sleep(60)
         except KeyboardInterrupt:
             process_exit.leave(130)
@@ -79,6 +80,7 @@ def test_leave_after_an_interrupt_skips_the_teardown_and_otherwise_runs_it():
 def test_a_second_interrupt_leaves_at_once():
     program = PRELUDE + textwrap.dedent("""
         try:
+            print("ready", flush=True)
             time.sleep(60)
         except KeyboardInterrupt:
             print("cleaning up", flush=True)
