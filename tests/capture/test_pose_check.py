@@ -70,7 +70,11 @@ def test_beer_fold_is_found_in_the_shipped_model_and_absent_from_sequential_matc
     # Against all of the shipped frames at once, one side of the fold disagrees...
     assert compare_poses(ours, {k: shipped[k] for k in FRAMES}).fraction_within < 0.75
     # ...while each unbroken run of the shipped model agrees with ours (5 degrees, 10% of the
-    # run's extent: these photos are 640 px high, the shipped model used 1280).
+    # run's extent: these photos are 640 px high, the shipped model used 1280). COLMAP's
+    # multi-threaded mapping differs from run to run: over 7 runs here the worst frame of the
+    # second run was 0.9-3.2 degrees off, and one CI run had one frame beyond the tolerances; a
+    # fold puts frames ~170 degrees off. So: at most one frame out, and a median under 2 degrees.
     for run in (FRAMES[:6], FRAMES[6:]):
         agreement = compare_poses(ours, {k: shipped[k] for k in run}, rotation_tol_deg=5.0, position_tol=0.1)
-        assert agreement.fraction_within == 1.0, agreement.summary()
+        assert agreement.within.sum() >= len(run) - 1, agreement.summary()
+        assert np.median(agreement.rotation_error_deg) < 2.0, agreement.summary()
