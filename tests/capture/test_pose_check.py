@@ -56,7 +56,8 @@ def test_beer_fold_is_found_in_the_shipped_model_and_absent_from_sequential_matc
         image = read_image(os.path.join(capture, "images", name))
         write_image(str(photos / name), resize_image(image, (640, 360)))
     out = str(tmp_path / "capture")
-    report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=640),
+    pycolmap.set_random_seed(0)  # with one thread, COLMAP's RANSAC and mapping repeat exactly
+    report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=640, threads=1),
                             progress=lambda s: None)
     assert report.registered == len(FRAMES) and report.breaks == ()
     ours = camera_poses(pycolmap.Reconstruction(os.path.join(out, "sparse", "0")))
@@ -70,10 +71,10 @@ def test_beer_fold_is_found_in_the_shipped_model_and_absent_from_sequential_matc
     # Against all of the shipped frames at once, one side of the fold disagrees...
     assert compare_poses(ours, {k: shipped[k] for k in FRAMES}).fraction_within < 0.75
     # ...while each unbroken run of the shipped model agrees with ours (5 degrees, 10% of the
-    # run's extent: these photos are 640 px high, the shipped model used 1280). COLMAP's
-    # multi-threaded mapping differs from run to run: over 7 runs here the worst frame of the
-    # second run was 0.9-3.2 degrees off, and one CI run had one frame beyond the tolerances; a
-    # fold puts frames ~170 degrees off. So: at most one frame out, and a median under 2 degrees.
+    # run's extent: these photos are 640 px high, the shipped model used 1280). With all cores,
+    # COLMAP's result varies from run to run (one run in ~6 had frames of the second run beyond
+    # the tolerances, one of them 5 of 6); hence one thread and a seed above. A fold puts frames
+    # ~170 degrees off, so the bound also allows one frame out and asks for a median under 2 degrees.
     for run in (FRAMES[:6], FRAMES[6:]):
         agreement = compare_poses(ours, {k: shipped[k] for k in run}, rotation_tol_deg=5.0, position_tol=0.1)
         assert agreement.within.sum() >= len(run) - 1, agreement.summary()
