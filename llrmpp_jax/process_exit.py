@@ -29,13 +29,18 @@ GRACE_S = 10.0  # seconds an interrupted command has for its ``finally`` blocks
 INTERRUPTED = 128 + signal.SIGINT  # the shell's status for a command stopped by Ctrl-C
 
 
-def _leave_now() -> NoReturn:
-    """Flush what was printed, say so on stderr, and end the process without teardown."""
+def _flush() -> None:
+    """Write out what was printed: ``os._exit`` does not."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
         except (OSError, ValueError):  # a closed pipe: nothing more can be said
             pass
+
+
+def _leave_now() -> NoReturn:
+    """Flush what was printed, say so on stderr, and end the process without teardown."""
+    _flush()
     os.write(2, b"llrmpp: interrupted\n")
     os._exit(INTERRUPTED)
 
@@ -75,7 +80,6 @@ def leave(status: int) -> NoReturn:
     (see the module docstring). A run that stopped itself on a signal (``train``'s checkpoint
     and 128 + N) has finished its work and leaves normally."""
     if status == INTERRUPTED and _interrupted.is_set():
-        for stream in (sys.stdout, sys.stderr):
-            stream.flush()
+        _flush()
         os._exit(status)
     sys.exit(status)

@@ -17,14 +17,24 @@ process_exit.install()
 """
 
 
+def _default_ctrl_c() -> None:
+    """In the child before ``exec``: xdist workers ignore SIGINT and a child inherits that."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _start(program: str) -> subprocess.Popen:
+    """``program`` in a child process, once it has printed "ready" (inside its ``try``)."""
+    proc = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, preexec_fn=_default_ctrl_c)
+    assert proc.stdout.readline() == "ready\n", proc.stderr.read()
+    return proc
+
+
 def _interrupt(body: str, grace_s: float = 10.0) -> tuple[int, str, float]:
     """Start PRELUDE + ``body`` (``GRACE_S`` set to ``grace_s``), send one SIGINT once it
-    prints "ready" (inside its ``try``): (exit status, stderr, seconds from the signal to the exit)."""
-    program = PRELUDE.replace("process_exit.install()",
-                              f"process_exit.GRACE_S = {grace_s}\nprocess_exit.install()") + textwrap.dedent(body)
-    proc = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    assert proc.stdout.readline() == "ready\n", proc.stderr.read()
+    prints "ready": (exit status, stderr, seconds from the signal to the exit)."""
+    proc = _start(PRELUDE.replace("process_exit.install()",
+                                  f"process_exit.GRACE_S = {grace_s}\nprocess_exit.install()") + textwrap.dedent(body))
     start = time.monotonic()
     proc.send_signal(signal.SIGINT)
     status = proc.wait(timeout=60)
@@ -45,7 +55,7 @@ def test_an_interrupt_python_would_ignore_leaves_at_once():
         """)
     start = time.monotonic()
     done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                          preexec_fn=_default_ctrl_c)
     assert (done.returncode, done.stderr) == (130, "llrmpp: interrupted\n")
     assert time.monotonic() - start < 8  # not the 10 s grace
 
@@ -86,9 +96,7 @@ def test_a_second_interrupt_leaves_at_once():
             print("cleaning up", flush=True)
             time.sleep(60)
         """)
-    proc = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    assert proc.stdout.readline() == "ready\n"
+    proc = _start(program)
     proc.send_signal(signal.SIGINT)
     assert proc.stdout.readline() == "cleaning up\n"
     proc.send_signal(signal.SIGINT)
