@@ -173,8 +173,8 @@ def intersection_counts(
 _INF_BITS = 0x7F800000
 
 
-def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> Int[Array, "N"]:
-    """:func:`depth_order` by one int32 sort.
+def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> tuple[Int[Array, "N"], Int[Array, "N"]]:
+    """:func:`depth_positions` by one int32 sort.
 
     Drawn depths are > ``near`` > 0, so their float32 bit patterns order as the depths;
     undrawn Gaussians get the distinct keys ``inf_bits + index`` after every drawn one. A
@@ -199,12 +199,13 @@ def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> I
     # ``first < 0`` is all False, built from the inputs so that under ``shard_map`` it has
     # the same (device-varying) type as the loop body's output.
     _, rank, _ = lax.while_loop(lambda s: ~jnp.all(s[2]), round_, (jnp.int32(0), first, first < 0))
-    return jnp.zeros((n,), jnp.int32).at[rank].set(iota)
+    return jnp.zeros((n,), jnp.int32).at[rank].set(iota, unique_indices=True), rank
 
 
-def depth_order(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> Int[Array, "N"]:
-    """Indices of the drawn Gaussians by increasing depth (ties by index: a stable sort),
-    then the undrawn ones by index.
+def depth_positions(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> tuple[Int[Array, "N"], Int[Array, "N"]]:
+    """``(order, position)``: the indices of the drawn Gaussians by increasing depth (ties by
+    index: a stable sort), then the undrawn ones by index; and each Gaussian's place in that
+    order (the inverse permutation, ``order[position] == arange(N)``).
 
     Float32 depths with fewer than 2**23 Gaussians take the int32 key sort of
     :func:`_depth_order_by_key`; others a stable ``argsort``.
@@ -212,7 +213,14 @@ def depth_order(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> Int[Array
     depths = lax.stop_gradient(depths)  # an order: nothing to differentiate
     if depths.dtype == jnp.float32 and depths.shape[0] < (1 << 31) - _INF_BITS:
         return _depth_order_by_key(depths, drawn)
-    return jnp.argsort(jnp.where(drawn, depths, jnp.inf), stable=True).astype(jnp.int32)
+    order = jnp.argsort(jnp.where(drawn, depths, jnp.inf), stable=True).astype(jnp.int32)
+    iota = jnp.arange(order.shape[0], dtype=jnp.int32)
+    return order, jnp.zeros_like(order).at[order].set(iota, unique_indices=True)
+
+
+def depth_order(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> Int[Array, "N"]:
+    """The first of :func:`depth_positions`: Gaussian indices in depth order."""
+    return depth_positions(depths, drawn)[0]
 
 
 def _saturating_add(a: Int[Array, "..."], b: Int[Array, "..."]) -> Int[Array, "..."]:
@@ -245,7 +253,7 @@ def bin_gaussians(
     counts = (x1 - x0) * (y1 - y0)
 
     with jax.named_scope("splat_sort"):
-        order = depth_order(projected.depths, counts > 0)
+        order, position = depth_positions(projected.depths, counts > 0)
     counts_sorted = counts[order]
     ends = _inclusive_prefix_sum(counts_sorted, num_tiles)
     starts = jnp.concatenate([jnp.zeros((1,), jnp.int32), ends[:-1]])
@@ -258,18 +266,22 @@ def bin_gaussians(
     src = jnp.zeros((capacity,), jnp.int32).at[starts].max(jnp.arange(n, dtype=jnp.int32), mode="drop")
     src = lax.cummax(src)
     rank = slots - starts[src]
-    # Per-Gaussian values put in depth order first and read by ``src`` (non-decreasing, so
-    # the reads are sequential); the barrier keeps XLA from fusing the two gathers back into
-    # one random read per slot.
-    per_gaussian = (x0, y0, jnp.maximum(x1 - x0, 1))
-    if opacities is not None:
-        per_gaussian += tuple(_ellipse_terms(projected, opacities, cfg))
-    per_gaussian = lax.optimization_barrier(tuple(v[order] for v in per_gaussian))
-    x0s, y0s, box_w = (v[src] for v in per_gaussian[:3])
+    # Per-Gaussian values are put in depth order once and read by ``src`` (non-decreasing,
+    # so the reads are sequential). A scatter to ``position``, not a gather by ``order``:
+    # XLA:CPU drops optimization barriers before fusing and would fuse ``v[order][src]``
+    # into the per-slot loop, recomputing every value behind two random reads per slot
+    # (13 of 38 ms of the 256x256 binning); a scatter's result is always materialised.
+    def to_depth_order(values: list[Array]) -> list[Array]:
+        stacked = jnp.stack(values, axis=-1)
+        moved = jnp.zeros_like(stacked).at[position].set(stacked, unique_indices=True)
+        return [moved[:, i] for i in range(len(values))]
+
+    x0s, y0s, box_w = (v[src] for v in to_depth_order([x0, y0, jnp.maximum(x1 - x0, 1)]))
     bx, by = x0s + rank % box_w, y0s + rank // box_w
     used = slots < needed
     if opacities is not None:  # the box's blocks that the ellipse misses hold nothing
-        used = used & _reaches_block(*(v[src] for v in per_gaussian[3:]), bx, by, cfg)
+        ellipse = to_depth_order(list(_ellipse_terms(projected, opacities, cfg)))
+        used = used & _reaches_block(*(v[src] for v in ellipse), bx, by, cfg)
     tile = jnp.where(used, by * tiles_x + bx, num_tiles)  # sentinel sorts after every tile
 
     with jax.named_scope("splat_sort"):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from llrmpp_jax.splat import SplatConfig, count_intersections
-from llrmpp_jax.splat.binning import bin_gaussians, depth_order
+from llrmpp_jax.splat.binning import bin_gaussians, depth_order, depth_positions
 from llrmpp_jax.splat.projection import project_gaussians
 from tests.oracles.splat import BLOCK, oracle_block_reached, oracle_project, oracle_tile_lists, random_scene
 
@@ -111,7 +111,8 @@ def test_default_capacity_holds_at_paper_density(rng):
 @pytest.mark.parametrize("ties", [False, True])
 def test_depth_order_is_a_stable_argsort_with_undrawn_last(rng, ties):
     """Against NumPy's stable lexsort (drawn first, then depth, then index), alone and under
-    vmap; with ties (a group of 41 equal depths and many pairs) ranked by index."""
+    vmap; with ties (a group of 41 equal depths and many pairs) ranked by index. The
+    positions are the oracle order's inverse."""
     n = 2000
     depths = rng.uniform(0.02, 50.0, (3, n)).astype(np.float32)
     if ties:
@@ -127,3 +128,9 @@ def test_depth_order_is_a_stable_argsort_with_undrawn_last(rng, ties):
         np.testing.assert_array_equal(np.asarray(got[b]), oracle(depths[b], drawn[b]))
         np.testing.assert_array_equal(np.asarray(depth_order(jnp.asarray(depths[b]), jnp.asarray(drawn[b]))),
                                       oracle(depths[b], drawn[b]))
+        for d in (depths[b], depths[b].astype(np.float64)):  # the key sort and the argsort
+            order, position = depth_positions(jnp.asarray(d), jnp.asarray(drawn[b]))
+            inverse = np.empty(n, np.int64)
+            inverse[oracle(depths[b], drawn[b])] = np.arange(n)
+            np.testing.assert_array_equal(np.asarray(order), oracle(depths[b], drawn[b]))
+            np.testing.assert_array_equal(np.asarray(position), inverse)
