@@ -210,7 +210,8 @@ def _poses(args, out: str):
     """Run COLMAP on ``--images`` / ``--video`` into the capture ``out``; print its report."""
     from llrmpp_jax.capture.poses import PosesConfig, estimate_poses
 
-    cfg = PosesConfig(matcher=args.matcher, camera_model=args.camera_model, max_image_size=args.max_image_size)
+    cfg = PosesConfig(matcher=args.matcher, camera_model=args.camera_model, max_image_size=args.max_image_size,
+                      threads=args.threads, seed=args.seed)
     report = estimate_poses(args.images, out, cfg, video=args.video, fps=args.fps,
                             progress=lambda line: print(line, flush=True))
     print("\n".join(report.lines()), flush=True)
@@ -526,6 +527,10 @@ def build_parser() -> argparse.ArgumentParser:
         q.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,
                        help="COLMAP camera model (shared when all photos have one size)")
         q.add_argument("--max-image-size", type=int, default=1600, help="longest side (px) for feature extraction")
+        q.add_argument("--threads", type=int, default=-1, help="threads COLMAP uses (default -1: all cores)")
+        q.add_argument("--seed", type=int, default=None,
+                       help="repeatable poses: COLMAP's random seed, on one thread (slower); on several threads "
+                            "the result varies from run to run")
 
     ps = sub.add_parser("poses", help="photos or a video -> a COLMAP capture (camera poses by pycolmap)")
     src = ps.add_mutually_exclusive_group(required=True)

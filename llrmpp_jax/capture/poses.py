@@ -25,6 +25,12 @@ second. The camera model is COLMAP's ``SIMPLE_RADIAL`` by default (one focal len
 radial term; the focal length starts from the photos' EXIF when they have it, as COLMAP
 does), shared by all images when they all have one size (one device) and per image
 otherwise; the readers remove the distortion when loading.
+
+Repeatability: on several threads COLMAP's result varies from run to run (its RANSAC and
+bundle adjustment see work in a different order; on the beer photos one run in ~6 put part
+of a model out of tolerance). ``seed`` makes a run repeat exactly: COLMAP's random seed is
+set and everything runs on one thread (measured: 5 runs, identical poses), at the cost of
+the other cores.
 """
 
 from __future__ import annotations
@@ -69,6 +75,7 @@ class PosesConfig:
     overlap: int = 10  # sequential matching: successors each image is matched with
     min_registered: int = 3  # fewer registered images is a failure
     threads: int = -1  # -1: all cores
+    seed: int | None = None  # set: COLMAP's random seed, on one thread, so the run repeats exactly
 
     def __post_init__(self) -> None:
         if self.matcher not in ("auto", "sequential", "exhaustive"):
@@ -79,6 +86,18 @@ class PosesConfig:
             raise UserError(f"--max-image-size must be >= 64 px, got {self.max_image_size}")
         if self.overlap < 1 or self.min_registered < 2:
             raise UserError(f"need overlap >= 1 and min_registered >= 2, got {self.overlap}, {self.min_registered}")
+        if self.threads == 0 or self.threads < -1:
+            raise UserError(f"--threads must be >= 1 (or -1: all cores), got {self.threads}")
+        if self.seed is not None:
+            if self.seed < 0:
+                raise UserError(f"--seed must be >= 0, got {self.seed}")
+            if self.threads not in (-1, 1):
+                raise UserError(f"--seed repeats a run only on one thread; drop --threads {self.threads} or make it 1")
+
+    @property
+    def num_threads(self) -> int:
+        """Threads COLMAP is given: one when seeded, else ``threads`` (-1: all cores)."""
+        return 1 if self.seed is not None else self.threads
 
 
 @dataclass(frozen=True)
@@ -101,6 +120,7 @@ class PosesReport:
     seconds: dict[str, float]
     matchers_tried: tuple[str, ...] = ()  # the kept model's matcher is the last unless a retry did worse
     breaks: tuple[str, ...] = ()  # consecutive photos the kept model puts apart (pose_check): a fold
+    seed: int | None = None  # the run's COLMAP seed (it ran on one thread); None: not seeded, not repeatable
 
     def lines(self) -> list[str]:
         """Human-readable summary, one fact per line."""
@@ -197,7 +217,7 @@ def _match(pycolmap, database: str, matcher: str, n: int, cfg: PosesConfig, prog
     """
     matching = pycolmap.FeatureMatchingOptions()
     matching.use_gpu = False
-    matching.num_threads = cfg.threads
+    matching.num_threads = cfg.num_threads
     if matcher == "exhaustive":
         progress(f"matching: exhaustive, {n * (n - 1) // 2} pairs")
         pycolmap.match_exhaustive(database, matching_options=matching)
@@ -216,7 +236,7 @@ def _map(pycolmap, database: str, image_dir: str, scratch: str, cfg: PosesConfig
     progress("mapping: incremental")
     os.makedirs(scratch, exist_ok=True)
     options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = cfg.threads
+    options.num_threads = cfg.num_threads
     models = pycolmap.incremental_mapping(database, image_dir, scratch, options=options)
     return max(models.values(), key=lambda r: r.num_reg_images(), default=None), models
 
@@ -289,6 +309,9 @@ def estimate_poses(
         matcher = "sequential" if video is not None or len(names) > EXHAUSTIVE_UP_TO else "exhaustive"
 
     pycolmap.logging.minloglevel = 2  # COLMAP's own per-image log lines: errors only
+    if cfg.seed is not None:
+        pycolmap.set_random_seed(cfg.seed)
+        progress(f"repeatable run: seed {cfg.seed}, one thread")
     database = os.path.join(out, "database.db")
     if os.path.exists(database):
         os.remove(database)
@@ -297,7 +320,7 @@ def estimate_poses(
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = cfg.max_image_size
     extraction.use_gpu = False
-    extraction.num_threads = cfg.threads
+    extraction.num_threads = cfg.num_threads
     progress(f"features: {len(names)} images at up to {cfg.max_image_size} px, camera {cfg.camera_model} "
              + ("shared" if shared else "per image"))
     t = time.perf_counter()
@@ -358,7 +381,7 @@ def estimate_poses(
         mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
         mean_track_length=float(best.compute_mean_track_length()),
         camera_spread=_diagonal(centres), points_extent=_diagonal(points, 5.0, 95.0), seconds=seconds,
-        matchers_tried=tuple(tried), breaks=tuple(str(b) for b in breaks),
+        matchers_tried=tuple(tried), breaks=tuple(str(b) for b in breaks), seed=cfg.seed,
     )
     with open(os.path.join(out, "poses_report.json"), "w") as f:
         json.dump(dataclasses.asdict(report), f, indent=1)

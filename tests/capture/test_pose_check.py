@@ -1,6 +1,7 @@
 """Pose checks (``llrmpp_jax.capture.pose_check``): the similarity alignment against a known
 transform, and the fold check on the beer capture, whose shipped COLMAP model is folded
-between photos 0013 and 0014 while our sequential matching is not."""
+between photos 0013 and 0014 while our sequential matching is not; a seeded run repeats
+exactly."""
 
 from __future__ import annotations
 
@@ -56,10 +57,10 @@ def test_beer_fold_is_found_in_the_shipped_model_and_absent_from_sequential_matc
         image = read_image(os.path.join(capture, "images", name))
         write_image(str(photos / name), resize_image(image, (640, 360)))
     out = str(tmp_path / "capture")
-    pycolmap.set_random_seed(0)  # with one thread, COLMAP's RANSAC and mapping repeat exactly
-    report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=640, threads=1),
+    # Seeded: one thread, so COLMAP's RANSAC and mapping repeat exactly.
+    report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=640, seed=0),
                             progress=lambda s: None)
-    assert report.registered == len(FRAMES) and report.breaks == ()
+    assert report.registered == len(FRAMES) and report.breaks == () and report.seed == 0
     ours = camera_poses(pycolmap.Reconstruction(os.path.join(out, "sparse", "0")))
 
     shipped_model = pycolmap.Reconstruction(os.path.join(capture, "sparse", "0"))
@@ -80,3 +81,26 @@ def test_beer_fold_is_found_in_the_shipped_model_and_absent_from_sequential_matc
         agreement = compare_poses(ours, {k: shipped[k] for k in run}, rotation_tol_deg=5.0, position_tol=0.1)
         assert agreement.within.sum() >= len(run) - 1, agreement.summary()
         assert np.median(agreement.rotation_error_deg) < 2.0, agreement.summary()
+
+
+def test_a_seeded_run_repeats_exactly(tmp_path):
+    """``PosesConfig(seed=...)``: three runs on the same photos give the same poses to the bit,
+    and the seed is reported. (Unseeded on two threads, the third of three runs here once
+    moved a camera centre by 0.06 model units.)"""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in FRAMES[:8]:
+        image = read_image(os.path.join(shared_path("data", "beer"), "images", name))
+        write_image(str(photos / name), resize_image(image, (320, 180)))
+    poses = []
+    for run in range(3):
+        out = str(tmp_path / f"capture{run}")
+        report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=320, seed=7),
+                                progress=lambda s: None)
+        assert report.seed == 7 and report.registered >= 6, report
+        poses.append(camera_poses(pycolmap.Reconstruction(os.path.join(out, "sparse", "0"))))
+    for other in poses[1:]:
+        assert sorted(other) == sorted(poses[0])
+        for name in poses[0]:
+            for a, b in zip(poses[0][name], other[name]):  # rotation, centre
+                np.testing.assert_array_equal(a, b)

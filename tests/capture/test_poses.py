@@ -80,6 +80,9 @@ def test_photos_that_share_nothing_fail_in_one_line(tmp_path, rng, capsys):
     (["--video", "/nonexistent/walk.mp4"], "--video: file not found"),
     (["--images", "{empty}"], "no images"),
     (["--images", "{empty}", "--max-image-size", "8"], "--max-image-size must be >= 64"),
+    (["--images", "{empty}", "--threads", "0"], "--threads must be >= 1"),
+    (["--images", "{empty}", "--seed", "-1"], "--seed must be >= 0"),
+    (["--images", "{empty}", "--seed", "2", "--threads", "4"], "--seed repeats a run only on one thread"),
 ])
 def test_bad_input_is_one_line(tmp_path, capsys, args, message):
     (tmp_path / "empty").mkdir()
