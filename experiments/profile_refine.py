@@ -36,7 +36,8 @@ def refine_step_profile(args) -> dict:
     from llrmpp_jax.capture.render import frame_photos
     from llrmpp_jax.gaussians import Gaussians
     from llrmpp_jax.params_io import load_params
-    from llrmpp_jax.refine import RefineConfig, fit_splat_capacity, objective, to_unconstrained
+    from llrmpp_jax.model import fit_splat_capacity
+    from llrmpp_jax.refine import CAPACITY_HEADROOM, RefineConfig, objective, to_unconstrained
 
     saved = load_gs(args.gaussians)
     params, _ = load_params(args.checkpoint, saved.model)
@@ -46,7 +47,7 @@ def refine_step_profile(args) -> dict:
     intr = jnp.asarray(saved.intrinsics[idx][None], jnp.float32)
     g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
     h, w = images.shape[2:4]
-    cfg = fit_splat_capacity(params, saved.model, g, c2w, intr, h, w)
+    cfg = fit_splat_capacity(params, saved.model, g, c2w, intr, h, w, headroom=CAPACITY_HEADROOM)
     rc = RefineConfig(views_per_step=args.views_per_step)
     fn = objective(cfg, rc)
     grad = jax.value_and_grad(fn, has_aux=True)

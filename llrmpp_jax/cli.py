@@ -298,7 +298,7 @@ def cmd_export(args) -> int:
     if args.bake and not feature:
         raise UserError(f"{args.gaussians}: already colour Gaussians; export it without --bake")
     bake = BakeConfig(sh_degree=args.sh_degree, steps=args.bake_steps, views_per_step=args.bake_views_per_step,
-                      geometry=not args.bake_keep_geometry) if args.bake else None
+                      views_between=args.bake_views_between, geometry=not args.bake_keep_geometry) if args.bake else None
     logits = None
     if feature:
         if not args.checkpoint:
@@ -579,6 +579,8 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--sh-degree", type=int, default=3, help="--bake: SH degree of the colour (0-3, default 3)")
     x.add_argument("--bake-steps", type=int, default=300, help="--bake: updates of the fit (default 300)")
     x.add_argument("--bake-views-per-step", type=int, default=4, help="--bake: views fitted per update (default 4)")
+    x.add_argument("--bake-views-between", type=int, default=2,
+                   help="--bake: views fitted between each two consecutive inputs, on a spline (default 2)")
     x.add_argument("--bake-keep-geometry", action="store_true",
                    help="--bake: keep the model's means, rotations and scales (default: fit them with the colour)")
     x.add_argument("--scene", default=None, help="--bake: the capture's photos for the held-out scores "

@@ -23,6 +23,8 @@ in the normalised scene frame (see ``geometry.normalize_scene``).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from typing import NamedTuple
 
 import flax.linen as nn
@@ -36,7 +38,7 @@ from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
-from llrmpp_jax.splat import count_intersections, expected_depth, render_feature_copies, render_sh
+from llrmpp_jax.splat import count_intersections, expected_depth, fitted_capacity, render_feature_copies, render_sh
 
 
 
@@ -201,6 +203,23 @@ def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2
     canvas and all S partition copies, as the render does)."""
     return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
                                 method="splat_intersections")
+
+
+def fit_splat_capacity(
+    params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B V 4 4"],
+    intrinsics: Float[ArrayLike, "B V 4"], height: int, width: int, headroom: float = 1.0,
+) -> ModelConfig:
+    """``cfg`` with ``splat.max_intersections`` sized for rendering ``gaussians`` at these
+    cameras: ``headroom`` x the most slots any view needs (:func:`splat_intersections`),
+    rounded up by :func:`~llrmpp_jax.splat.render.fitted_capacity`. Without it a render
+    takes the trace-time buffer of ``intersections_per_gaussian`` slots per Gaussian, which a
+    full-resolution colour render of a capture can overflow, dropping the farthest entries.
+    A config that sets the capacity keeps it."""
+    if cfg.splat.max_intersections is not None:
+        return cfg
+    needed = int(jnp.max(splat_intersections(params, cfg, gaussians, c2w, intrinsics, height, width)))
+    capacity = fitted_capacity(math.ceil(headroom * needed))
+    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=capacity))
 
 
 def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Float[Array, "... N S"]:

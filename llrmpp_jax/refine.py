@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import time
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -63,9 +62,8 @@ from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.metrics import psnr
-from llrmpp_jax.model import render, splat_intersections
+from llrmpp_jax.model import fit_splat_capacity, render
 from llrmpp_jax.perceptual import VGGParams
-from llrmpp_jax.splat import fitted_capacity
 
 CAPACITY_HEADROOM = 1.25  # splat buffer = this x the starting Gaussians' most-needed slots
 
@@ -241,20 +239,6 @@ def _loss(y, args, cfg: ModelConfig, rc: RefineConfig):
     return objective(cfg, rc)(y, args)
 
 
-def fit_splat_capacity(
-    params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Array, "B V 4 4"],
-    intrinsics: Float[Array, "B V 4"], height: int, width: int, headroom: float = CAPACITY_HEADROOM,
-) -> ModelConfig:
-    """``cfg`` with ``splat.max_intersections`` sized for rendering ``gaussians`` at these
-    cameras: ``headroom`` x the most slots any view needs, rounded by
-    :func:`~llrmpp_jax.splat.render.fitted_capacity`. A config that sets the capacity keeps it."""
-    if cfg.splat.max_intersections is not None:
-        return cfg
-    needed = int(jnp.max(splat_intersections(params, cfg, gaussians, c2w, intrinsics, height, width)))
-    capacity = fitted_capacity(math.ceil(headroom * needed))
-    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=capacity))
-
-
 def refine(
     params: dict,
     cfg: ModelConfig,
@@ -301,7 +285,7 @@ def refine(
     h, w = int(images.shape[2]), int(images.shape[3])
     args = (params, jnp.asarray(images), jnp.asarray(c2w), jnp.asarray(intrinsics), vgg_params)
     gaussians = jax.tree.map(jnp.asarray, gaussians)
-    cfg = fit_splat_capacity(params, cfg, gaussians, args[2], args[3], h, w)
+    cfg = fit_splat_capacity(params, cfg, gaussians, args[2], args[3], h, w, headroom=CAPACITY_HEADROOM)
     # Fresh buffers: the step donates y, which must not alias the caller's arrays.
     y = jax.tree.map(jnp.array, to_unconstrained(gaussians, cfg))
     state = _init(y, args, cfg, rc)

@@ -3,7 +3,8 @@ the scene (``llrmpp export --bake``).
 
 A feature-mode scene needs the model's decoder to be seen. :func:`bake_colour` fits
 colour Gaussians with spherical harmonics of degree ``sh_degree`` to what the model itself
-renders -- its decoded RGB at the input cameras and along a spline through them -- with the
+renders -- its decoded RGB at the input cameras and at cameras between them on a spline
+through them in capture order -- with the
 refinement's machinery (:func:`llrmpp_jax.refine.refine`: optimistix around one Adam per
 field, a random subset of the views per update). Geometry starts from the feature Gaussians
 -- means and rotations as they are, scales widened by the model's canvas footprint
@@ -30,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import Float
-from llrmpp_jax.capture.render import frame_photos, path_cameras, render_views
+from llrmpp_jax.capture.render import frame_photos, render_views, spline_at
 from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
@@ -48,16 +49,16 @@ class BakeConfig:
     sh_degree: int = 3
     steps: int = 300
     views_per_step: int = 4
-    path_views: int = 32  # views on a spline through the inputs, fitted besides the inputs
+    views_between: int = 2  # views between each two consecutive inputs (spline), fitted besides them
     geometry: bool = True  # fit means, rotations and scales too (False: keep the model's)
     rate_scale: float = 2.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.sh_degree <= MAX_DEGREE:
             raise UserError(f"--sh-degree must be in 0..{MAX_DEGREE}, got {self.sh_degree}")
-        if self.steps < 1 or self.views_per_step < 1 or self.path_views < 0:
-            raise UserError(f"bake needs steps >= 1, views per step >= 1 and path views >= 0, got "
-                            f"{self.steps}, {self.views_per_step}, {self.path_views}")
+        if self.steps < 1 or self.views_per_step < 1 or self.views_between < 0:
+            raise UserError(f"bake needs steps >= 1, views per step >= 1 and views between >= 0, got "
+                            f"{self.steps}, {self.views_per_step}, {self.views_between}")
 
 
 @dataclass(frozen=True)
@@ -144,6 +145,21 @@ def canvas_footprint_scales(gaussians: Gaussians, c2w: Float[np.ndarray, "V 4 4"
     return np.sqrt(np.square(np.asarray(gaussians.scales, np.float64)) + extra[:, None]).astype(np.float32)
 
 
+def views_between(saved: SavedScene, per_gap: int) -> tuple[Float[np.ndarray, "V 4 4"], Float[np.ndarray, "V 4"]]:
+    """``(c2w, intrinsics)`` of ``per_gap`` cameras between each two consecutive inputs (capture
+    order), evenly in the parameter of the spline through them (:func:`spline_at`: at
+    ``i + j / (per_gap + 1)``), with the inputs' mean intrinsics. Beer capture, 32 inputs,
+    60 updates: fitted at the inputs alone, the baked renders of the held-out views came
+    within 36.81 dB of the model's; with 2 views in each gap, 38.37 dB."""
+    inputs = saved.c2w[saved.inputs]
+    if per_gap == 0 or len(inputs) < 2:
+        return np.zeros((0, 4, 4)), np.zeros((0, 4))
+    fractions = np.arange(1, per_gap + 1) / (per_gap + 1)
+    positions = (np.arange(len(inputs) - 1)[:, None] + fractions[None, :]).reshape(-1)
+    k = np.broadcast_to(saved.intrinsics[saved.inputs].mean(0), (len(positions), 4)).copy()
+    return spline_at(inputs, positions), k
+
+
 def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig(), progress: bool = False,
                 scene_path: str | None = None) -> Baked:
     """Colour Gaussians that render like the feature-mode ``saved`` scene (module
@@ -154,8 +170,7 @@ def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig()
         raise UserError("bake: the scene is already in colour mode; export it without --bake")
     t0 = time.perf_counter()
     feature_g = jax.tree.map(lambda x: jnp.asarray(x)[None], saved.gaussians)
-    path_c2w, path_intr, _, _ = (path_cameras(saved, "spline", bake.path_views) if bake.path_views
-                                 else (np.zeros((0, 4, 4)), np.zeros((0, 4)), None, None))
+    path_c2w, path_intr = views_between(saved, bake.views_between)
     c2w = np.concatenate([saved.c2w[saved.inputs], path_c2w]).astype(np.float32)
     intr = np.concatenate([saved.intrinsics[saved.inputs], path_intr]).astype(np.float32)
     targets = _renders(params, saved, c2w, intr)

@@ -33,23 +33,32 @@ from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
-from llrmpp_jax.model import render
+from llrmpp_jax.model import fit_splat_capacity, render
 from llrmpp_jax.splat import expected_depth, render_features
 
 PATHS = ("targets", "inputs", "spline", "orbit")
 
 
-def spline_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "frames 4 4"]:
-    """``frames`` poses through the ``V >= 2`` poses ``c2w`` in order (see the module doc)."""
+def spline_at(c2w: Float[np.ndarray, "V 4 4"], positions: Float[np.ndarray, "frames"]) -> Float[np.ndarray, "frames 4 4"]:
+    """Poses on the spline through the ``V >= 2`` poses ``c2w`` in order, at ``positions``
+    in ``[0, V - 1]`` (the integer ``i`` is pose ``i``): centres by a cubic spline, rotations
+    by slerp (see the module doc)."""
     v = c2w.shape[0]
-    if v < 2 or frames < 2:
-        raise UserError(f"spline path needs >= 2 input cameras and >= 2 frames, got {v} and {frames}")
+    if v < 2:
+        raise UserError(f"a spline needs >= 2 input cameras, got {v}")
     t = np.arange(v, dtype=np.float64)
-    tq = np.linspace(0.0, v - 1.0, frames)
-    out = np.tile(np.eye(4), (frames, 1, 1))
-    out[:, :3, 3] = make_interp_spline(t, c2w[:, :3, 3], k=min(3, v - 1))(tq)
-    out[:, :3, :3] = Slerp(t, Rotation.from_matrix(c2w[:, :3, :3]))(tq).as_matrix()
+    out = np.tile(np.eye(4), (len(positions), 1, 1))
+    out[:, :3, 3] = make_interp_spline(t, c2w[:, :3, 3], k=min(3, v - 1))(positions)
+    out[:, :3, :3] = Slerp(t, Rotation.from_matrix(c2w[:, :3, :3]))(positions).as_matrix()
     return out
+
+
+def spline_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "frames 4 4"]:
+    """``frames`` poses through the ``V >= 2`` poses ``c2w`` in order, evenly in the spline's
+    parameter (see the module doc)."""
+    if c2w.shape[0] < 2 or frames < 2:
+        raise UserError(f"spline path needs >= 2 input cameras and >= 2 frames, got {c2w.shape[0]} and {frames}")
+    return spline_at(c2w, np.linspace(0.0, c2w.shape[0] - 1.0, frames))
 
 
 def orbit_path(c2w: Float[np.ndarray, "V 4 4"], frames: int) -> Float[np.ndarray, "frames 4 4"]:
@@ -129,10 +138,13 @@ def render_views(
     progress: bool = True,
 ) -> RenderedViews:
     """Render ``saved``'s Gaussians at each camera (normalised frame, the view size of
-    ``saved``), one jitted view at a time with a progress bar."""
-    cfg = saved.model
+    ``saved``), one jitted view at a time with a progress bar. The splat buffer is sized for
+    the most any of these views needs (:func:`~llrmpp_jax.model.fit_splat_capacity`), so no
+    entry is dropped."""
     h, w = saved.image_hw
     g = Gaussians(*(jnp.asarray(x) for x in saved.gaussians))
+    cfg = fit_splat_capacity(params, saved.model, jax.tree.map(lambda x: x[None], g),
+                             jnp.asarray(c2w, jnp.float32)[None], jnp.asarray(intrinsics, jnp.float32)[None], h, w)
     rgb, dep = [], []
     for i in tqdm(range(len(c2w)), desc="render", disable=not progress, dynamic_ncols=True):
         cam = jnp.asarray(c2w[i], jnp.float32), jnp.asarray(intrinsics[i], jnp.float32)
