@@ -437,7 +437,8 @@ def cmd_view(args) -> int:
             raise UserError("view --procedural needs --checkpoint (or --random-init for an untrained model)")
         scene = procedural_view_scene(params, cfg, args.procedural)
     settings = ViewerSettings(height=args.height, moving_height=args.moving_height)
-    viewer = Viewer(ViewRenderer(params, cfg, scene.gaussians), scene, host=args.host, port=args.port,
+    renderer = ViewRenderer(params, cfg, scene.gaussians, cameras=(scene.input_c2w, scene.input_intrinsics, scene.input_hw))
+    viewer = Viewer(renderer, scene, host=args.host, port=args.port,
                     settings=settings)
     try:  # a Ctrl-C at any point from here on still stops the server's threads
         print(f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "

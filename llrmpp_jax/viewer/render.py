@@ -8,7 +8,11 @@
   has one, otherwise the Gaussians' alpha-normalised splatted depth (camera z).
 * :func:`display_image` -- ``[H, W, C]`` render -> ``uint8 [H, W, 3]`` for the screen.
 * :class:`ViewRenderer` -- :func:`render_view` compiled once per (size, output, S) and
-  kept, with compile and render times reported separately.
+  kept, with compile and render times reported separately. Its splat buffer is sized per
+  render size from the scene's input cameras (``VIEW_HEADROOM`` x the most they need, and no
+  less than the trace-time default): the trace-time 8 slots per Gaussian alone can overflow
+  a full-height colour render, which drops the farthest Gaussians (holes where the far wall
+  should be).
 
 Partition count: a feature-mode model trained with S partition copies can be viewed with
 any ``1 <= s <= S``: the Gaussians' partition weights are the softmax over the first ``s``
@@ -33,10 +37,13 @@ from llrmpp_jax.config import ModelConfig
 from dataclasses import replace
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
-from llrmpp_jax.model import render
+from llrmpp_jax.model import fit_splat_capacity, render
 from llrmpp_jax.splat import expected_depth, render_features
 
 OUTPUTS = ("rgb", "depth")
+# A browser camera can come closer than any input camera: room for this many times the most
+# (Gaussian, block) slots an input camera needs at the render's size.
+VIEW_HEADROOM = 2.0
 
 
 def viewport_camera(fov_y: float, aspect: float, height: int, multiple: int) -> tuple[int, int, np.ndarray]:
@@ -153,11 +160,31 @@ class ViewRenderer:
     Thread-safe for one caller at a time per instance (the viewer's render worker).
     """
 
-    def __init__(self, params: dict, cfg: ModelConfig, gaussians: Gaussians):
+    def __init__(self, params: dict, cfg: ModelConfig, gaussians: Gaussians,
+                 cameras: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None = None):
+        """``cameras``: ``(c2w [V, 4, 4], intrinsics [V, 4], (height, width))``, the scene's
+        input cameras and the image size their intrinsics refer to; they size the splat
+        buffer of each render size (module docstring). None: the config's buffer."""
         self.cfg = cfg
         self._params = jax.device_put(params)
         self._gaussians = jax.device_put(gaussians)
+        self._cameras = cameras
         self._compiled: dict[ViewKey, jax.stages.Compiled] = {}
+
+    def config_for(self, height: int, width: int) -> ModelConfig:
+        """The config a ``height x width`` render compiles with: its splat buffer sized from
+        the input cameras scaled to that size (module docstring)."""
+        cfg = self.cfg
+        if self._cameras is None or cfg.splat.max_intersections is not None:
+            return cfg
+        c2w, intrinsics, (h0, w0) = self._cameras
+        scale = np.array([width / w0, height / h0, width / w0, height / h0], np.float32)
+        k = np.asarray(intrinsics, np.float32) * scale
+        sized = fit_splat_capacity(self._params, cfg, self._gaussians, jnp.asarray(c2w, jnp.float32)[None],
+                                   jnp.asarray(k)[None], height, width, headroom=VIEW_HEADROOM)
+        default = cfg.splat.capacity(self._gaussians.means.shape[1], height, width)
+        most = max(sized.splat.max_intersections, default)
+        return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=most))
 
     @property
     def max_partitions(self) -> int:
@@ -175,7 +202,8 @@ class ViewRenderer:
         t0 = time.perf_counter()
         fn = jax.jit(render_view, static_argnums=(1, 5, 6, 7, 8))
         cam = jax.ShapeDtypeStruct((4, 4), jnp.float32), jax.ShapeDtypeStruct((4,), jnp.float32)
-        self._compiled[key] = fn.lower(self._params, self.cfg, self._gaussians, *cam, key.height, key.width,
+        cfg = self.config_for(key.height, key.width)
+        self._compiled[key] = fn.lower(self._params, cfg, self._gaussians, *cam, key.height, key.width,
                                        key.output, key.partitions).compile()
         return time.perf_counter() - t0
 

@@ -178,25 +178,18 @@ def test_params_folder_round_trip_and_fit_check(tmp_path, key):
 
 
 def test_render_views_sizes_the_splat_buffer_so_nothing_is_dropped(rng):
-    """Wide colour Gaussians need ~30 (Gaussian, block) slots each at 64x64, beyond the
-    trace-time buffer of 8 per Gaussian, which drops the farthest entries (the far wall of a
-    real capture went missing that way). ``render_views`` sizes the buffer for its cameras:
-    its renders equal ``render_sh`` with room for every Gaussian in every block (atol 1e-5)."""
-    from llrmpp_jax.capture.bake import colour_config
+    """The wide Gaussians of ``tests.helpers.wide_gaussians`` overflow the trace-time buffer
+    of 8 slots per Gaussian, which drops the farthest entries (the far wall of a real capture
+    went missing that way). ``render_views`` sizes the buffer for its cameras: its renders
+    equal ``render_sh`` with room for every Gaussian in every block (atol 1e-5)."""
     from llrmpp_jax.capture.render import render_views
     from llrmpp_jax.model import render
     from llrmpp_jax.splat import SplatConfig, render_sh
+    from tests.helpers.wide_gaussians import INTRINSICS, SIZE, wide_colour_scene
 
-    n, h, w = 300, 64, 64
-    cfg = colour_config(C.tiny(), 0)
-    z = rng.uniform(1.5, 4.0, n)
-    means = np.stack([rng.uniform(-0.6, 0.6, n) * z, rng.uniform(-0.6, 0.6, n) * z, z], -1)
-    g = Gaussians(means.astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-                  rng.uniform(0.1, 0.3, (n, 3)).astype(np.float32), rng.uniform(0.05, 0.6, n).astype(np.float32),
-                  rng.normal(0.0, 0.5, (n, 3)).astype(np.float32))
-    c2w = np.tile(np.eye(4), (2, 1, 1))
-    c2w[1, :3, 3] = [0.2, -0.1, 0.1]
-    intr = np.tile([[50.0, 50.0, 32.0, 32.0]], (2, 1))
+    g, cfg, c2w = wide_colour_scene(rng)
+    n, h, w = g.means.shape[0], SIZE, SIZE
+    intr = np.tile(INTRINSICS, (2, 1))
     saved = SavedScene(gaussians=g, model=cfg, c2w=c2w, intrinsics=intr, world_from_scene=np.eye(4),
                        frame_names=("a", "b"), inputs=np.array([0]), targets=np.array([1]), image_hw=(h, w),
                        resized_hw=(h, w), crop_box=(0, 0, h, w), scene_path="/x", scene_format="colmap")

@@ -362,6 +362,27 @@ def test_four_tabs_under_load(demo, browser):
         viewer.stop()
 
 
+def test_renderer_sizes_its_splat_buffer_from_the_input_cameras(rng):
+    """With the scene's input cameras, a render size's buffer holds what the wide Gaussians of
+    ``tests.helpers.wide_gaussians`` need (the trace-time 8 per Gaussian would drop some), also
+    at twice the inputs' size: the render equals ``render_sh`` with room for every Gaussian in
+    every block (atol 1e-5). Without cameras the config's buffer is kept."""
+    from llrmpp_jax.splat import SplatConfig, render_sh
+    from tests.helpers.wide_gaussians import INTRINSICS, SIZE, wide_colour_scene
+
+    g, cfg, c2w = wide_colour_scene(rng)
+    batch = jax.tree.map(lambda x: jnp.asarray(x)[None], g)
+    renderer = ViewRenderer({}, cfg, batch, cameras=(c2w[:1], INTRINSICS[None], (SIZE, SIZE)))
+    assert ViewRenderer({}, cfg, batch).config_for(SIZE, SIZE) == cfg
+    for size in (SIZE, 2 * SIZE):
+        k = (INTRINSICS * size / SIZE).astype(np.float32)
+        frame = renderer.render(ViewKey(size, size, "rgb", 1), c2w[1], k)
+        room = SplatConfig(max_intersections=g.means.shape[0] * (size // 8) ** 2)
+        want, _ = render_sh(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :],
+                            c2w[1].astype(np.float32), k, size, size, room)
+        np.testing.assert_allclose(frame.image, np.asarray(want), atol=1e-5)
+
+
 # -- command line ---------------------------------------------------------------------------
 
 
