@@ -123,3 +123,21 @@ def test_pycolmap_leaves_the_crash_handlers_alone(how):
     by_faulthandler = "Fatal Python error: Segmentation fault" in proc.stderr
     by_glog = "SIGSEGV (@0x0) received" in proc.stderr
     assert (by_faulthandler, by_glog) == ((False, True) if how == "plain" else (True, False)), proc.stderr[-2000:]
+
+
+def test_too_few_photos_and_a_bad_fps_are_one_line(tmp_path, rng, capsys):
+    """Two photos (poses need 3) and ``--fps 0`` on an existing file: one line each, exit 2,
+    no model written."""
+    two = tmp_path / "two"
+    two.mkdir()
+    for i in range(2):
+        write_image(str(two / f"{i}.png"), rng.uniform(size=(32, 48, 3)).astype(np.float32))
+    video = tmp_path / "walk.mp4"
+    video.write_bytes(b"whatever")
+    for args, message in ((["--images", str(two)], "2 images; poses need at least 3"),
+                          (["--video", str(video), "--fps", "0"], "--fps must be > 0, got 0.0")):
+        out = tmp_path / f"capture_{args[0][2:]}"
+        assert main(["poses", *args, "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert not (out / "sparse").exists()
