@@ -297,6 +297,39 @@ def _rss_bytes() -> int:
         return next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmRSS:"))
 
 
+def _other_interface_address() -> str | None:
+    """An IPv4 address of this machine that is not loopback (None if it has none)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("10.255.255.255", 1))  # UDP: no packet is sent
+            address = s.getsockname()[0]
+        except OSError:
+            return None
+    return None if address.startswith("127.") else address
+
+
+def test_default_host_serves_this_machine_only(demo):
+    """``llrmpp view``'s default ``--host`` binds loopback: the page answers on 127.0.0.1 and
+    the same port refuses connections on this machine's other interface."""
+    from llrmpp_jax.cli import build_parser
+
+    other = _other_interface_address()
+    if other is None:
+        pytest.skip("this machine has no interface besides loopback")
+    host = build_parser().parse_args(["view", "--procedural", "0"]).host
+    assert host == "127.0.0.1"
+    params, cfg, scene = demo
+    settings = ViewerSettings(height=64, moving_height=64, show_points=False, show_cameras=False)
+    viewer = Viewer(ViewRenderer(params, cfg, scene.gaussians), scene, host=host, port=0, settings=settings)
+    try:
+        with socket.create_connection(("127.0.0.1", viewer.port), timeout=5.0):
+            pass
+        with pytest.raises(OSError):
+            socket.create_connection((other, viewer.port), timeout=5.0).close()
+    finally:
+        viewer.stop()
+
+
 @pytest.mark.slow
 def test_four_tabs_under_load(demo, browser):
     """Four tabs of one page, each moved to its own cameras three times in a row: every tab
