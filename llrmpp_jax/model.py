@@ -207,18 +207,19 @@ def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2
 
 def fit_splat_capacity(
     params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B V 4 4"],
-    intrinsics: Float[ArrayLike, "B V 4"], height: int, width: int, headroom: float = 1.0,
+    intrinsics: Float[ArrayLike, "B V 4"], height: int, width: int, headroom: float = 1.0, minimum: int = 0,
 ) -> ModelConfig:
     """``cfg`` with ``splat.max_intersections`` sized for rendering ``gaussians`` at these
     cameras: ``headroom`` x the most slots any view needs (:func:`splat_intersections`),
-    rounded up by :func:`~llrmpp_jax.splat.render.fitted_capacity`. Without it a render
+    rounded up by :func:`~llrmpp_jax.splat.render.fitted_capacity`, and at least ``minimum``.
+    Without it a render
     takes the trace-time buffer of ``intersections_per_gaussian`` slots per Gaussian, which a
     full-resolution colour render of a capture can overflow, dropping the farthest entries.
     A config that sets the capacity keeps it."""
     if cfg.splat.max_intersections is not None:
         return cfg
     needed = int(jnp.max(splat_intersections(params, cfg, gaussians, c2w, intrinsics, height, width)))
-    capacity = fitted_capacity(math.ceil(headroom * needed))
+    capacity = max(fitted_capacity(math.ceil(headroom * needed)), minimum)
     return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=capacity))
 
 

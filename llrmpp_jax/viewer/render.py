@@ -180,11 +180,9 @@ class ViewRenderer:
         c2w, intrinsics, (h0, w0) = self._cameras
         scale = np.array([width / w0, height / h0, width / w0, height / h0], np.float32)
         k = np.asarray(intrinsics, np.float32) * scale
-        sized = fit_splat_capacity(self._params, cfg, self._gaussians, jnp.asarray(c2w, jnp.float32)[None],
-                                   jnp.asarray(k)[None], height, width, headroom=VIEW_HEADROOM)
         default = cfg.splat.capacity(self._gaussians.means.shape[1], height, width)
-        most = max(sized.splat.max_intersections, default)
-        return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=most))
+        return fit_splat_capacity(self._params, cfg, self._gaussians, jnp.asarray(c2w, jnp.float32)[None],
+                                  jnp.asarray(k)[None], height, width, headroom=VIEW_HEADROOM, minimum=default)
 
     @property
     def max_partitions(self) -> int:
