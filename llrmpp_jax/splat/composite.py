@@ -79,23 +79,44 @@ class _Chunk(NamedTuple):
     active: Bool[Array, "group chunk pix"]  # valid and alpha >= alpha_min
 
 
+def _running(
+    xs: list[Float[Array, "..."]], op: Callable, identity: float
+) -> tuple[list[Float[Array, "..."]], Float[Array, "..."]]:
+    """Exclusive running ``op`` over a list of equal-shaped arrays, and the total."""
+    out, total = [], None
+    for x in xs:
+        out.append(jnp.full_like(x, identity) if total is None else total)
+        total = x if total is None else op(total, x)
+    return out, total
+
+
 def _cumulative(
     x: Float[Array, "group chunk pix"], op: Callable, identity: float, exclusive: bool = False,
     reverse: bool = False,
 ) -> Float[Array, "group chunk pix"]:
     """Cumulative ``op`` (``jnp.multiply`` or ``jnp.add``) along the chunk axis.
 
-    ``lax.associative_scan``: log2(K) element-wise passes, which XLA fuses well. (On CPU,
-    ``lax.cumprod`` lowers to a ``reduce_window`` of K operations per output, 7x slower at
-    K = 64; unrolled chains stacked along the chunk axis defeat XLA's vectorisation, 13x.)
     ``exclusive`` leaves out the entry itself (the first value is ``identity``),
     ``reverse`` runs from the end.
+
+    Two levels of unrolled running products: within blocks of 4 entries, then across the
+    blocks' totals, which XLA fuses into a few element-wise passes. Per ``[64, 64, 64]``
+    chunk on the 2-core development CPU: 0.13 ms, against 0.16 ms for
+    ``lax.associative_scan`` (log2(K) passes) and 0.18 ms for one chain of K. In the
+    splatter at 256x256 it took the forward from 103 to 97 ms and forward + backward from
+    273 to 249 ms (medians of 6 alternating runs). Blocks of 8 made XLA fuse the backward
+    badly (+45%); ``lax.cumprod`` lowers to a ``reduce_window`` of K operations per output
+    on CPU (7x slower at K = 64).
     """
-    out = lax.associative_scan(op, x, axis=1, reverse=reverse)
-    if not exclusive:
-        return out
-    pad = jnp.full_like(x[:, :1], identity)
-    return jnp.concatenate([out[:, 1:], pad] if reverse else [pad, out[:, :-1]], axis=1)
+    if reverse:
+        return _cumulative(x[:, ::-1], op, identity, exclusive)[:, ::-1]
+    g, k, p = x.shape
+    b = 4 if k % 4 == 0 else 1
+    blocks = x.reshape(g, k // b, b, p)
+    within, totals = _running([blocks[:, :, i] for i in range(b)], op, identity)
+    inner = jnp.stack(within if exclusive else within[1:] + [totals], axis=2)
+    before, _ = _running([totals[:, j] for j in range(k // b)], op, identity)
+    return op(inner, jnp.stack(before, axis=1)[:, :, None, :]).reshape(g, k, p)
 
 
 def _make_groups(bins: TileBins, cfg: SplatConfig) -> _Groups:
