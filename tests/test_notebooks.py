@@ -221,6 +221,24 @@ def test_interval_matches_student_t(ablation):
     assert math.isnan(ablation.interval([1.0])["ci"])
 
 
+def test_seeds_to_resolve_is_where_the_interval_first_excludes_zero(ablation):
+    # t_{0.995} quantiles from statistical tables (independent of scipy): 4 dof 4.604095,
+    # 5 dof 4.032143. sd 1: 5 seeds give a 99% half-width of 2.059, 6 seeds 1.646.
+    assert 4.604095 / math.sqrt(5) > 1.8 > 4.032143 / math.sqrt(6)
+    assert ablation.seeds_to_resolve(1.0, 1.8, 0.99) == 6
+    assert ablation.seeds_to_resolve(1.0, -1.8, 0.99) == 6
+    assert ablation.seeds_to_resolve(2.0, 3.6, 0.99) == 6
+    assert ablation.seeds_to_resolve(1.0, 0.0) is None
+    assert ablation.seeds_to_resolve(1.0, 0.01, cap=50) is None
+    # About half of the tables with that true difference and spread resolve at that count.
+    rng = np.random.default_rng(3)
+    n = ablation.seeds_to_resolve(0.4, 0.3, 0.99)
+    d = rng.normal(0.3, 0.4, size=(20000, n))
+    half = 4.032143 if n == 6 else __import__("scipy").stats.t.ppf(0.995, n - 1)
+    resolved = d.mean(1) - half * d.std(1, ddof=1) / math.sqrt(n) > 0
+    assert 0.35 < resolved.mean() < 0.65, (n, resolved.mean())
+
+
 def _row(i: int, psnr_seeds, lpips_seeds, paper_psnr: str, paper_lpips: str, status: str = "ok") -> dict:
     return {"row": i, "status": status, "psnr_seeds": psnr_seeds, "lpips_seeds": lpips_seeds, "psnr": 0.0,
             "lpips": 0.0, "paper": {"PSNR": paper_psnr, "LPIPS": paper_lpips}}
@@ -411,14 +429,20 @@ def test_summary_lists_every_table_and_ordering(tmp_path, monkeypatch):
     record = {"wall_s": 1926.0, "seeds": 3, "steps": 400, "commit": "abc1234", "orderings": [
         {"ordering": "S=2 > S=1 (PSNR)", "metric": "psnr", "diff": 0.9582, "diff_ci": 1.9061, "paper_diff": 0.99,
          "verdict": "not resolved"},
-        {"ordering": "x > y", "metric": "lpips", "verdict": "not run"}]}
+        {"ordering": "x > y", "metric": "lpips", "verdict": "not run"}],
+        "results": [_row(0, [20.0, 20.5, 21.0], [0.5] * 3, "28.0", "0.1"),
+                    _row(1, [20.3, 20.6, 21.4], [0.4] * 3, "29.0", "0.1")]}
     (tmp_path / "table6_partitions_cpu.json").write_text(json.dumps(record))
     lines = _summary.summary("cpu", str(tmp_path)).splitlines()
     assert "- `table6_partitions`: 32.1 min, 3 seeds x 400 steps, commit abc1234" in lines
-    assert {ln for ln in lines if "not executed" in ln} == {
+    assert {ln for ln in lines if "not executed at" in ln} == {
         f"- `{n}`: not executed at the cpu scale" for n in NOTEBOOKS if n != "table6_partitions"}
     assert "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | 95% | 3 | not resolved |" in lines
     assert "| 6 | x > y | lpips | - | - | 95% | 3 | not run |" in lines
+    # The central claims: Table 6's from its rows' seeds (diffs 0.3, 0.1, 0.4: mean 0.267, sd
+    # 0.153; 95% half-width 4.303 x 0.153 / sqrt(3) = 0.379); the others not executed.
+    assert ("| 6 | S=2 > S=1 | +1.000 | +0.267 ± 0.379 | 95% | 3 | not resolved | 0.153 | 3 | 4 |" in lines)
+    assert "| 5 | feature (LLGGG) > colour | | | | | not executed | | | |" in lines
     # A sequential table: its level, each ordering's seeds and what stopped it.
     record["orderings"][0].update(confidence=0.99, seeds=7, stopped="10 seeds")
     (tmp_path / "table6_partitions_cpu.json").write_text(json.dumps(record))

@@ -70,7 +70,7 @@ from llrmpp_jax.ablation.scales import (
     smoke_base,
 )
 from llrmpp_jax.ablation.scoring import eval_samples, evaluate, references, time_model
-from llrmpp_jax.ablation.stats import compare, interval, summarise
+from llrmpp_jax.ablation.stats import compare, interval, seeds_to_resolve, summarise
 from llrmpp_jax.ablation.tables import SeedRun, TableRun, progress, run_seed, run_table
 from llrmpp_jax.ablation.training import Trained, init_model, row_objective, train
 
@@ -79,5 +79,6 @@ __all__ = [
     "PROCEDURAL_MAX_DIST", "SCALES", "Scale", "SeedRun", "TRAIN_SCENES", "TableRun", "Trained", "Variant",
     "commit", "compare", "cpu_base", "eval_samples", "evaluate", "format_orderings", "format_table", "init_model",
     "interval", "machine", "make_scale", "ordering_cells", "plot", "progress", "references", "row_objective",
-    "run_seed", "run_table", "save", "scale_name", "selected", "smoke_base", "summarise", "time_model", "train",
+    "run_seed", "run_table", "save", "scale_name", "seeds_to_resolve", "selected", "smoke_base", "summarise",
+    "time_model", "train",
 ]

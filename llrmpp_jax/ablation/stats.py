@@ -1,6 +1,7 @@
 """Statistics over seeds: :func:`interval` (mean, sd, Student-t 95% half-width),
 :func:`summarise` (per metric, over seeds), :func:`compare` (paired differences and a
-verdict per paper ordering)."""
+verdict per paper ordering), :func:`seeds_to_resolve` (a power estimate for an ordering
+that is not resolved)."""
 
 from __future__ import annotations
 
@@ -60,6 +61,28 @@ def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering], co
                     "paper_diff": None if None in paper else sign * (paper[0] - paper[1]),
                     "verdict": verdict(iv, n)})
     return out
+
+
+def seeds_to_resolve(diff_std: float, effect: float, confidence: float = 0.99, cap: int = 100_000) -> int | None:
+    """Seeds at which a paired difference of mean ``effect`` and per-seed standard deviation
+    ``diff_std`` has its two-sided Student-t ``confidence`` interval just exclude 0: the
+    smallest n >= 2 with ``t_{(1 + confidence) / 2, n - 1} diff_std / sqrt(n) < |effect|``.
+
+    A power estimate for an ordering that is not resolved: with ``diff_std`` the spread
+    measured over the seeds run so far, about half of the tables whose true difference is
+    ``effect`` resolve by then (the interval is centred on the observed mean); roughly twice
+    as many seeds make it ~80% (1.96 + 0.84 = 2.8 standard errors instead of ~2). None when
+    ``effect`` is 0 or more than ``cap`` seeds would be needed."""
+    if not diff_std > 0:
+        return 2 if effect != 0 else None
+    if effect == 0:
+        return None
+    n = 2
+    while n <= cap:
+        if stats.t.ppf(0.5 + confidence / 2, n - 1) * diff_std / np.sqrt(n) < abs(effect):
+            return n
+        n += 1
+    return None
 
 
 def verdict(iv: dict[str, float], n: int) -> str:
