@@ -7,6 +7,7 @@ Run (from the repository root; one core, ~5 min per seed on the 2-core developme
     taskset -c 1 python experiments/ablation_stall_probe.py 16 32 0.5 LLGGG 1 1 \
         experiments/results/ablations/stall/s1_guard.json         # K F canvas blocks S seeds out
     SPIKE_FACTOR=none ...  s1.json                                # without the spike guard
+    LR=1e-3 WARMUP=100 ...                                        # another peak rate / warmup
 """
 import dataclasses
 from dataclasses import replace
@@ -28,6 +29,10 @@ scale = A.make_scale("cpu", paper_views=4, cpu_steps=steps)
 spike = os.environ.get("SPIKE_FACTOR")
 if spike:
     scale = dataclasses.replace(scale, spike_factor=None if spike == "none" else float(spike))
+if os.environ.get("LR"):
+    scale = dataclasses.replace(scale, lr=float(os.environ["LR"]))
+if os.environ.get("WARMUP"):
+    scale = dataclasses.replace(scale, warmup=int(os.environ["WARMUP"]))
 cfg = replace(scale.base, head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
               decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
                               canvas_ratio=round(1 / canvas), partitions=S))

@@ -361,6 +361,7 @@ def test_cpu_scale_is_the_pilots(ablation, monkeypatch):
         monkeypatch.delenv(env, raising=False)
     scale = ablation.make_scale("cpu", paper_views=8, depth=True)
     assert scale.seeds == 3 and scale.size == 64 and scale.base.outputs == ("rgb", "depth")
+    assert (scale.lr, scale.warmup) == (1e-3, 50)  # the stalled-seed fix (notebooks/README.md)
     assert (scale.base.head.gaussians_per_token, scale.base.head.feature_dim) == (16, 32)
     assert (scale.base.decoder.blocks, scale.base.decoder.dim, scale.base.decoder.partitions) == ("LLGGG", 64, 2)
     # the splat buffer can hold every (Gaussian, tile) pair of a full-size render: no overflow
