@@ -26,11 +26,13 @@ default) times the two.
 ``--baseline REF`` (in a git checkout) first runs this benchmark as it was at git ``REF`` (a
 temporary worktree; ``experiments/bench_splat.py`` at commits before it moved here) with the
 same sweep, so a speed-up is measured on the same machine in the same run; its rows go under
-``"baseline"``.
+``"baseline"``. ``--rounds R`` alternates the two sweeps R times and keeps each row's median
+over the rounds (every round's time under ``fwd_s_rounds`` / ``fwd_bwd_s_rounds``): a 2-core
+development box drifts by up to ~25% between runs minutes apart.
 
 Current numbers (docs/speed-cpu.md):
   python -m llrmpp_jax.benchmarks.splat --n 100000 --canvas 128x128 256x256 --repeats 10 \
-      --baseline 49415ad --out experiments/results/splat_speed.json
+      --baseline 49415ad --rounds 3 --out experiments/results/splat_speed.json
 Full sweep:                python -m llrmpp_jax.benchmarks.splat
 Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 """
@@ -168,6 +170,19 @@ def fit_exponents(rows: list[dict], key: str) -> dict:
 OLD_SCRIPT = "experiments/bench_splat.py"
 
 
+def median_rows(runs: list[list[dict]]) -> list[dict]:
+    """Rows of repeated sweeps merged: each timing key the median over the runs (every
+    run's value under ``KEY_rounds``), the rest from the first run."""
+    out = []
+    for rows in zip(*runs, strict=True):
+        row = dict(rows[0])
+        for key in ("fwd_s", "fwd_bwd_s"):
+            values = [r[key] for r in rows]
+            row[key], row[f"{key}_rounds"] = float(np.median(values)), values
+        out.append(row)
+    return out
+
+
 def run_baseline(ref: str, argv: list[str]) -> dict:
     """This benchmark's sweep as it was at git ``ref``, in a temporary worktree of the checkout
     this package is in; its JSON."""
@@ -209,30 +224,43 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="N in {1e4, 1e5}, canvases 128x128 and 256x256")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
     parser.add_argument("--baseline", metavar="REF", help="also run this benchmark as it was at git REF, first")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="sweeps (alternating with the baseline's); each row keeps its median time")
     parser.add_argument("--out", default=os.path.join("runs", "bench", "bench_splat.json"),
                         help="JSON file to write")
     args = parser.parse_args()
     if args.quick:
         args.n, args.canvas = [1e4, 1e5], ["128x128", "256x256"]
-
-    baseline = None
-    if args.baseline:
-        argv = ["--n", *map(str, args.n), "--canvas", *args.canvas, "--features", str(args.features),
-                "--repeats", str(args.repeats), "--oracle-max-work", "0", "--seed", str(args.seed)]
-        baseline = run_baseline(args.baseline, argv)
+    if args.rounds < 1:
+        parser.error(f"--rounds must be >= 1, got {args.rounds}")
 
     cfg = SplatConfig(chunk_size=args.chunk_size, tiles_per_group=args.tiles_per_group,
                       composite_tile=args.composite_tile)
     rules = {"default": [False], "fitted": [True], "both": [False, True]}[args.capacity]
-    rows = []
-    for canvas in args.canvas:
-        width, height = (int(v) for v in canvas.lower().split("x"))
-        for n in args.n:
-            for fitted in rules:
-                row = bench_one(int(n), width, height, args.features, cfg, args.repeats, args.oracle_max_work,
-                                args.oracle_max_bytes, args.seed, fitted)
-                rows.append(row)
-                print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
+
+    def sweep() -> list[dict]:
+        rows = []
+        for canvas in args.canvas:
+            width, height = (int(v) for v in canvas.lower().split("x"))
+            for n in args.n:
+                for fitted in rules:
+                    row = bench_one(int(n), width, height, args.features, cfg, args.repeats, args.oracle_max_work,
+                                    args.oracle_max_bytes, args.seed, fitted)
+                    rows.append(row)
+                    print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
+        return rows
+
+    baselines, sweeps = [], []
+    for _ in range(args.rounds):
+        if args.baseline:
+            argv = ["--n", *map(str, args.n), "--canvas", *args.canvas, "--features", str(args.features),
+                    "--repeats", str(args.repeats), "--oracle-max-work", "0", "--seed", str(args.seed)]
+            baselines.append(run_baseline(args.baseline, argv))
+        sweeps.append(sweep())
+    rows = median_rows(sweeps)
+    baseline = None
+    if baselines:
+        baseline = baselines[0] | {"rows": median_rows([b["rows"] for b in baselines])}
 
     result = {
         "device": str(jax.devices()[0]), "backend": jax.default_backend(), "jax": jax.__version__,

@@ -226,3 +226,16 @@ def test_paper_comparison_ratios_and_goals():
     assert lines[4] == "| stage-4 step | 27.8 s | 27.4 s | 1.01 | 9 s | not met |"
     assert len(lines) == 5  # 8 views: no paper figure
     assert len(paper_comparison({**table1, "scale": "cpu"}, {**step, "model": "tiny"}).splitlines()) == 2
+
+
+def test_splat_benchmark_keeps_each_rows_median_over_rounds():
+    from llrmpp_jax.benchmarks.splat import median_rows
+
+    runs = [[{"n": 10, "fwd_s": 3.0, "fwd_bwd_s": 9.0, "capacity": 7}, {"n": 20, "fwd_s": 1.0, "fwd_bwd_s": 2.0}],
+            [{"n": 10, "fwd_s": 1.0, "fwd_bwd_s": 8.0, "capacity": 7}, {"n": 20, "fwd_s": 5.0, "fwd_bwd_s": 4.0}],
+            [{"n": 10, "fwd_s": 2.0, "fwd_bwd_s": 7.5, "capacity": 7}, {"n": 20, "fwd_s": 4.0, "fwd_bwd_s": 3.0}]]
+    got = median_rows(runs)
+    assert [(r["n"], r["fwd_s"], r["fwd_bwd_s"]) for r in got] == [(10, 2.0, 8.0), (20, 4.0, 3.0)]
+    assert got[0]["fwd_s_rounds"] == [3.0, 1.0, 2.0] and got[0]["capacity"] == 7
+    with pytest.raises(ValueError):  # sweeps of different lengths are not merged
+        median_rows([runs[0], runs[1][:1]])
