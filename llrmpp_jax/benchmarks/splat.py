@@ -32,7 +32,7 @@ development box drifts by up to ~25% between runs minutes apart.
 
 Current numbers (docs/speed-cpu.md):
   python -m llrmpp_jax.benchmarks.splat --n 100000 --canvas 128x128 256x256 --repeats 10 \
-      --baseline 49415ad --rounds 3 --out experiments/results/splat_speed.json
+      --baseline 49415ad --rounds 2 --out experiments/results/splat_speed.json
 Full sweep:                python -m llrmpp_jax.benchmarks.splat
 Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 """
