@@ -223,7 +223,7 @@ def test_interval_matches_student_t(ablation):
 
 def test_seeds_to_resolve_is_where_the_interval_first_excludes_zero(ablation):
     # t_{0.995} quantiles from statistical tables (independent of scipy): 4 dof 4.604095,
-    # 5 dof 4.032143. sd 1: 5 seeds give a 99% half-width of 2.059, 6 seeds 1.646.
+    # 5 dof 4.032143, 15 dof 2.946713. sd 1: 5 seeds give a 99% half-width of 2.059, 6 seeds 1.646.
     assert 4.604095 / math.sqrt(5) > 1.8 > 4.032143 / math.sqrt(6)
     assert ablation.seeds_to_resolve(1.0, 1.8, 0.99) == 6
     assert ablation.seeds_to_resolve(1.0, -1.8, 0.99) == 6
@@ -233,8 +233,9 @@ def test_seeds_to_resolve_is_where_the_interval_first_excludes_zero(ablation):
     # About half of the tables with that true difference and spread resolve at that count.
     rng = np.random.default_rng(3)
     n = ablation.seeds_to_resolve(0.4, 0.3, 0.99)
+    assert n == 16  # 2.946713 x 0.4 / 4 = 0.295 < 0.3; at 15 seeds 2.976843 x 0.4 / sqrt(15) = 0.307
     d = rng.normal(0.3, 0.4, size=(20000, n))
-    half = 4.032143 if n == 6 else __import__("scipy").stats.t.ppf(0.995, n - 1)
+    half = 2.946713
     resolved = d.mean(1) - half * d.std(1, ddof=1) / math.sqrt(n) > 0
     assert 0.35 < resolved.mean() < 0.65, (n, resolved.mean())
 

@@ -73,10 +73,10 @@ def seeds_to_resolve(diff_std: float, effect: float, confidence: float = 0.99, c
     ``effect`` resolve by then (the interval is centred on the observed mean); roughly twice
     as many seeds make it ~80% (1.96 + 0.84 = 2.8 standard errors instead of ~2). None when
     ``effect`` is 0 or more than ``cap`` seeds would be needed."""
-    if not diff_std > 0:
-        return 2 if effect != 0 else None
     if effect == 0:
         return None
+    if not diff_std > 0:
+        return 2
     n = 2
     while n <= cap:
         if stats.t.ppf(0.5 + confidence / 2, n - 1) * diff_std / np.sqrt(n) < abs(effect):

@@ -250,12 +250,12 @@ def main() -> None:
                     print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
         return rows
 
+    baseline_argv = ["--n", *map(str, args.n), "--canvas", *args.canvas, "--features", str(args.features),
+                     "--repeats", str(args.repeats), "--oracle-max-work", "0", "--seed", str(args.seed)]
     baselines, sweeps = [], []
     for _ in range(args.rounds):
         if args.baseline:
-            argv = ["--n", *map(str, args.n), "--canvas", *args.canvas, "--features", str(args.features),
-                    "--repeats", str(args.repeats), "--oracle-max-work", "0", "--seed", str(args.seed)]
-            baselines.append(run_baseline(args.baseline, argv))
+            baselines.append(run_baseline(args.baseline, baseline_argv))
         sweeps.append(sweep())
     rows = median_rows(sweeps)
     baseline = None
