@@ -30,7 +30,7 @@ CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu sc
 # (Scale.rescale False). Long-LRM's per-window rescaling (input cameras into [-1, 1]^3) gives
 # the cpu scale's short windows depth scales that differ ~3x (a sample's mean log depth: sd
 # 1.1 around 1.6), and at that spread the depth head learned nothing in 1,200 steps; in world
-# units the sd is 0.27 (notebooks/README.md, "Depth (Table 7)"). Where the depth head starts
+# units the sd is 0.27 (notebooks/README.md, "Depth at this scale"). Where the depth head starts
 # (DecoderConfig.depth_bias, depth tables): the mean log target depth of those windows in
 # world units, 1.05 / 1.01 / 1.08 over three draws of 128 samples (about 2.9 units).
 PROCEDURAL_DEPTH_BIAS = 1.05
