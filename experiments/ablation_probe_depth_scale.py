@@ -1,5 +1,5 @@
 """Probe of why Table 7's depth was not learned at the cpu scale (notebooks/README.md,
-"Depth (Table 7)"): is it that each training window's depth scale varies (~3x, log sd 1.1)?
+"Depth at this scale"): is it that each training window's depth scale varies (~3x, log sd 1.1)?
 
 Trains Table 7's "Ours w/o aux losses" row (the cpu scale's depth model, seed 0) and scores
 it on the held-out scenes, with the poses of every sample, training and held out, normalised

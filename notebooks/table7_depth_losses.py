@@ -13,7 +13,7 @@
 # Every other row is trained on procedural scenes (exact ray-cast depth) once per seed and
 # scored on held-out ones; the paper's orderings are checked with paired differences over
 # seeds. The scale is `LLRMPP_NOTEBOOK_SCALE`: `smoke` (CI: shows the pipeline runs,
-# numbers mean nothing), `cpu` (this 2-core machine, 3 seeds of 800 steps, ~50 minutes;
+# numbers mean nothing), `cpu` (this 2-core machine, 3 to 10 seeds of 800 steps, ~35 minutes;
 # the other tables' 400 steps, chosen by the pilot in `notebooks/README.md`, are too few for
 # depth; 4 input views where the paper has 8) or `paper` (the
 # paper's ScanNet model, accelerators). `LLRMPP_NOTEBOOK_ROWS=1,3` (row indices) runs a
@@ -25,9 +25,9 @@ from dataclasses import replace
 from llrmpp_jax import ablation as A
 from llrmpp_jax import config as C
 
-# 800 steps at the cpu scale: at 400 the depth rows stayed below the mean colour (README,
-# "Depth (Table 7)"), and 3 seeds of 1,000 steps take ~70 min on 2 cores, over the hour (a
-# colour-row training alone: ~19.5 min on one core, the others ~9 min). 800 steps: ~50 min.
+# 800 steps at the cpu scale: at 400 the depth rows stayed below the mean colour
+# (notebooks/README.md, "Depth at this scale"), and 3 seeds of 1,000 steps took ~70 min on
+# 2 cores (a colour-row training alone: ~19.5 min on one core, the others ~9 min).
 scale = A.make_scale(A.scale_name(), paper_views=8, depth=True, cpu_steps=800)
 print(scale)
 print(f"commit {A.commit()} | {A.machine()}")
@@ -41,7 +41,7 @@ print(f"commit {A.commit()} | {A.machine()}")
 # spread the training windows' depth scale ~3x, and no depth was learned under it) and the
 # depth head starts at exp(1.05) ~ 2.9 units (`depth_bias`, the training windows'
 # geometric-mean depth) rather than at 1: starting far from the data's depths cost the
-# shared decoder most of its RGB (`notebooks/README.md`, "Depth (Table 7)"). The paper's
+# shared decoder most of its RGB (`notebooks/README.md`, "Depth at this scale"). The paper's
 # numbers are copied from the .tex. Both kinds of Gaussians reach 10 units along their rays
 # (`max_dist`, `PROCEDURAL_MAX_DIST`: 99% of these rooms' pixels; the cpu base's 3 left half
 # of the held-out depths out of the colour Gaussians' reach). `notebooks/README.md`,
