@@ -8,6 +8,8 @@ Run (from the repository root; one core, ~5 min per seed on the 2-core developme
         experiments/results/ablations/stall/s1_guard.json         # K F canvas blocks S seeds out
     SPIKE_FACTOR=none ...  s1.json                                # without the spike guard
     LR=1e-3 WARMUP=100 ...                                        # another peak rate / warmup
+    taskset -c 1 python experiments/ablation_stall_probe.py depth noaux 3,6 OUT.json
+                             # Table 7's Long-LRM++ rows (aux: with the auxiliary depth losses)
 """
 import dataclasses
 from dataclasses import replace
@@ -21,11 +23,19 @@ import numpy as np
 from llrmpp_jax import ablation as A
 from llrmpp_jax.model import reconstruct
 
-k, f, canvas, blocks, S = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], int(sys.argv[5])
-seeds = [int(s) for s in sys.argv[6].split(",")]
-out = sys.argv[7]
-steps = int(os.environ.get("STEPS", 400))
-scale = A.make_scale("cpu", paper_views=4, cpu_steps=steps)
+depth = sys.argv[1] == "depth"
+if depth:  # Table 7's scale and base model (RGB + depth heads), as notebooks/table7_depth_losses.py
+    aux, seeds_arg, out = sys.argv[2], sys.argv[3], sys.argv[4]
+    if aux not in ("aux", "noaux"):
+        raise SystemExit(f"depth rows: 'aux' or 'noaux', got {aux!r}")
+    steps = int(os.environ.get("STEPS", 800))
+    scale = A.make_scale("cpu", paper_views=8, depth=True, cpu_steps=steps)
+else:
+    k, f, canvas, blocks, S = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3]), sys.argv[4], int(sys.argv[5])
+    seeds_arg, out = sys.argv[6], sys.argv[7]
+    steps = int(os.environ.get("STEPS", 400))
+    scale = A.make_scale("cpu", paper_views=4, cpu_steps=steps)
+seeds = [int(s) for s in seeds_arg.split(",")]
 spike = os.environ.get("SPIKE_FACTOR")
 if spike:
     scale = dataclasses.replace(scale, spike_factor=None if spike == "none" else float(spike))
@@ -33,13 +43,17 @@ if os.environ.get("LR"):
     scale = dataclasses.replace(scale, lr=float(os.environ["LR"]))
 if os.environ.get("WARMUP"):
     scale = dataclasses.replace(scale, warmup=int(os.environ["WARMUP"]))
-cfg = replace(scale.base, head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
-              decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
-                              canvas_ratio=round(1 / canvas), partitions=S))
-variant = A.Variant({}, lambda b: cfg, {})
-held_out = A.eval_samples(scale, depth=False)
+if depth:
+    cfg = scale.base
+    variant = A.Variant({}, lambda b: cfg, {}, **({} if aux == "aux" else dict(grad_weight=0.0, normal_weight=0.0)))
+else:
+    cfg = replace(scale.base, head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
+                  decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
+                                  canvas_ratio=round(1 / canvas), partitions=S))
+    variant = A.Variant({}, lambda b: cfg, {})
+held_out = A.eval_samples(scale, depth=depth)
 samples = held_out[:4]  # the Gaussian statistics use the first four
-snaps = [0, 10, 25, 50, 100, 200, steps]
+snaps = sorted({0, 10, 25, 50, 100, 200, steps // 2, steps})
 
 recon = jax.jit(lambda p, s: reconstruct(p, cfg, s["input_images"], s["input_c2w"], s["input_intrinsics"]))
 
