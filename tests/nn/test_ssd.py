@@ -106,7 +106,7 @@ def test_chunked_matches_sequential(rng, chunk_size, methods):
         assert _rel(got, want) <= 1e-5, method
 
 
-@pytest.mark.parametrize("inter_chunk", ["associative", "fused"])
+@pytest.mark.parametrize("inter_chunk", ["associative", "sequential", "fused"])
 @pytest.mark.parametrize("batch, chunk_size", [((), 32), ((2, 3), 5)])
 def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size, inter_chunk):
     """ngroups 2 (heads 0-2 read group 0, heads 3-5 group 1), no D, 0 or 2 batch dims;
@@ -120,7 +120,7 @@ def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size, inter_chunk):
     assert _rel(got, want) <= 1e-5
 
 
-@pytest.mark.parametrize("inter_chunk", ["associative", "fused"])
+@pytest.mark.parametrize("inter_chunk", ["associative", "sequential", "fused"])
 def test_ssd_scan_extreme_decays(rng, inter_chunk):
     """dt from 1e-4 (almost no decay) to 4 (exp(dt*A) ~ e^-64): chunk exponents reach ~-1e4."""
     x, dt, A, B, C, D = _inputs(rng, (1,), 600, 3, 4, 1, 5, dt_range=(1e-4, 4.0))
@@ -129,7 +129,8 @@ def test_ssd_scan_extreme_decays(rng, inter_chunk):
     assert _rel(got, _oracle(x, dt, A, B, C, D)) <= 1e-5
 
 
-def test_ssd_scan_gradients_match_sequential(rng):
+@pytest.mark.parametrize("inter_chunk", ["associative", "sequential", "fused"])
+def test_ssd_scan_gradients_match_sequential(rng, inter_chunk):
     """VJPs of the float32 chunked scan (chunks 7 and 64, L = 90) vs the float64 recurrence's
     VJP: <= 1e-4 relative for each of x, dt, A, B, C, D."""
     x, dt, A, B, C, D = _inputs(rng, (2,), 90, 4, 8, 1, 6)
@@ -142,7 +143,7 @@ def test_ssd_scan_gradients_match_sequential(rng):
     want = jax.jit(grads, static_argnums=(0, 2))(
         lambda *a: ssd_sequential(*a[:5], D=a[5]), _f64(x, dt, A, B, C, D), jnp.float64
     )
-    for chunk_size, inter_chunk in ((7, "associative"), (64, "associative"), (7, "fused"), (64, "fused")):
+    for chunk_size in (7, 64):
         got = jax.jit(grads, static_argnums=(0, 2))(
             lambda *a: ssd_scan(*a[:5], chunk_size=chunk_size, D=a[5], inter_chunk=inter_chunk),
             tuple(jnp.asarray(a) for a in (x, dt, A, B, C, D)),
@@ -195,7 +196,7 @@ def test_fused_scan_both_diagonal_forms(rng, monkeypatch, forms):
         assert _rel(g, w) <= 1e-4, name
 
 
-@pytest.mark.parametrize("inter_chunk", ["associative", "fused"])
+@pytest.mark.parametrize("inter_chunk", ["associative", "sequential", "fused"])
 def test_ssd_scan_bf16_accumulates_in_f32(rng, inter_chunk):
     """bf16 inputs: output in bf16, error at bf16 rounding level (not growing with L)."""
     x, dt, A, B, C, D = _inputs(rng, (1,), 600, 2, 16, 1, 16, dt_range=(1e-3, 1e-1))
