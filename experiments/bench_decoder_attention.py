@@ -22,7 +22,8 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
+
+from git_worktree import REPO, rev_parse, worktree
 
 CHILD = r"""
 import json, sys, time
@@ -79,27 +80,19 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per program (the best is kept)")
     parser.add_argument("--out", default=None, help="JSON path")
     args = parser.parse_args()
-    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     runs: dict[str, list[dict]] = {"baseline": [], "this tree": []}
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = os.path.join(tmp, "baseline")
-        subprocess.run(["git", "-C", repo, "worktree", "add", "--detach", tree, args.baseline], check=True,
-                       capture_output=True)
-        try:
-            for r in range(args.rounds):
-                for name, where in (("baseline", tree), ("this tree", repo)):
-                    runs[name].append(measure(where, args.repeats))
-                    print(r, name, json.dumps(runs[name][-1]), flush=True)
-        finally:
-            subprocess.run(["git", "-C", repo, "worktree", "remove", "--force", tree], check=False)
+    with worktree(args.baseline) as tree:
+        for r in range(args.rounds):
+            for name, where in (("baseline", tree), ("this tree", REPO)):
+                runs[name].append(measure(where, args.repeats))
+                print(r, name, json.dumps(runs[name][-1]), flush=True)
     best = {}
     for row in runs["baseline"][0]:
         for key in ("fwd_s", "fwd_bwd_s"):
             before = min(run[row][key] for run in runs["baseline"])
             after = min(run[row][key] for run in runs["this tree"])
             best[f"{row} {key}"] = {"baseline": before, "this tree": after, "speedup": before / after}
-    commit = subprocess.run(["git", "-C", repo, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    result = {"baseline": args.baseline, "commit": commit, "cpu_count": os.cpu_count(), "runs": runs,
+    result = {"baseline": args.baseline, "commit": rev_parse("HEAD"), "cpu_count": os.cpu_count(), "runs": runs,
               "best_of_rounds": best}
     print(json.dumps(best, indent=1))
     if args.out:

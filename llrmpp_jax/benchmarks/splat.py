@@ -1,6 +1,6 @@
 """Benchmark of the feature splatter: forward and forward+backward time and memory.
 
-Sweeps N Gaussians x canvases (W x H) at F features, times ``render_features`` (jitted,
+Sweeps N Gaussians x canvases (W x H) at F features, times ``splat.rasterize`` (jitted,
 warm, best of ``--repeats``) and ``value_and_grad`` of a random linear function of its
 outputs w.r.t. means, quats, scales, opacities and features, and the brute-force
 ``render_features_reference`` (forward; fwd+bwd too when its scan residuals fit
@@ -19,20 +19,15 @@ random rotations and features. So the work (intersections x 256 pixels) grows wi
 with the pixel count.
 
 Capacity: ``--capacity default`` uses ``SplatConfig``'s trace-time buffer (8 slots per
-Gaussian), ``fitted`` sizes it from the scene as the eager entry points and ``refine`` do
-(:func:`llrmpp_jax.splat.render.fitted_capacity` of the exact count); ``both`` (the
-default) times the two.
+Gaussian), ``fitted`` sizes it from the scene as eager renders and ``refine`` do
+(:func:`llrmpp_jax.splat.fit_capacity`); ``both`` (the default) times the two.
 
-``--baseline REF`` (in a git checkout) first runs this benchmark as it was at git ``REF`` (a
-temporary worktree; ``experiments/bench_splat.py`` at commits before it moved here) with the
-same sweep, so a speed-up is measured on the same machine in the same run; its rows go under
-``"baseline"``. ``--rounds R`` alternates the two sweeps R times and keeps each row's median
-over the rounds (every round's time under ``fwd_s_rounds`` / ``fwd_bwd_s_rounds``): a 2-core
-development box drifts by up to ~25% between runs minutes apart.
+``--rounds R`` runs the sweep R times and keeps each row's median over the rounds (every
+round's time under ``fwd_s_rounds`` / ``fwd_bwd_s_rounds``): a shared machine's timings drift
+between runs minutes apart. A comparison with an older version of the splatter, both run on
+the same machine at once, is ``experiments/bench_splat_baseline.py`` in a checkout; current
+numbers and the command behind them: docs/speed-cpu.md, "The splatter".
 
-Current numbers (docs/speed-cpu.md):
-  python -m llrmpp_jax.benchmarks.splat --n 100000 --canvas 128x128 256x256 --repeats 10 \
-      --baseline 49415ad --rounds 2 --out experiments/results/splat_speed.json
 Full sweep:                python -m llrmpp_jax.benchmarks.splat
 Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 """
@@ -40,20 +35,16 @@ Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
-import subprocess
-import sys
-import tempfile
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.splat import SplatConfig, count_intersections, fitted_capacity, render_features
+from llrmpp_jax.splat import SplatConfig, fit_capacity, rasterize
 from llrmpp_jax.splat.reference import render_features_reference
 
 
@@ -105,12 +96,11 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
     rng = np.random.default_rng(seed)
     means, quats, scales, opac, feats, c2w, intr = make_scene(rng, n, f, height, width)
     if fitted:
-        needed = int(count_intersections(means, quats, scales, c2w, intr, height, width, cfg, opacities=opac))
-        cfg = dataclasses.replace(cfg, max_intersections=fitted_capacity(needed))
+        cfg = fit_capacity(means, quats, scales, opac, c2w, intr, height, width, cfg)
     cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((height, width, f), (height, width), (height, width))]
 
     def forward(m, q, s, o, x):
-        return render_features(m, q, s, o, x, c2w, intr, height, width, cfg)
+        return rasterize(m, q, s, o, x, c2w, intr, height, width, cfg)
 
     def loss(m, q, s, o, x):
         out = forward(m, q, s, o, x)
@@ -165,11 +155,6 @@ def fit_exponents(rows: list[dict], key: str) -> dict:
     return fits
 
 
-# Where this benchmark was at commits before it moved into the package (a path inside the
-# ``--baseline`` commit's worktree).
-OLD_SCRIPT = "experiments/bench_splat.py"
-
-
 def median_rows(runs: list[list[dict]]) -> list[dict]:
     """Rows of repeated sweeps merged: each timing key the median over the runs (every
     run's value under ``KEY_rounds``), the rest from the first run."""
@@ -181,29 +166,6 @@ def median_rows(runs: list[list[dict]]) -> list[dict]:
             row[key], row[f"{key}_rounds"] = float(np.median(values)), values
         out.append(row)
     return out
-
-
-def run_baseline(ref: str, argv: list[str]) -> dict:
-    """This benchmark's sweep as it was at git ``ref``, in a temporary worktree of the checkout
-    this package is in; its JSON."""
-    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    with tempfile.TemporaryDirectory() as tmp:
-        tree = os.path.join(tmp, "tree")
-        subprocess.run(["git", "-C", repo, "worktree", "add", "--detach", tree, ref], check=True, capture_output=True)
-        try:
-            out = os.path.join(tmp, "baseline.json")
-            env = dict(os.environ, PYTHONPATH=tree)
-            moved = os.path.exists(os.path.join(tree, "llrmpp_jax", "benchmarks", "splat.py"))
-            entry = ["-m", "llrmpp_jax.benchmarks.splat"] if moved else [os.path.join(tree, OLD_SCRIPT)]
-            cmd = [sys.executable, *entry, *argv, "--out", out]
-            subprocess.run(cmd, check=True, env=env, cwd=tree)
-            with open(out) as fh:
-                result = json.load(fh)
-            result["ref"] = subprocess.run(["git", "-C", repo, "rev-parse", ref], check=True, capture_output=True,
-                                           text=True).stdout.strip()
-            return result
-        finally:
-            subprocess.run(["git", "-C", repo, "worktree", "remove", "--force", tree], check=False)
 
 
 def main() -> None:
@@ -223,9 +185,7 @@ def main() -> None:
     parser.add_argument("--oracle-max-bytes", type=float, default=2e9, help="largest oracle fwd+bwd residuals")
     parser.add_argument("--quick", action="store_true", help="N in {1e4, 1e5}, canvases 128x128 and 256x256")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
-    parser.add_argument("--baseline", metavar="REF", help="also run this benchmark as it was at git REF, first")
-    parser.add_argument("--rounds", type=int, default=1,
-                        help="sweeps (alternating with the baseline's); each row keeps its median time")
+    parser.add_argument("--rounds", type=int, default=1, help="sweeps; each row keeps its median time")
     parser.add_argument("--out", default=os.path.join("runs", "bench", "bench_splat.json"),
                         help="JSON file to write")
     args = parser.parse_args()
@@ -250,17 +210,7 @@ def main() -> None:
                     print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
         return rows
 
-    baseline_argv = ["--n", *map(str, args.n), "--canvas", *args.canvas, "--features", str(args.features),
-                     "--repeats", str(args.repeats), "--oracle-max-work", "0", "--seed", str(args.seed)]
-    baselines, sweeps = [], []
-    for _ in range(args.rounds):
-        if args.baseline:
-            baselines.append(run_baseline(args.baseline, baseline_argv))
-        sweeps.append(sweep())
-    rows = median_rows(sweeps)
-    baseline = None
-    if baselines:
-        baseline = baselines[0] | {"rows": median_rows([b["rows"] for b in baselines])}
+    rows = median_rows([sweep() for _ in range(args.rounds)])
 
     result = {
         "device": str(jax.devices()[0]), "backend": jax.default_backend(), "jax": jax.__version__,
@@ -268,29 +218,11 @@ def main() -> None:
         "rows": rows,
         "exponents": {"fwd_s": fit_exponents(rows, "fwd_s"), "fwd_bwd_s": fit_exponents(rows, "fwd_bwd_s")},
     }
-    if baseline is not None:
-        result["baseline"] = baseline
-        result["speedup"] = speedups(baseline["rows"], rows)
-        print(json.dumps(result["speedup"], indent=1))
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=1)
     print(json.dumps(result["exponents"], indent=1))
     print(f"wrote {args.out}")
-
-
-def speedups(base_rows: list[dict], rows: list[dict]) -> list[dict]:
-    """Baseline time / current time per (N, canvas) and capacity rule, forward and fwd+bwd."""
-    base = {(r["n"], r["width"], r["height"]): r for r in base_rows}
-    out = []
-    for r in rows:
-        b = base.get((r["n"], r["width"], r["height"]))
-        if b is not None:
-            out.append({"n": r["n"], "canvas": f"{r['width']}x{r['height']}", "capacity_rule": r["capacity_rule"],
-                        "baseline_fwd_s": b["fwd_s"], "fwd_s": r["fwd_s"], "fwd_speedup": b["fwd_s"] / r["fwd_s"],
-                        "baseline_fwd_bwd_s": b["fwd_bwd_s"], "fwd_bwd_s": r["fwd_bwd_s"],
-                        "fwd_bwd_speedup": b["fwd_bwd_s"] / r["fwd_bwd_s"]})
-    return out
 
 
 if __name__ == "__main__":
