@@ -48,7 +48,6 @@ import plyfile
 
 from llrmpp_jax.array_typing import ArrayLike, Float
 from llrmpp_jax.config import ModelConfig
-from llrmpp_jax.data.formats.colmap import rotmat_to_qvec
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.splat.sh import num_sh_bases, sh_basis
@@ -104,6 +103,21 @@ def split_similarity(world_from_scene: Float[np.ndarray, "4 4"]) -> tuple[float,
     if err > _SIMILARITY_TOL:
         raise UserError(f"world_from_scene is not rotation x uniform scale: |R^T R - I| = {err:.3g}")
     return s, rot, m[:3, 3]
+
+
+def rotmat_to_qvec(rot: Float[np.ndarray, "3 3"]) -> Float[np.ndarray, "4"]:
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix (the dominant
+    eigenvector of Bar-Itzhack's symmetric 4x4 matrix, as COLMAP's scripts compute it)."""
+    r = np.asarray(rot, dtype=np.float64)
+    k = np.array([
+        [r[0, 0] - r[1, 1] - r[2, 2], 0, 0, 0],
+        [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], 0, 0],
+        [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], 0],
+        [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], r[0, 0] + r[1, 1] + r[2, 2]],
+    ]) / 3.0
+    vals, vecs = np.linalg.eigh(k)
+    q = vecs[[3, 0, 1, 2], np.argmax(vals)]
+    return q if q[0] >= 0 else -q
 
 
 def quat_multiply(a: Float[np.ndarray, "*#batch 4"], b: Float[np.ndarray, "*#batch 4"]) -> Float[np.ndarray, "*batch 4"]:

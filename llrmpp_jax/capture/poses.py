@@ -36,16 +36,12 @@ the other cores.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import json
 import os
 import shutil
-import signal
-import sys
 import tempfile
 import time
-import types
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -53,6 +49,7 @@ from typing import Literal
 import numpy as np
 
 from llrmpp_jax.capture.pose_check import continuity_breaks
+from llrmpp_jax.data.formats.colmap import import_pycolmap
 from llrmpp_jax.data.image_io import image_size, write_image
 from llrmpp_jax.errors import MissingInputError, UserError
 
@@ -241,37 +238,6 @@ def _map(pycolmap, database: str, image_dir: str, scratch: str, cfg: PosesConfig
     return max(models.values(), key=lambda r: r.num_reg_images(), default=None), models
 
 
-# glog's failure handler, which pycolmap installs when it is imported.
-_GLOG_SIGNALS = (signal.SIGILL, signal.SIGABRT, signal.SIGBUS, signal.SIGFPE, signal.SIGSEGV, signal.SIGTERM)
-
-
-def _import_pycolmap() -> types.ModuleType:
-    """``import pycolmap`` without the crash handlers it installs process-wide.
-
-    Importing pycolmap installs glog's failure signal handler for SIGSEGV, SIGABRT, SIGBUS,
-    SIGILL, SIGFPE and SIGTERM. That handler walks the stack with ``backtrace()``, which
-    deadlocks when the signal lands inside the C++ unwinder (it takes the unwinder's lock
-    again): a later crash in the same process (``reconstruct --images`` runs the model after
-    the poses; the test suite runs everything in two workers) then hangs forever instead of
-    exiting. The C-level dispositions from before the import (Python's, faulthandler's or
-    the default) are saved and put back with ``sigaction``; the struct is handled as opaque
-    bytes, so no layout is assumed.
-    """
-    if "pycolmap" in sys.modules:
-        return sys.modules["pycolmap"]
-    libc = ctypes.CDLL(None, use_errno=True)
-    saved = {sig: ctypes.create_string_buffer(512) for sig in _GLOG_SIGNALS}  # > sizeof(struct sigaction)
-    for sig, buf in saved.items():
-        if libc.sigaction(int(sig), None, buf) != 0:
-            raise OSError(ctypes.get_errno(), f"sigaction({sig.name}) failed")
-    import pycolmap
-
-    for sig, buf in saved.items():
-        if libc.sigaction(int(sig), buf, None) != 0:
-            raise OSError(ctypes.get_errno(), f"sigaction({sig.name}) failed")
-    return pycolmap
-
-
 def estimate_poses(
     images: str | None,
     out: str,
@@ -285,7 +251,7 @@ def estimate_poses(
     in ``out`` (module docstring); returns the report, also written as
     ``out/poses_report.json``. A one-line ``UserError`` when fewer than
     ``cfg.min_registered`` images register, saying what to try."""
-    pycolmap = _import_pycolmap()
+    pycolmap = import_pycolmap()
 
     if (images is None) == (video is None):
         raise UserError("give exactly one of --images DIR and --video FILE")

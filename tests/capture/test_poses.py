@@ -107,8 +107,8 @@ faulthandler.enable()
 if sys.argv[1] == "plain":
     import pycolmap
 else:
-    from llrmpp_jax.capture.poses import _import_pycolmap
-    _import_pycolmap()
+    from llrmpp_jax.data.formats.colmap import import_pycolmap
+    import_pycolmap()
 ctypes.string_at(0)  # a segmentation fault
 """
 
@@ -116,7 +116,7 @@ ctypes.string_at(0)  # a segmentation fault
 @pytest.mark.parametrize("how", ["plain", "ours"])
 def test_pycolmap_leaves_the_crash_handlers_alone(how):
     """A plain ``import pycolmap`` replaces the crash handlers with glog's (which can
-    deadlock inside the C++ unwinder); ``_import_pycolmap`` keeps the ones from before:
+    deadlock inside the C++ unwinder); ``import_pycolmap`` keeps the ones from before:
     a segfault afterwards is reported by Python's faulthandler and ends the process."""
     proc = subprocess.run([sys.executable, "-c", _CRASH, how], capture_output=True, text=True, timeout=120)
     assert proc.returncode == -signal.SIGSEGV, proc.stderr[-2000:]

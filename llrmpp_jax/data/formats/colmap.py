@@ -1,17 +1,29 @@
-"""COLMAP sparse models (``cameras``, ``images``, ``points3D``; binary ``.bin`` or ``.txt``).
+"""COLMAP sparse models (``cameras``, ``images``, ``points3D``; binary ``.bin`` or ``.txt``),
+read and written with pycolmap.
 
-COLMAP stores world-to-camera poses as a unit quaternion ``(qw, qx, qy, qz)`` and a
-translation, in OpenCV camera axes, and pixel coordinates with the top-left pixel centre at
-(0.5, 0.5) -- the same conventions as :mod:`llrmpp_jax.geometry`. Supported camera models
-(per image or shared): SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV; their
-distortion is removed when images load.
+COLMAP stores world-to-camera poses in OpenCV camera axes and pixel coordinates with the
+top-left pixel centre at (0.5, 0.5) -- the same conventions as :mod:`llrmpp_jax.geometry`.
+Supported camera models (per image or shared): SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL,
+RADIAL, OPENCV; their distortion is removed when images load.
+
+COLMAP's binary reader trusts the counts it reads: a file cut short can still read as a
+model (the missing bytes read as whatever was in memory) or loop for hours on a garbage
+count. So each binary file's leading count is checked against the file's size before
+pycolmap reads it, and the file's size against what was read after. A file pycolmap
+rejects is named by reading the model's files one more at a time.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
-import struct
+import re
+import signal
+import sys
+import tempfile
+import types
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -20,9 +32,49 @@ from llrmpp_jax.data.formats.common import Missing, files_scene, write_frames
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.errors import MissingInputError, UserError
 
-# model id -> (name, number of params)
-_MODELS = {0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5), 4: ("OPENCV", 8)}
-_MODEL_IDS = {name: (mid, npar) for mid, (name, npar) in _MODELS.items()}
+_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+_PARTS = ("cameras", "images", "points3D")
+# Bytes of each binary file's smallest record: a camera with 3 params (id, model, width,
+# height, params); an image with a one-byte name and no points (id, quaternion, translation,
+# camera id, name + NUL, point count); a point with an empty track (id, xyz, rgb, error,
+# track length).
+_MIN_RECORD = {"cameras": 4 + 4 + 8 + 8 + 3 * 8, "images": 4 + 7 * 8 + 4 + 2 + 8, "points3D": 8 + 3 * 8 + 3 + 8 + 8}
+# What each text file holds, for the error when pycolmap rejects one.
+_TEXT_LAYOUT = {
+    "cameras": "a line per camera: CAMERA_ID MODEL WIDTH HEIGHT and as many PARAMS as the model has",
+    "images": "two lines per image: IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME (a camera in cameras.txt), "
+              "then X Y POINT3D_ID triples",
+    "points3D": "a line per point: POINT3D_ID X Y Z R G B ERROR, then IMAGE_ID POINT2D_IDX pairs of images in images.txt",
+}
+# glog's failure handler, which pycolmap installs when it is imported.
+_GLOG_SIGNALS = (signal.SIGILL, signal.SIGABRT, signal.SIGBUS, signal.SIGFPE, signal.SIGSEGV, signal.SIGTERM)
+
+
+def import_pycolmap() -> types.ModuleType:
+    """``import pycolmap`` without the crash handlers it installs process-wide.
+
+    Importing pycolmap installs glog's failure signal handler for SIGSEGV, SIGABRT, SIGBUS,
+    SIGILL, SIGFPE and SIGTERM. That handler walks the stack with ``backtrace()``, which
+    deadlocks when the signal lands inside the C++ unwinder (it takes the unwinder's lock
+    again): a later crash in the same process (``reconstruct --images`` runs the model after
+    the poses; the test suite runs everything in two workers) then hangs forever instead of
+    exiting. The C-level dispositions from before the import (Python's, faulthandler's or
+    the default) are saved and put back with ``sigaction``; the struct is handled as opaque
+    bytes, so no layout is assumed.
+    """
+    if "pycolmap" in sys.modules:
+        return sys.modules["pycolmap"]
+    libc = ctypes.CDLL(None, use_errno=True)
+    saved = {sig: ctypes.create_string_buffer(512) for sig in _GLOG_SIGNALS}  # > sizeof(struct sigaction)
+    for sig, buf in saved.items():
+        if libc.sigaction(int(sig), None, buf) != 0:
+            raise OSError(ctypes.get_errno(), f"sigaction({sig.name}) failed")
+    import pycolmap
+
+    for sig, buf in saved.items():
+        if libc.sigaction(int(sig), buf, None) != 0:
+            raise OSError(ctypes.get_errno(), f"sigaction({sig.name}) failed")
+    return pycolmap
 
 
 @dataclass(frozen=True)
@@ -51,20 +103,11 @@ class ColmapCamera:
 @dataclass(frozen=True)
 class ColmapImage:
     image_id: int
-    qvec: Float[np.ndarray, "4"]  # world-to-camera rotation, (w, x, y, z)
-    tvec: Float[np.ndarray, "3"]  # world-to-camera translation
+    c2w: Float[np.ndarray, "4 4"]  # OpenCV camera-to-world
     camera_id: int
     name: str
     xys: Float[np.ndarray, "pts 2"]  # observed (distorted) pixel coordinates
     point3d_ids: Int[np.ndarray, "pts"]  # -1 where the observation has no 3D point
-
-    def c2w(self) -> Float[np.ndarray, "4 4"]:
-        """OpenCV camera-to-world."""
-        rot = qvec_to_rotmat(self.qvec)
-        out = np.eye(4)
-        out[:3, :3] = rot.T
-        out[:3, 3] = -rot.T @ self.tvec
-        return out
 
 
 @dataclass(frozen=True)
@@ -77,165 +120,125 @@ class ColmapPoint3D:
     point2d_idxs: Int[np.ndarray, "track"]
 
 
-def qvec_to_rotmat(q: Float[np.ndarray, "4"]) -> Float[np.ndarray, "3 3"]:
-    """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+def _message(e: Exception) -> str:
+    """pycolmap's error on one line, without the C++ source location it starts with."""
+    return re.sub(r"^\[[^\]]*\]\s*", "", " ".join(str(e).split()))[:200]
 
 
-def rotmat_to_qvec(rot: Float[np.ndarray, "3 3"]) -> Float[np.ndarray, "4"]:
-    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix (the dominant
-    eigenvector of Bar-Itzhack's symmetric 4x4 matrix, as COLMAP's scripts compute it)."""
-    r = np.asarray(rot, dtype=np.float64)
-    k = np.array([
-        [r[0, 0] - r[1, 1] - r[2, 2], 0, 0, 0],
-        [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], 0, 0],
-        [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], 0],
-        [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], r[0, 0] + r[1, 1] + r[2, 2]],
-    ]) / 3.0
-    vals, vecs = np.linalg.eigh(k)
-    q = vecs[[3, 0, 1, 2], np.argmax(vals)]
-    return q if q[0] >= 0 else -q
+def _pycolmap_read(paths: dict[str, str], binary: bool, rig_dir: str | None) -> Any:
+    """The ``pycolmap.Reconstruction`` of the files in ``paths`` (part -> file); a part
+    not in it reads as empty. COLMAP reads a whole folder, so the files are linked into a
+    temporary one next to empty stand-ins; ``rig_dir``: also link the ``rigs`` and
+    ``frames`` files found there (without them COLMAP gives each image its own rig)."""
+    pycolmap = import_pycolmap()
+    ext = ".bin" if binary else ".txt"
+    with tempfile.TemporaryDirectory() as tmp:
+        for part in _PARTS:
+            dst = os.path.join(tmp, part + ext)
+            if part in paths:
+                os.symlink(os.path.abspath(paths[part]), dst)
+            else:
+                with open(dst, "wb") as f:
+                    f.write(bytes(8) if binary else b"")  # binary: a count of 0
+        for part in ("rigs", "frames") if rig_dir is not None else ():
+            if os.path.exists(src := os.path.join(rig_dir, part + ext)):
+                os.symlink(os.path.abspath(src), os.path.join(tmp, part + ext))
+        rec = pycolmap.Reconstruction()
+        (rec.read_binary if binary else rec.read_text)(tmp)
+    return rec
 
 
-class _Reader:
-    def __init__(self, path: str):
-        self.path = path
-        with open(path, "rb") as f:
-            self.buf = f.read()
-        self.pos = 0
-
-    def take(self, fmt: str) -> tuple:
-        size = struct.calcsize(fmt)
-        if self.pos + size > len(self.buf):
-            raise UserError(f"{self.path}: file is truncated (needed {size} bytes at offset {self.pos})")
-        out = struct.unpack_from(fmt, self.buf, self.pos)
-        self.pos += size
-        return out
-
-    def name(self) -> str:
-        end = self.buf.find(b"\x00", self.pos)
-        if end < 0:
-            raise UserError(f"{self.path}: file is truncated inside an image name")
-        out = self.buf[self.pos : end].decode("utf-8")
-        self.pos = end + 1
-        return out
+def _culprit(sparse_dir: str, paths: dict[str, str], binary: bool, error: Exception) -> UserError:
+    """The error for a model pycolmap rejected, naming the first file that fails when the
+    files are read one more at a time (cameras, then images, then points3D)."""
+    kind = "binary" if binary else "text"
+    parts = list(paths)
+    for k in range(1, len(parts) + 1):
+        try:
+            _pycolmap_read({p: paths[p] for p in parts[:k]}, binary, None)
+        except (ValueError, IndexError, RuntimeError, MemoryError) as e:
+            part = parts[k - 1]
+            expected = f"; expected {_TEXT_LAYOUT[part]}" if not binary else ""
+            return UserError(f"{paths[part]}: not a valid COLMAP {kind} {part} file ({_message(e)}){expected}")
+    return UserError(f"{sparse_dir}: COLMAP's rigs and frames files do not fit its cameras and images ({_message(error)})")
 
 
-def _model(path: str, camera_id: int, model_id: int | str) -> tuple[str, int]:
-    if isinstance(model_id, str):
-        if model_id not in _MODEL_IDS:
-            raise UserError(f"{path}: camera {camera_id} has unsupported model {model_id!r} (supported: {list(_MODEL_IDS)})")
-        return model_id, _MODEL_IDS[model_id][1]
-    if model_id not in _MODELS:
-        raise UserError(f"{path}: camera {camera_id} has unsupported model id {model_id} (supported: {_MODELS})")
-    return _MODELS[model_id]
+def _check_count(path: str, part: str) -> None:
+    """A binary file's leading record count fits in its size (else COLMAP loops on it)."""
+    size = os.path.getsize(path)
+    count = int(np.fromfile(path, "<u8", count=1)[0]) if size >= 8 else None
+    if count is None or 8 + count * _MIN_RECORD[part] > size:
+        needs = "an 8-byte record count" if count is None else f"at least {8 + count * _MIN_RECORD[part]} for {count} {part}"
+        raise UserError(f"{path}: file is truncated ({size} bytes; needs {needs})")
 
 
-def _read_cameras_bin(path: str) -> dict[int, ColmapCamera]:
-    r = _Reader(path)
-    cams = {}
-    for _ in range(r.take("<Q")[0]):
-        cid, mid, w, h = r.take("<iiQQ")
-        name, npar = _model(path, cid, mid)
-        cams[cid] = ColmapCamera(cid, name, int(w), int(h), np.array(r.take(f"<{npar}d")))
-    return cams
+def _binary_bytes(rec: Any, part: str) -> int:
+    """Size (bytes) of the binary ``part`` file holding what ``rec`` read."""
+    if part == "cameras":
+        return 8 + sum(24 + 8 * len(c.params) for c in rec.cameras.values())
+    if part == "images":
+        return 8 + sum(64 + len(im.name.encode("utf-8")) + 1 + 8 + 24 * im.num_points2D() for im in rec.images.values())
+    return 8 + sum(51 + 8 * p.track.length() for p in rec.points3D.values())
 
 
-def _read_images_bin(path: str) -> dict[int, ColmapImage]:
-    r = _Reader(path)
-    imgs = {}
-    for _ in range(r.take("<Q")[0]):
-        iid, *qt, cid = r.take("<i7di")
-        name = r.name()
-        npts = r.take("<Q")[0]
-        flat = np.array(r.take("<" + "ddq" * npts), dtype=np.float64).reshape(npts, 3)
-        imgs[iid] = ColmapImage(iid, np.array(qt[:4]), np.array(qt[4:]), cid, name, flat[:, :2],
-                                flat[:, 2].astype(np.int64))
-    return imgs
+def _camera(path: str, cam: Any) -> ColmapCamera:
+    name, cid = cam.model.name, int(cam.camera_id)
+    if name not in _MODELS:
+        raise UserError(f"{path}: camera {cid} has unsupported model {name!r} (supported: {list(_MODELS)})")
+    return ColmapCamera(cid, name, int(cam.width), int(cam.height), np.array(cam.params, dtype=np.float64))
 
 
-def _read_points_bin(path: str) -> dict[int, ColmapPoint3D]:
-    r = _Reader(path)
-    pts = {}
-    for _ in range(r.take("<Q")[0]):
-        pid, x, y, z, cr, cg, cb, err, tlen = r.take("<Q3d3BdQ")
-        track = np.array(r.take("<" + "ii" * tlen), dtype=np.int64).reshape(tlen, 2)
-        pts[pid] = ColmapPoint3D(pid, np.array([x, y, z]), np.array([cr, cg, cb]), err, track[:, 0], track[:, 1])
-    return pts
+def _c2w(im: Any) -> Float[np.ndarray, "4 4"]:
+    out = np.eye(4)
+    out[:3] = im.cam_from_world().inverse().matrix()
+    return out
 
 
-def _text_lines(path: str) -> list[str]:
-    with open(path) as f:
-        return [ln.strip() for ln in f if ln.strip() and not ln.lstrip().startswith("#")]
+def _image(im: Any) -> ColmapImage:
+    pts = im.points2D
+    xys = np.array([p.xy for p in pts], dtype=np.float64).reshape(-1, 2)
+    ids = np.array([p.point3D_id if p.has_point3D() else -1 for p in pts], dtype=np.int64)
+    return ColmapImage(int(im.image_id), _c2w(im), int(im.camera_id), im.name, xys, ids)
 
 
-def _read_cameras_txt(path: str) -> dict[int, ColmapCamera]:
-    cams = {}
-    for ln in _text_lines(path):
-        el = ln.split()
-        cid = int(el[0])
-        name, npar = _model(path, cid, el[1])
-        if len(el) != 4 + npar:
-            raise UserError(f"{path}: camera {cid} ({name}) needs {npar} params, got {len(el) - 4}")
-        cams[cid] = ColmapCamera(cid, name, int(el[2]), int(el[3]), np.array(el[4:], dtype=np.float64))
-    return cams
+def _point(pid: int, p: Any) -> ColmapPoint3D:
+    track = np.array([(e.image_id, e.point2D_idx) for e in p.track.elements], dtype=np.int64).reshape(-1, 2)
+    return ColmapPoint3D(int(pid), np.array(p.xyz, dtype=np.float64), np.array(p.color, dtype=np.int64),
+                         float(p.error), track[:, 0], track[:, 1])
 
 
-def _read_images_txt(path: str) -> dict[int, ColmapImage]:
-    with open(path) as f:
-        lines = [ln.rstrip("\n") for ln in f if not ln.lstrip().startswith("#")]
-    imgs = {}
-    k = 0
-    while k < len(lines):
-        if not lines[k].strip():
-            k += 1
-            continue
-        el = lines[k].split(maxsplit=9)
-        pts = lines[k + 1].split() if k + 1 < len(lines) else []
-        flat = np.array(pts, dtype=np.float64).reshape(-1, 3)
-        iid = int(el[0])
-        imgs[iid] = ColmapImage(iid, np.array(el[1:5], dtype=np.float64), np.array(el[5:8], dtype=np.float64),
-                                int(el[8]), el[9], flat[:, :2], flat[:, 2].astype(np.int64))
-        k += 2
-    return imgs
-
-
-def _read_points_txt(path: str) -> dict[int, ColmapPoint3D]:
-    pts = {}
-    for ln in _text_lines(path):
-        el = ln.split()
-        pid = int(el[0])
-        track = np.array(el[8:], dtype=np.int64).reshape(-1, 2)
-        pts[pid] = ColmapPoint3D(pid, np.array(el[1:4], dtype=np.float64), np.array(el[4:7], dtype=np.int64),
-                                 float(el[7]), track[:, 0], track[:, 1])
-    return pts
+def _read_checked(sparse_dir: str, with_points: bool) -> tuple[Any, dict[int, ColmapCamera]]:
+    """The ``pycolmap.Reconstruction`` in ``sparse_dir`` (binary if ``cameras.bin`` exists,
+    else text; empty points unless ``with_points``) and its cameras, checked."""
+    binary = os.path.exists(os.path.join(sparse_dir, "cameras.bin"))
+    ext = ".bin" if binary else ".txt"
+    paths = {part: os.path.join(sparse_dir, part + ext) for part in _PARTS[: 3 if with_points else 2]}
+    for path in paths.values():
+        if not os.path.exists(path):
+            raise MissingInputError(f"COLMAP model file not found: {path}")
+    if binary:
+        for part, path in paths.items():
+            _check_count(path, part)
+    try:
+        rec = _pycolmap_read(paths, binary, sparse_dir)
+    except (ValueError, IndexError, RuntimeError, MemoryError) as e:
+        raise _culprit(sparse_dir, paths, binary, e) from None
+    for part, path in paths.items():
+        if binary and (size := os.path.getsize(path)) != (expected := _binary_bytes(rec, part)):
+            raise UserError(f"{path}: {size} bytes, but the {part} it lists take {expected} "
+                            "(the file is cut short or not in COLMAP's binary format)")
+    return rec, {int(cid): _camera(paths["cameras"], c) for cid, c in rec.cameras.items()}
 
 
 def read_colmap_model(
     sparse_dir: str, with_points: bool = True
 ) -> tuple[dict[int, ColmapCamera], dict[int, ColmapImage], dict[int, ColmapPoint3D]]:
-    """Parse ``cameras``, ``images`` (and ``points3D``) from ``sparse_dir``, binary if
-    ``cameras.bin`` exists, else text. Returns dicts keyed by id."""
-    binary = os.path.exists(os.path.join(sparse_dir, "cameras.bin"))
-    ext = ".bin" if binary else ".txt"
-    paths = {key: os.path.join(sparse_dir, key + ext) for key in ("cameras", "images", "points3D")}
-    for key in ("cameras", "images") + (("points3D",) if with_points else ()):
-        if not os.path.exists(paths[key]):
-            raise MissingInputError(f"COLMAP model file not found: {paths[key]}")
-    try:
-        if binary:
-            cams, imgs = _read_cameras_bin(paths["cameras"]), _read_images_bin(paths["images"])
-            pts = _read_points_bin(paths["points3D"]) if with_points else {}
-        else:
-            cams, imgs = _read_cameras_txt(paths["cameras"]), _read_images_txt(paths["images"])
-            pts = _read_points_txt(paths["points3D"]) if with_points else {}
-    except (IndexError, UnicodeDecodeError, struct.error) as e:
-        raise UserError(f"{sparse_dir}: malformed COLMAP model ({type(e).__name__}: {e})") from None
+    """Read ``cameras``, ``images`` (and ``points3D``) from ``sparse_dir``, binary if
+    ``cameras.bin`` exists, else text. Returns dicts keyed by id; images are the registered
+    ones. Without points, ``points3D`` need not exist and is not read."""
+    rec, cams = _read_checked(sparse_dir, with_points)
+    imgs = {int(iid): _image(im) for iid, im in rec.images.items() if im.has_pose}
+    pts = {int(pid): _point(pid, p) for pid, p in rec.points3D.items()}
     return cams, imgs, pts
 
 
@@ -243,9 +246,10 @@ def read_colmap_scene(
     sparse_dir: str, image_dir: str, undistort: bool = True, missing: Missing = "skip"
 ) -> Scene:
     """A :class:`Scene` over the registered images of a COLMAP model, ordered by image
-    name, with each image's own camera (intrinsics and distortion)."""
-    cams, imgs, _ = read_colmap_model(sparse_dir, with_points=False)
-    order = sorted(imgs.values(), key=lambda im: im.name)
+    name (the path under ``image_dir``), with each image's own camera (intrinsics and
+    distortion)."""
+    rec, cams = _read_checked(sparse_dir, with_points=False)
+    order = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
     intr, dist, hw = [], [], []
     for im in order:
         if im.camera_id not in cams:
@@ -260,7 +264,7 @@ def read_colmap_scene(
         name=os.path.basename(os.path.normpath(os.path.join(sparse_dir, "..", ".."))),
         source=sparse_dir,
         image_paths=[os.path.join(image_dir, im.name) for im in order],
-        c2w=np.stack([im.c2w() for im in order]) if order else np.zeros((0, 4, 4)),
+        c2w=np.stack([_c2w(im) for im in order]) if order else np.zeros((0, 4, 4)),
         intrinsics=np.asarray(intr).reshape(-1, 4),
         declared_hw=np.asarray(hw).reshape(-1, 2),
         distortion=distortion if undistort and distortion.any() else None,
@@ -270,39 +274,22 @@ def read_colmap_scene(
 
 def write_colmap_scene(scene: Scene, out_dir: str, binary: bool = True, image_ext: str = ".png", bits: int = 16) -> str:
     """Write ``scene`` as ``out_dir/images/`` + ``out_dir/sparse/0/`` with one PINHOLE camera
-    per image and an empty ``points3D``. Returns the sparse folder. (COLMAP models hold no
-    depth maps.)"""
+    (and one rig and frame) per image and an empty ``points3D``. Returns the sparse folder.
+    (COLMAP models hold no depth maps.)"""
+    pycolmap = import_pycolmap()
     n = len(scene)
     names = [f"{i:05d}{image_ext}" for i in range(n)]
     write_frames(scene, os.path.join(out_dir, "images"), names, None, bits=bits)
     sparse = os.path.join(out_dir, "sparse", "0")
     os.makedirs(sparse, exist_ok=True)
     w2c = np.linalg.inv(scene.c2w)
-    qvecs = [rotmat_to_qvec(w2c[i, :3, :3]) for i in range(n)]
-    if binary:
-        with open(os.path.join(sparse, "cameras.bin"), "wb") as f:
-            f.write(struct.pack("<Q", n))
-            for i in range(n):
-                h, w = scene.hw[i].tolist()
-                f.write(struct.pack("<iiQQ4d", i + 1, _MODEL_IDS["PINHOLE"][0], w, h, *scene.intrinsics[i]))
-        with open(os.path.join(sparse, "images.bin"), "wb") as f:
-            f.write(struct.pack("<Q", n))
-            for i in range(n):
-                f.write(struct.pack("<i7di", i + 1, *qvecs[i], *w2c[i, :3, 3], i + 1))
-                f.write(names[i].encode("utf-8") + b"\x00" + struct.pack("<Q", 0))
-        with open(os.path.join(sparse, "points3D.bin"), "wb") as f:
-            f.write(struct.pack("<Q", 0))
-    else:
-        with open(os.path.join(sparse, "cameras.txt"), "w") as f:
-            f.write("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
-            for i in range(n):
-                h, w = scene.hw[i].tolist()
-                f.write(f"{i + 1} PINHOLE {w} {h} " + " ".join(repr(float(v)) for v in scene.intrinsics[i]) + "\n")
-        with open(os.path.join(sparse, "images.txt"), "w") as f:
-            f.write("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n")
-            for i in range(n):
-                vals = " ".join(repr(float(v)) for v in (*qvecs[i], *w2c[i, :3, 3]))
-                f.write(f"{i + 1} {vals} {i + 1} {names[i]}\n\n")
-        with open(os.path.join(sparse, "points3D.txt"), "w") as f:
-            f.write("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n")
+    rec = pycolmap.Reconstruction()
+    for i in range(n):
+        h, w = scene.hw[i].tolist()
+        rec.add_camera_with_trivial_rig(pycolmap.Camera(
+            model="PINHOLE", width=w, height=h, params=np.asarray(scene.intrinsics[i], np.float64), camera_id=i + 1))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=names[i], camera_id=i + 1, image_id=i + 1),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[i, :3, :3]), w2c[i, :3, 3]))
+    (rec.write_binary if binary else rec.write_text)(sparse)
     return sparse
