@@ -1,0 +1,167 @@
+"""Planning a run on an accelerator from a CPU: compile a program for a named chip without
+the chip, and report whether it fits, how long it took to compile and what a step should cost.
+
+:func:`plan` compiles each (program, target) pair with the target's own compiler
+(:mod:`llrmpp_jax.plan.targets`; libtpu's compile-only devices for TPU) from shapes alone
+(:mod:`llrmpp_jax.plan.programs`) and returns one row per pair:
+
+* ``compiled`` or ``error`` (the compiler's message in one line); a program over the chip's
+  HBM fails to compile as it would on the chip, and its row says how much it needs
+  (``needs_bytes`` from the compiler's message) instead of raising;
+* ``memory``: XLA's ``memory_analysis()`` (argument, output, alias, temp bytes) and
+  ``hbm_needed_bytes`` = argument + output + temp - alias against the chip's ``hbm_bytes``,
+  ``fits`` and ``margin`` (the fraction of HBM left);
+* ``compile_s``: lowering + compiling here, on this machine;
+* ``xla_flops`` and ``xla_optimal_s``: the compiler's cost analysis (a loop body once, custom
+  calls at -1: kept for reference);
+* ``estimate``: :func:`llrmpp_jax.plan.hlo_cost.estimate_hlo` of the compiled module, loops
+  at their trip counts, gathers and scatters at the chip's calibrated per-row rates
+  (:func:`chip_model`);
+* ``model_flops`` (matrix products of the computation, per device) and ``matmul_limit_s`` =
+  model FLOPs / the chip's bf16 peak: no program can run faster; ``peak_fraction`` = that
+  limit over the estimate.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from llrmpp_jax.plan.hlo_cost import Chip, estimate_hlo
+from llrmpp_jax.plan.programs import GROUPS, PROGRAMS, program
+from llrmpp_jax.plan.targets import TARGETS, Target, compile_devices, target
+
+__all__ = ["GROUPS", "PROGRAMS", "TARGETS", "chip_model", "compile_row", "plan", "resolve_programs"]
+
+_NEEDS = re.compile(r"(?:Used|used|requires?|needs?)\s+([0-9.]+)([KMGT])i?B?\b", re.I)
+_UNIT = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def resolve_programs(names: Sequence[str]) -> list[str]:
+    """Program names with the groups (``paper``, ``tiny``) expanded; one-line ``UserError`` for an unknown one."""
+    out: list[str] = []
+    for n in names:
+        for p in GROUPS.get(n, [n]):
+            if p not in PROGRAMS:
+                program(p)  # raises the one-line error listing the known programs
+            if p not in out:
+                out.append(p)
+    return out
+
+
+def _cost_of(compiled) -> tuple[float | None, float | None]:
+    ca = compiled.cost_analysis() or {}
+    if isinstance(ca, list):
+        ca = ca[0] if ca else {}
+    get = lambda k: float(ca[k]) if k in ca else None  # noqa: E731
+    return get("flops"), get("optimal_seconds")
+
+
+@functools.lru_cache(maxsize=None)
+def chip_model(name: str) -> Chip:
+    """The :class:`~llrmpp_jax.plan.hlo_cost.Chip` of target ``name``: its data-sheet rates and
+    the seconds per gathered and per scatter-added index row, measured once with the chip's own
+    cost model (libtpu's ``optimal_seconds`` of a 2^20-row gather and scatter-add of 32 float32
+    channels, the splatter's feature rows)."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    t = target(name)
+    mesh = Mesh(np.asarray(compile_devices(t)[:1]), ("batch",))
+    sh = NamedSharding(mesh, PartitionSpec())
+    n, f = 2**20, 32
+    table = jax.ShapeDtypeStruct((n, f), jnp.float32, sharding=sh)
+    idx = jax.ShapeDtypeStruct((n,), jnp.int32, sharding=sh)
+    rates = []
+    for fn in (lambda x, i: x[i], lambda x, i: jnp.zeros_like(x).at[i].add(x)):
+        _, secs = _cost_of(jax.jit(fn).lower(table, idx).compile())
+        rates.append(max(secs or 0.0, 0.0) / n)
+    return Chip(t.peak_flops, t.hbm_bytes_per_s, t.ici_bytes_per_s, gather_row_s=rates[0], scatter_row_s=rates[1])
+
+
+def _needs_bytes(message: str) -> float | None:
+    m = _NEEDS.search(message)
+    return float(m.group(1)) * _UNIT[m.group(2).upper()] if m else None
+
+
+def compile_row(prog_name: str, t: Target, flops_cache: dict[str, float | None] | None = None) -> dict:
+    """Compile program ``prog_name`` for target ``t`` and return its row (see the module doc)."""
+    import jax
+    from jax.sharding import Mesh
+
+    from llrmpp_jax.benchmarks.measure import memory_analysis_bytes
+
+    prog = program(prog_name)
+    row: dict = {"program": prog_name, "describe": prog.describe, "target": t.name, "chips": t.chips,
+                 "device_kind": t.device_kind, "hbm_bytes": t.hbm_bytes, "peak_flops": t.peak_flops}
+    mesh = Mesh(np.asarray(compile_devices(t)), ("batch",))
+    t0 = time.perf_counter()
+    try:
+        fn, args = prog.build(mesh, t.platform)
+        compiled = fn.lower(*args).compile()
+    except Exception as e:  # noqa: BLE001 -- the compiler's verdict is the row, not a crash
+        message = " ".join(str(e).split())
+        row.update(compiled=False, compile_s=time.perf_counter() - t0, error=message[:600])
+        if "RESOURCE_EXHAUSTED" in message or "exceeds" in message and "memory" in message.lower():
+            row.update(fits=False, needs_bytes=_needs_bytes(message))
+        return row
+    row["compile_s"] = time.perf_counter() - t0
+    mem = memory_analysis_bytes(compiled)
+    needed = mem["xla_peak_bytes"]
+    row.update(compiled=True, memory=mem, hbm_needed_bytes=needed, fits=needed <= t.hbm_bytes,
+               margin=1.0 - needed / t.hbm_bytes)
+    row["xla_flops"], row["xla_optimal_s"] = _cost_of(compiled)
+    est = estimate_hlo(compiled.as_text(), chip_model(t.name))
+    row["estimate"] = est.to_json()
+    cache = {} if flops_cache is None else flops_cache
+    if prog_name not in cache:
+        cache[prog_name] = prog.flops(t.platform) if prog.flops else None
+    flops = cache[prog_name]
+    row["model_flops"] = flops
+    if flops:
+        row["matmul_limit_s"] = flops / t.peak_flops
+        row["peak_fraction"] = row["matmul_limit_s"] / est.seconds if est.seconds > 0 else None
+    del compiled
+    jax.clear_caches()
+    return row
+
+
+def plan(programs: Sequence[str], targets: Sequence[str], log: Callable[[str], None] = print,
+         save: Callable[[list[dict]], None] | None = None) -> list[dict]:
+    """One :func:`compile_row` per (program, target), programs' groups expanded; ``log`` gets a
+    line per row and ``save`` the rows so far after each (a stopped run keeps what it did).
+    Unknown names fail with one line before anything compiles."""
+    names = resolve_programs(programs)
+    chips = [target(t) for t in targets]
+    rows: list[dict] = []
+    flops: dict[str, float | None] = {}
+    for name in names:
+        for t in chips:
+            log(f"compiling {name} for {t.name} ...")
+            row = compile_row(name, t, flops)
+            rows.append(row)
+            log(summary_line(row))
+            if save:
+                save(rows)
+    return rows
+
+
+def summary_line(row: dict) -> str:
+    """One line of a row: fit, compile time, estimate."""
+    gib = 2.0**30
+    head = f"{row['program']} on {row['target']}: "
+    if not row["compiled"]:
+        need = row.get("needs_bytes")
+        what = f"does not fit: needs {need / gib:.1f} GiB of {row['hbm_bytes'] / gib:.0f}" if need else \
+            ("does not fit" if row.get("fits") is False else f"error: {row['error'][:200]}")
+        return head + f"{what} (compile {row['compile_s']:.0f} s)"
+    est = row["estimate"]
+    limit = row.get("matmul_limit_s")
+    return head + (f"{row['hbm_needed_bytes'] / gib:.2f} of {row['hbm_bytes'] / gib:.0f} GiB "
+                   f"({'fits' if row['fits'] else 'does NOT fit'}), compiled in {row['compile_s']:.0f} s, "
+                   f"estimate {est['seconds']:.3g} s" + (f", matmul limit {limit:.3g} s" if limit else ""))
