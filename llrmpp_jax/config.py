@@ -42,9 +42,9 @@ class Mamba2Config:
     bidirectional: bool = True  # "bi": forward + reversed scan, outputs summed
     norm_eps: float = 1e-5
     # SSD's recurrence over chunk states (nn.ssd.ssd_scan): "associative" (log depth),
-    # "sequential" (lax.scan over chunks; its backward holds ~10x less at L = 261K tokens),
-    # "fused" (one lax.scan doing each chunk's whole work: the fastest on CPU, 1.9-2.1x the
-    # associative form forward and backward; experiments/results/bench_scan.json) or "auto"
+    # "sequential" (lax.scan over chunks; its backward holds one state per chunk, far less
+    # than the associative form's), "fused" (one lax.scan doing each chunk's whole work: the
+    # fastest on CPU; docs/results.md, "Selective scan (SSD) on CPU") or "auto"
     # (the default): "fused" on CPU, "sequential" on GPU and TPU (for_accelerators' choice),
     # see :meth:`resolved_inter_chunk`. All compute the same function; they differ in speed
     # and memory.
@@ -301,15 +301,15 @@ class ModelConfig:
 def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelConfig:
     """Memory-efficient attention in every global-attention block, remat everywhere (the
     Mamba2 blocks' two directions included) and the SSD's sequential inter-chunk
-    recurrence (its backward holds one chunk state per chunk; the associative scan's held
-    ~9 full-size copies at stage 4, bench_train.json).
+    recurrence (its backward holds one chunk state per chunk, where the associative scan's
+    holds several copies of the full-size state).
 
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
     (``attention_impl="cudnn"``, meant for bf16 runs: it computes in bf16, casting float32
-    q, k, v; ~10x the blockwise kernel's speed on an H200, docs/results.md), anywhere else
-    (TPU, CPU) the pure-JAX blockwise kernel, which needs no vendor library and works in
-    any dtype. XLA's plain attention would hold [heads, L, L] scores (L = 261K backbone
-    tokens at stage 4, ~1.5 TiB per block), see experiments/results/bench_train.json.
+    q, k, v; much faster than the blockwise kernel: docs/results.md, "Global attention on
+    one H200"), anywhere else (TPU, CPU) the pure-JAX blockwise kernel, which needs no vendor
+    library and works in any dtype. XLA's plain attention would hold [heads, L, L] scores
+    (L = 261K backbone tokens at stage 4: over a TiB per block).
     """
     if backend is None:
         import jax
@@ -346,8 +346,8 @@ def paper_dl3dv() -> ModelConfig:
 # the typical target depth of the scannet recipe's first stage, the one that trains the head
 # from its start. An estimate, not a measurement (no ScanNet data was at hand): the recipe
 # trains in Long-LRM's normalised units (geometry.normalize_scene: the input cameras put in
-# [-1, 1]^3, depths scaled with them), so a depth of d metres is d / e units, e the largest
-# |coordinate| of the 8 input cameras about their mean; a stage-1 window is 64-128 frames,
+# [-1, 1]^3, depths scaled with them), so a depth of d metres is d / e units, e the
+# largest |coordinate| of the 8 input cameras about their mean; a stage-1 window is 64-128 frames,
 # 2-4 s of ScanNet's 30 Hz stream, which a hand-held scan at ~0.3 m/s crosses in ~1 m, so
 # e ~ 0.5 m; ScanNet's indoor depths have a median near 2 m (rooms filmed from 1-4 m away);
 # 2 / 0.5 = 4. Measure the mean log target depth of stage-1 batches on the real data and set

@@ -16,8 +16,8 @@ Each check returns its error (max abs difference over max abs reference; for ``m
 the count of non-finite outputs) and passes at ``error <= tolerance``. A check that fails
 at the default precision is run once more at matmul precision ``"highest"`` and the line
 under it says which it is: a kernel that is wrong, or a device whose default matmul
-precision costs float32 accuracy (an H200 with jax 0.11.2: scan 5.8e-4, attention 5.4e-4
-by default; ``JAX_DEFAULT_MATMUL_PRECISION=highest`` restores float32).
+precision costs float32 accuracy (an NVIDIA GPU's default TF32 matmuls;
+``JAX_DEFAULT_MATMUL_PRECISION=highest`` restores float32; docs/accelerators.md).
 """
 
 from __future__ import annotations

@@ -80,13 +80,9 @@ class RefineConfig:
     ``rate_scale=None`` (the default) takes :func:`rate_scale_for` the number of steps: a
     shorter fit takes larger steps.
 
-    Each field's rate was then varied alone, x3 and x0.3 around the 10-step default (x10), on
-    the 8 validation scenes of :func:`rate_scale_for` with the 21,000-step ``pretrained:small``
-    (``experiments/results/refine_rates/small_10_fields*.json``; held-out PSNR / LPIPS, the
-    default 24.62 / 0.359): only log-scales x3 gained on both (24.68 / 0.353; x10 24.63 /
-    0.356); means, opacity and features lost PSNR either way, quaternions stayed within
-    0.01 dB. Log-scales x3 gained at 30 steps too (24.63 / 0.351 -> 24.70 / 0.349) and at
-    100 (4 scenes: 27.51 / 0.298 -> 27.59 / 0.297), so it is the default.
+    Each field's rate was then varied alone around the 10-step default on validation
+    scenes: only the log-scales' larger rate gained on held-out PSNR and LPIPS alike, at 10,
+    30 and 100 steps, so it is the default (docs/lab-notes.md, "Refinement rates").
     """
 
     lr_means: float = 1e-3
@@ -111,16 +107,12 @@ def rate_scale_for(steps: int) -> float:
     ``100 / steps`` clipped to ``[1, 10]``, so a fit of 10-100 steps moves each field about as
     far in all (Adam's step is ~ its rate).
 
-    Chosen on 8 validation procedural scenes (seeds apart from the held-out ones) with the
-    feature-mode ``pretrained:small`` at 18,500 steps (``experiments/bench_refine_rates.py``,
-    ``experiments/results/refine_rates/``; held-out PSNR / LPIPS after the fit): at 10 steps
-    x1 24.08 / 0.388, x3 24.31 / 0.378, x10 24.57 / 0.361, x30 24.51 / 0.363, x100 diverges
-    (23.18 / 0.506); at 30 steps x1 24.36 / 0.375, x3.3 24.59 / 0.355, x10 24.55 / 0.351; at
-    100 steps (4 scenes) x1 27.44 / 0.299, x3 27.19 / 0.298, x10 26.56 / 0.308, where the
-    larger rates over-fit the inputs. Colour mode was not swept; with the same rule (x2 at 50
-    steps) the golden Long-LRM's refinement on fox / beer (``bench_refine_golden.py``) reaches
-    6.88 / 9.77 dB held out, against 6.11 / 9.02 at x1 (7.35 / 9.66 with :class:`RefineConfig`'s
-    log-scale rate 3x, as now).
+    Chosen on validation procedural scenes (seeds apart from the held-out ones) with the
+    feature-mode ``pretrained:small`` (``experiments/bench_refine_rates.py`` in a checkout):
+    larger factors gain at 10 and 30 steps until about x30, where they stop gaining and x100
+    diverges; at 100 steps they over-fit the inputs, so the factor stops at 1. Colour mode
+    was not swept; the same rule helps the golden Long-LRM's colour refinement on real
+    captures (docs/lab-notes.md, "Refinement rates").
     """
     return float(min(10.0, max(1.0, 100.0 / max(steps, 1))))
 

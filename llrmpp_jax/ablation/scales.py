@@ -18,28 +18,26 @@ SCALES = ("smoke", "cpu", "paper")
 CPU_STEPS = 400  # the cpu scale's budget, from the pilot (notebooks/README.md)
 CPU_MAX_SEEDS = 10  # the cpu scale adds seeds to an unresolved ordering up to this many ...
 CPU_BUDGET_MIN = 90.0  # ... within this many minutes per table
-# The cpu scale's peak learning rate. At 2e-3 one seed in ten stalled even with the spike
-# guard: right after the 50-step warmup the gradient norm jumps 10-180x in bursts, and one
-# applied update (7.6x the running mean, under the guard's 10x) broke the model for the
-# next five steps (loss 0.02 -> 0.14-0.38); it ended 1.1 dB below its siblings. At 1e-3 the
-# same seed skips 3 updates instead of 22 and ends at its siblings' level, and a healthy
-# seed gains 0.1 dB (notebooks/README.md, "Stalled seeds").
+# The cpu scale's peak learning rate: at 2e-3 the gradient norm bursts right after the warmup,
+# and an update that passes the spike guard can break a seed's model, which then ends below
+# its siblings; at 1e-3 that seed trains like the others and a healthy one loses nothing
+# (notebooks/README.md, "Stalled seeds").
 CPU_LR = 1e-3
 CPU_WORKERS = 4  # at most this many single-core trainings at once at the cpu scale (memory)
 # Every table at the smoke and cpu scales keeps the procedural rooms' world units
 # (Scale.rescale False). Long-LRM's per-window rescaling (input cameras into [-1, 1]^3) gives
-# the cpu scale's short windows depth scales that differ ~3x (a sample's mean log depth: sd
-# 1.1 around 1.6), and at that spread the depth head learned nothing in 1,200 steps; in world
-# units the sd is 0.27 (notebooks/README.md, "Depth at this scale"). Where the depth head starts
-# (DecoderConfig.depth_bias, depth tables): the mean log target depth of those windows in
-# world units, 1.05 / 1.01 / 1.08 over three draws of 128 samples (about 2.9 units).
+# the cpu scale's short windows depth scales that differ several-fold, and at that spread the
+# depth head learned nothing; in world units they differ little (notebooks/README.md, "Depth
+# at this scale"). Where the depth head starts (DecoderConfig.depth_bias, depth tables): the
+# mean log target depth of those windows in world units (about 2.9 units), estimated over
+# draws of 128 samples.
 PROCEDURAL_DEPTH_BIAS = 1.05
 # The Gaussian head's distance range in those world units (GaussianHeadConfig.max_dist; the
 # cpu base's 3 was chosen on rescaled rooms, where 57% of the target depths lie beyond it):
 # 99% of the training windows' target pixels lie within 10 units along their rays (z-depth
 # 99th percentile 7.2, corner rays 1.41x longer at this field of view). With 3, 54% of the
 # held-out depths were out of the colour Gaussians' reach, and Table 7's colour row could not
-# place them (commit fa33438: Abs Diff 1.04, the same to +-0.003 over seeds).
+# place them: its depth error was the same for every seed.
 PROCEDURAL_MAX_DIST = 10.0
 
 
@@ -108,8 +106,8 @@ def smoke_base() -> C.ModelConfig:
 
 
 def cpu_base() -> C.ModelConfig:
-    """The demo model (the ``demo`` recipe), whose recipe was measured on this kind of
-    machine (``docs/lab-notes.md``), with the paper's chosen rows: K = 16 Gaussians of
+    """The demo model (the ``demo`` recipe), whose recipe was chosen on this kind of
+    machine, with the paper's chosen rows: K = 16 Gaussians of
     F = 32 features per token (Table 4) and an ``LLGGG`` decoder of width 256 / 4 with S = 2
     partitions (Tables 5, 6). At 64x64 the K = 16 head gives one Gaussian per half-resolution
     canvas pixel (2x2 image pixels) per input view, the paper's density at 256x256. Each row
@@ -118,14 +116,12 @@ def cpu_base() -> C.ModelConfig:
     The splat buffer holds 16 intersections per Gaussian, every tile of a 64x64 canvas, so
     it cannot overflow at this scale: with the default 8, the colour-Gaussian rows (one
     Gaussian per pixel, grown towards Long-LRM's largest scale within 400 steps) dropped
-    ~5,000 intersections per training step (an interrupted Table 5 run, commit d07505d).
+    thousands of intersections per training step.
 
     The compositor advances 2 tiles per loop (``tiles_per_group``, default 64): a 64x64
-    canvas has only 16 tiles, whose lists differ ~4x in length, and one loop over all of
-    them runs as long as the longest. Measured on one core, one splat forward + backward of
-    the Table 4 canvas-1.0 row (2 scenes x 2 targets x S = 2): 2.19 s with groups of 64,
-    1.45 s with 4, 0.97 s with 2; the 32x32 canvas of the other rows gains ~10%. Outputs
-    do not depend on it."""
+    canvas has only 16 tiles, whose lists differ several-fold in length, and one loop over
+    all of them runs as long as the longest, so smaller groups run the splat faster here
+    (docs/lab-notes.md, "The ablation scales"). Outputs do not depend on it."""
     base = load_experiment("demo").model
     # The tables were run with the demo's earlier head start (every Gaussian at its patch
     # centre, scale_bias -2.5); the demo's grid start needs a square K, and Table 4 has K = 8, 32.

@@ -10,8 +10,7 @@ run), and the blockwise kernel's compile and run times (``block_until_ready``) a
 Usage: ``python -m llrmpp_jax.benchmarks.attention [--lengths 8192 32768 131072]
 [--run-lengths 4096 8192] [--block 512] [--heads 12] [--head-dim 64] [--dtype float32] [--out PATH]``.
 The decoder's global blocks (paper: E = 256, 4 heads of 64, 8,160 tokens per target at
-960x544): ``--heads 4 --lengths 8160 --run-lengths --out
-experiments/results/bench_attention_decoder.json``.
+960x544): ``--heads 4 --lengths 8160 --run-lengths``.
 """
 
 from __future__ import annotations
@@ -53,7 +52,8 @@ def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192),
     ``temp_bytes`` is XLA's scratch on top of the arguments (q, k, v, cotangent) and outputs
     (dq, dk, dv). A kernel that cannot be compiled or run at a length gets ``{"failed": ...}``
     in its row (on a GPU, XLA's compile of the plain kernel allocates its [L, L] buffers to
-    autotune: 768 GiB at L = 131k on an H200) and the other rows go on."""
+    autotune: L^2 x 4 bytes per head, far beyond a GPU's memory at L = 131k) and the other
+    rows go on."""
     import jax
     import jax.numpy as jnp
 

@@ -132,7 +132,7 @@ def counting_config(model: C.ModelConfig) -> C.ModelConfig:
 def host_init_params(model: C.ModelConfig, seed: int = 0) -> dict:
     """:func:`model.init_params` computed on the host CPU and put on the default device.
 
-    On an H200 the init's XLA:GPU compile alone took 52 s (docs/lab-notes.md, "On an H200"); the
+    On a GPU the init's XLA compile alone is slow (docs/accelerators.md); the
     parameters do not depend on the attention kernel, so the host builds them with plain
     attention (cuDNN has no CPU kernel) on a 2-view 32x32 dummy scene."""
     with jax.default_device(jax.devices("cpu")[0]):

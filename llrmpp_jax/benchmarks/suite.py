@@ -50,7 +50,7 @@ SCALES: dict[str, dict[str, list[str]]] = {
         "scan": ["--preset", "full"],
         "splat": [],
         "model": ["--scale", "paper"],
-        # cuDNN only: the blockwise kernel's step (67 s on an H200) would double the part's time.
+        # cuDNN only: the blockwise kernel's step, slower than cuDNN's, would double the part's time.
         "paper_step": ["--scale", "paper", "--impls", "cudnn", "--steps", "1", "--timeout", "480"],
     },
 }

@@ -9,7 +9,7 @@ refinement's machinery (:func:`llrmpp_jax.refine.refine`: optimistix around one 
 field, a random subset of the views per update). Geometry starts from the feature Gaussians
 -- means and rotations as they are, scales widened by the model's canvas footprint
 (:func:`canvas_footprint_scales`) -- and is fitted too (``geometry=False`` keeps it: on a
-procedural scene that cost 6 dB against the model's renders on held-out views, as the feature
+procedural scene that cost several dB against the model's renders on held-out views, as the feature
 Gaussians alone leave gaps the decoder fills); the opacity starts
 at the feature Gaussian's total opacity (the partitions' opacities sum to it) and is fitted,
 and the colour starts at the mean of the model's rendered colour where the Gaussian's centre
@@ -148,9 +148,9 @@ def canvas_footprint_scales(gaussians: Gaussians, c2w: Float[np.ndarray, "V 4 4"
 def views_between(saved: SavedScene, per_gap: int) -> tuple[Float[np.ndarray, "V 4 4"], Float[np.ndarray, "V 4"]]:
     """``(c2w, intrinsics)`` of ``per_gap`` cameras between each two consecutive inputs (capture
     order), evenly in the parameter of the spline through them (:func:`spline_at`: at
-    ``i + j / (per_gap + 1)``), with the inputs' mean intrinsics. Beer capture, 32 inputs,
-    60 updates: fitted at the inputs alone, the baked renders of the held-out views came
-    within 36.81 dB of the model's; with 2 views in each gap, 38.37 dB."""
+    ``i + j / (per_gap + 1)``), with the inputs' mean intrinsics. Fitting the bake at these
+    views as well as the inputs brings its renders of held-out views closer to the model's
+    (docs/lab-notes.md, "Baking feature Gaussians into colour Gaussians")."""
     inputs = saved.c2w[saved.inputs]
     if per_gap == 0 or len(inputs) < 2:
         return np.zeros((0, 4, 4)), np.zeros((0, 4))

@@ -29,7 +29,7 @@ otherwise; the readers remove the distortion when loading.
 Repeatability: on several threads COLMAP's result varies from run to run (its RANSAC and
 bundle adjustment see work in a different order; on the beer photos one run in ~6 put part
 of a model out of tolerance). ``seed`` makes a run repeat exactly: COLMAP's random seed is
-set and everything runs on one thread (measured: 5 runs, identical poses), at the cost of
+set and everything runs on one thread, at the cost of
 the other cores.
 """
 

@@ -173,8 +173,8 @@ class BatchIterator:
       num_workers: background threads building batches, or with ``worker_processes`` processes
         building batch elements (the source and ``cfg`` must pickle). prefetch: batches kept
         in flight. NumPy ray casting and image decoding hold the GIL for most of a sample, so
-        threads do not go past about one core (a 64x64 procedural sample of 10 views: ~47 ms
-        with one thread or two); processes do, for a many-core host feeding an accelerator.
+        threads do not go past about one core; processes do, for a many-core host feeding an
+        accelerator.
     """
 
     def __init__(

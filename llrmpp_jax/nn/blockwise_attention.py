@@ -14,9 +14,9 @@ Inside, q, k and v are head-major, ``[B, nh, L, hd]`` (one transpose each way at
 every block product is then a plain batched matmul over ``(B, nh)``, with no per-block
 transposes. The backward computes each block keys-first (``[B, nh, block_k, block_q]``) so
 that three of its four products contract their left operand's minor axis, the form
-XLA:CPU's fast matmul runs. On the 2-core CPU, the small model's decoder attention
-(``[16, 3072, 8, 16]``, 512 x 512 blocks) ran 1.9x faster forward and 1.5x forward +
-backward than with the token-major blocks before (``docs/speed-cpu.md``).
+XLA:CPU's fast matmul runs. On CPU, the small model's decoder attention (``[16, 3072, 8,
+16]``, 512 x 512 blocks) runs faster forward and backward this way than with token-major
+blocks (docs/speed-cpu.md, "The decoder's attention").
 
 Memory (fwd + bwd) is linear in L: q, k, v, the output, ``(m, l)`` and the gradients, plus
 one logits block per loop step. An optional ``bias`` / ``mask`` of ``[Lq, Lk]`` size is a
@@ -150,7 +150,7 @@ def _backward(q, k, v, bias, mask, o, stats, do, bq, bk, lk):
             q_i, do_i, (m_i, l_i), delta_i, i = xs
             # Keys first, [B, nh, bk, bq]: three of the four products then contract the minor
             # axis of their left operand, the form XLA:CPU's fast matmul takes (a dot that
-            # contracts another axis ran ~5x slower); ds is transposed once for dq.
+            # contracts another axis runs several times slower); ds is transposed once for dq.
             s_t, keep_t = _block_logits(q_i, k_j, i, j, bias, mask, bq, bk, lk, scale, acc, keys_first=True)
             p_t = jnp.exp(s_t - m_i[..., None, :]) / l_i[..., None, :]
             dv_j = dv_j + jnp.einsum("bhkq,bhqd->bhkd", p_t.astype(do.dtype), do_i, preferred_element_type=acc)

@@ -12,7 +12,7 @@ The split is done on the weights, not on the activations: ``in_proj``'s kernel i
 into its five column blocks (:class:`InProj`) and the per-channel conv into its ``x|B|C``
 channels, so no ``[..., L, E]`` activation is sliced. The backward pass of an activation
 slice is a zero-padded full-size buffer; at the paper's L = 261,122 tokens those pads
-were ~10 GB per block (``experiments/results/bench_train.json``).
+were gigabytes per block.
 
 Parameter tree (names mirror the PyTorch ``state_dict``; see ``convert/long_lrm.py``)::
 

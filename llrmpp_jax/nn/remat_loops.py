@@ -47,7 +47,7 @@ def remat_after_cotangent(f: Callable[[Any, Any], Array]) -> Callable[[Any, Any]
     small, ``h`` may be large), so XLA cannot schedule it early.
     With ``jax.checkpoint`` it could, and did: inside the loop over the backbone's
     ``T M M M M M M M`` pattern, XLA:CPU recomputed the ``T`` block before running the
-    seven ``M`` blocks' backward loop and held its ~26 GB of activations through it.
+    seven ``M`` blocks' backward loop and held its activations (tens of GB) through it.
     """
 
     @jax.custom_vjp
@@ -81,8 +81,8 @@ def remat_blocks(
     otherwise the runs of one kind follow each other. Same numbers as the blocks applied one
     after another, but the backward pass is a loop that holds one repetition's blocks at a
     time: unrolled, XLA:CPU's scheduler interleaved the blocks' backward passes and held
-    the buffers of all 24 paper backbone blocks at once
-    (``experiments/results/bench_train.json``, ``paper_stage4``).
+    the buffers of all 24 paper backbone blocks at once (docs/results.md, "Memory analysis
+    of the stage-4 step").
     """
     n, period = len(kinds), layout_period(kinds)
     if n == 1:

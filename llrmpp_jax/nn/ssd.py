@@ -15,7 +15,7 @@ All three compute, per head ``h`` (of ``nh``) and per batch element, with
   holds at once is O(L * (nh * P + n)) plus one group's blocks, not O(L * nh * Q).
   ``inter_chunk="fused"`` instead runs all four steps chunk by chunk in one ``lax.scan``
   carrying the state (:func:`_ssd_fused`): the fastest form on CPU (the state stays in
-  cache; experiments/results/bench_scan.json).
+  cache; docs/results.md, "Selective scan (SSD) on CPU").
 * :func:`ssd_dense` -- the same chunks, but the inter-chunk step is the dense
   O(chunks^2) einsum of ``ssd_minimal_discrete``; a second oracle for the scan.
 * :func:`ssd_sequential` -- the recurrence above as a ``lax.scan`` over time; the test
@@ -180,7 +180,7 @@ def _intra_chunk(
     over the ``[hg, Q, Q]`` blocks (a masked cumsum over them costs several passes, see
     :func:`segment_sum`). ``xdt_bt`` is ``dt * x`` in the matmul dtype ``cd``. The output
     keeps the batch axes leading (``[b, c, g, hg, Q, P]``): XLA:CPU writes a batched
-    matmul's result ~1.7x faster in that layout than transposed to ``[b, c, Q, g, hg, P]``.
+    matmul's result faster in that layout than transposed to ``[b, c, Q, g, hg, P]``.
     """
     Q = hi.shape[-1]
     seg = (hi[..., :, None] - hi[..., None, :]) + (lo[..., :, None] - lo[..., None, :])
@@ -210,9 +210,8 @@ def _map_chunk_groups(fn, groups: int, *args: Array) -> Array:
 # The fused scan's two state matmuls, with hand-written VJPs. XLA:CPU's dot wants each operand
 # row-major along the contraction; with autodiff's own VJPs of these einsums it transposed the
 # [n, hg*P] state (1.5 MB per chunk at the paper's sizes) twice per chunk in the backward. With
-# these (the products that contract over hg*P written as (S R^T)^T) it transposes it once, and
-# the scan's fwd+bwd at L = 16,384 took 1.33 s against 1.42 s (same run; docs/lab-notes.md,
-# "SSD scan speed on CPU").
+# these (the products that contract over hg*P written as (S R^T)^T) it transposes it once, which
+# shortens the backward (docs/lab-notes.md, "SSD scan speed on CPU: the fused form").
 
 
 def _state_dot_nt(S: Float[Array, "b g n hgP"], R: Float[Array, "b Q g hgP"], acc) -> Float[Array, "b Q g n"]:
@@ -250,12 +249,10 @@ _state_write.defvjp(lambda B, E, acc: (_state_write(B, E, acc), (B, E)), _write_
 
 # A chunk's diagonal block is factorised (see _ssd_fused) only where every head's decay
 # across the chunk spans at most this many nats: the factors then stay within e^{+-60}, away
-# from float32/bfloat16 over- and underflow (e^{+-87}). Their rounding grows with the span:
-# float32 against the float64 recurrence, every chunk factorised, chunk 128, the output's
-# relative error is 2e-7 / 5e-7 / 8e-7 and the VJPs' 3e-6 / 9e-6 / 1.4e-5 at spans of 30 / 60 /
-# 120 nats (per-head form: 1e-7 and <= 8e-6). 120 rather than 60 lets ~half of the layers of
-# a model at Long-LRM's init (dt, A per head) factorise every chunk of 128, not ~4%
-# (docs/lab-notes.md, "SSD scan speed on CPU").
+# from float32/bfloat16 over- and underflow (e^{+-87}). Their rounding grows with the span and
+# stays within the tests' tolerances at 120 nats; 120 rather than 60 lets about half of the
+# layers of a model at Long-LRM's init (dt, A per head) factorise every chunk of 128, not a
+# few (docs/lab-notes.md, "SSD scan speed on CPU: the fused form").
 _FACTOR_SPAN = 120.0
 
 
@@ -299,7 +296,7 @@ def _fused_step(meta: _FusedMeta, choose_per_chunk: bool, state: Array, chunk: _
         xs = (xa * s_in[..., None]).astype(cd)
         return jnp.einsum("bgls,bsghp->blghp", CB.astype(cd), xs, preferred_element_type=acc)
 
-    def per_head(_):  # _intra_chunk's algebra in this layout (calling it costs fwd+bwd 4-7%)
+    def per_head(_):  # _intra_chunk's algebra in this layout (calling it is slower)
         seg = (hq[:, :, None] - hq[:, None]) + (lq[:, :, None] - lq[:, None])  # [b, l, s, g, hg]
         scores = CB.transpose(0, 2, 3, 1)[..., None] * jnp.exp(jnp.minimum(seg, 0.0))
         scores = jnp.where(causal.reshape(1, Q, Q, 1, 1), scores, 0.0).astype(cd)
@@ -312,7 +309,7 @@ def _fused_step(meta: _FusedMeta, choose_per_chunk: bool, state: Array, chunk: _
     else:
         # exp(cs_l) = exp(d_l) exp(mid): the read-out shares the diagonal block's l-side
         # factor, so one scaling of their sum, and one per-token reduction fewer in the
-        # backward (fwd+bwd -4 to -6% at L = 16,384; exp(mid) has no gradient).
+        # backward (exp(mid) has no gradient).
         y = (shared(None) + e_mid[:, None, :, :, None] * read) * s_out[..., None]
     if skip is not None:
         y = y + skip * xa
@@ -326,8 +323,7 @@ def _run_chunks(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None,
     ``keep_states`` also the state entering each chunk ``[nc, b, g, n, hg, P]``.
 
     One ``lax.cond`` for the whole sequence picks the loop: a per-chunk ``lax.cond`` inside it
-    costs fwd+bwd ~13% at L = 16,384 even when every chunk takes the shared form
-    (docs/lab-notes.md, "SSD scan speed on CPU"), so the loop with the per-chunk choice runs
+    slows fwd+bwd even when every chunk takes the shared form, so the loop with the per-chunk choice runs
     only when some chunk does not factorise. Under ``vmap`` a ``lax.cond`` runs both branches: batch through the
     leading axes.
     """
@@ -347,8 +343,8 @@ def _run_chunks(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None,
 # The fused loop's VJP is written out: the forward keeps the state entering each chunk, the
 # backward runs the chunks in reverse, recomputing each one's step from its state (the work of
 # a remat'd scan). Autodiff of a `jax.checkpoint`ed step under the whole-sequence `lax.cond`
-# passed the x-, B- and C-sized residuals out of the cond, copied: fwd+bwd at L = 65,536
-# took 5-12% longer than this (docs/lab-notes.md, "SSD scan speed on CPU").
+# passed the x-, B- and C-sized residuals out of the cond, copied, and fwd+bwd took longer than
+# this.
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _chunk_loop(meta: _FusedMeta, factor: Array, xs: _Chunk, skip: Array | None) -> Array:
     """``y`` ``[nc, b, Q, g, hg, P]`` of every chunk (:func:`_run_chunks`); ``factor`` ``[nc]`` bool."""
@@ -409,9 +405,8 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
     ``y`` is written in it, so nothing of that size is transposed or scaled outside the loop
     (outside it only ``[L, nh]`` decay factors are computed). The loop's VJP is written out
     (:func:`_chunk_loop`): the backward keeps one state per chunk and recomputes the rest.
-    At the paper's block sizes and L = 16,384 the ops outside the loop took half the time of
-    the head-major form this replaced (profiled fwd+bwd: 314 against 630 ms; docs/lab-notes.md,
-    "SSD scan speed on CPU").
+    At the paper's block sizes the ops outside the loop cost far less than in the head-major
+    form this replaced.
     """
     _check_inputs(x, dt, A, B, C, D, chunk_size)
     *batch, L, nh, P = x.shape
@@ -475,7 +470,7 @@ def _ssd_chunked(x, dt, A, B, C, chunk_size: int, D, inter_chunk: InterChunk):
 
     hi, lo = _compensated_cumsum(jnp.moveaxis(dA, 2, -1))  # [b, c, g, hg, Q]
     # x moved to [b, c, g, hg, s, P] first: with the batch axes leading on both operands
-    # XLA:CPU emits one batched matmul instead of a strided loop (5-10x faster at paper sizes).
+    # XLA:CPU emits one batched matmul instead of a strided loop (much faster at paper sizes).
     xdt_bt = jnp.moveaxis(xdt.astype(cd), 2, 4)
     # Chunk states from zero use decay(l->end).
     log_decay_from_start, to_end = _chunk_log_decays(dA)  # [b, c, Q, g, hg]
@@ -521,7 +516,7 @@ def ssd_scan(
       inter_chunk: ``"associative"`` (``lax.associative_scan``, log depth),
         ``"sequential"`` (``lax.scan`` over stored chunk states) or ``"fused"`` (one
         ``lax.scan`` over chunks doing all the work of a chunk, the state carried; fastest
-        on CPU, with ``chunk_size`` 128: ``experiments/results/bench_scan.json``).
+        on CPU, with ``chunk_size`` 128).
 
     Returns:
       ``[..., L, nh, P]`` in the dtype of ``x``.

@@ -8,33 +8,28 @@ Choices for a 2-core CPU: 64x64 images, 4 input and 2 target views, a 64-wide 4-
 attention-only backbone ({4T}), K=4 Gaussians of F=16 features per token, an "LG" decoder of
 width 64, S=2 partitions; MSE only (the VGG perceptual term would cost more than the model
 here; the paper's lambda=0.5 is one field away). Gaussians start 1.5 units out (max_dist 3:
-the procedural scenes' median depth is ~1.3 units after normalisation, 95% of it under 4) and
-larger than Long-LRM's (scale_bias -3.0 against -6.9: about one cell of the grid below on
-screen), since the demo has minutes, not days, to move them. Measured on one scene with
-fresh inputs every step (docs/lab-notes.md, "First round", f09 vs f10): max_dist 3 instead of 8 gives
-20.9 / 18.9 dB on input / held-out views after 1,600 steps, against 19.6 / 17.3.
+the procedural scenes' median depth is ~1.3 units after normalisation, 95% of it under 4,
+and starting near the scene lifted input and held-out views alike) and larger than
+Long-LRM's (scale_bias -3.0 against -6.9: about one cell of the grid below on screen), since
+the demo has minutes, not days, to move them.
 
-Three departures from Long-LRM's recipe, measured in docs/lab-notes.md ("Second round",
-"Fourth round"): a token's 4 Gaussians start on a 2 x 2 sub-grid of its patch, on-axis and
-isotropic (``anchors="grid"``), not all at the patch centre with drawn offsets, scales and
-rotations (scale_bias -2.5), which cover each other so that the canvas carries little more
-than each patch's mean: held-out 18.52 / 19.50 / 19.76 / 19.99 dB at steps 300 / 600 / 900 /
-1,200 against 18.24 / 18.79 / 18.96 / 19.19 (the same training otherwise). Further,
-the backbone is {4T} instead of the paper's hybrid ({1T3M} at this size): held-out 19.17 vs
-19.25 dB after 1,200 steps, in 3.6 instead of 5.0 minutes, since the Mamba2 scan dominates a
-CPU step and 4 views of 64 tokens are a short sequence; and the Gaussian head and decoder
-linears start from LeCun normal (``init_std=None``) instead of N(0, 0.02), which at width 64
-is 8x smaller than 1/sqrt(fan-in): a single-view autoencoder re-renders its input at 22.9 dB
-after 1,000 steps with it, 21.3 dB without.
+Three departures from Long-LRM's recipe, each of which gained held-out PSNR or time at this
+size: a token's 4 Gaussians start on a 2 x 2 sub-grid of its patch, on-axis and isotropic
+(``anchors="grid"``), not all at the patch centre with drawn offsets, scales and rotations,
+which cover each other so that the canvas carries little more than each patch's mean; the
+backbone is {4T} instead of the paper's hybrid ({1T3M} at this size), as good in less time,
+since the Mamba2 scan dominates a CPU step and 4 views of 64 tokens are a short sequence; and
+the Gaussian head and decoder linears start from LeCun normal (``init_std=None``) instead of
+N(0, 0.02), which at width 64 is 8x smaller than 1/sqrt(fan-in) and learns slowly.
 
-Where the minutes go: held-out PSNR grows with steps (19.04 dB at 700, 19.29 at 1200, 19.48
-at 2000, hybrid backbone), while, at equal steps, K=8 Gaussians per token gained under 0.1 dB
-and a wider backbone (D=96), a finer decoder (token stride 4) or lr 1e-3 / 3e-3 lost ground,
-all at a cost in time. So: the smallest model, peak lr 2e-3, and 1,200 steps (about 3.5
-minutes on 2 cores, after the shipped model's part), with a held-out evaluation every 300
-steps to show the PSNR rising; ``max_minutes`` stops (and checkpoints) a slower machine on
-time. Long-LRM's zoom and input-order augmentations and its gradient-norm guard stay off (the
-defaults): the paper configs (dl3dv.py, scannet.py) turn them on.
+Held-out PSNR grows with steps, while, at equal steps, more Gaussians per token, a wider
+backbone, a finer decoder or another peak rate gained nothing or lost ground, at a cost in
+time. So: the smallest model, peak lr 2e-3, and 1,200 steps (a few minutes on 2 cores, after
+the shipped model's part), with a held-out evaluation every 300 steps to show the PSNR
+rising; ``max_minutes`` stops (and checkpoints) a slower machine on time. Long-LRM's zoom and
+input-order augmentations and its gradient-norm guard stay off (the defaults): the paper
+configs (dl3dv.py, scannet.py) turn them on. The measurements behind each choice:
+docs/lab-notes.md, "The `demo` recipe's choices".
 """
 
 from dataclasses import replace

@@ -4,12 +4,14 @@ Run:  llrmpp train --config dl3dv --workdir runs/dl3dv --vgg19 vgg19.pth
       (multi-host: add --distributed on every host; data elsewhere: a copy of this file with DATA edited, as --config)
 Eval: llrmpp eval --config dl3dv --checkpoint runs/dl3dv --out runs/dl3dv/eval
 
-| stage | inputs | targets | resolution | steps | global batch | (paper: GPUs) |
-|-------|--------|---------|------------|-------|--------------|---------------|
-| 1     | 8      | 8       | 256x256    | 60K   | 256          | 16            |
-| 2     | 8      | 8       | 512x512    | 10K   | 64           | 16            |
-| 3     | 8      | 8       | 960x540    | 10K   | 64           | 16            |
-| 4     | 32     | 8       | 960x540    | 10K   | 64           | 64            |
+=====  ======  =======  ==========  =====  ============  =============
+stage  inputs  targets  resolution  steps  global batch  (paper: GPUs)
+=====  ======  =======  ==========  =====  ============  =============
+1      8       8        256x256     60K    256           16
+2      8       8        512x512     10K    64            16
+3      8       8        960x540     10K    64            16
+4      32      8        960x540     10K    64            64
+=====  ======  =======  ==========  =====  ============  =============
 
 The paper follows Long-LRM's recipe where it is silent: AdamW lr 4e-4 with 2000 warmup steps
 in stage 1, and 4e-5 without warmup in the fine-tuning stages (Long-LRM's stages 2-3), each

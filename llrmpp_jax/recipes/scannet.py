@@ -4,11 +4,13 @@ Run:  llrmpp train --config scannet --workdir runs/scannet --vgg19 vgg19.pth
 Eval: llrmpp eval --config scannet --checkpoint runs/scannet --out runs/scannet/eval
       (the test split, as the paper; --split val for the validation rooms)
 
-| stage | inputs | targets | resolution | steps | global batch | (paper: GPUs) |
-|-------|--------|---------|------------|-------|--------------|---------------|
-| 1     | 8      | 8       | 256x256    | 20K   | 128          | 8             |
-| 2     | 8      | 8       | 448x336    | 5K    | 128          | 32            |
-| 3     | 128    | 8       | 448x336    | 2K    | 64           | 64            |
+=====  ======  =======  ==========  =====  ============  =============
+stage  inputs  targets  resolution  steps  global batch  (paper: GPUs)
+=====  ======  =======  ==========  =====  ============  =============
+1      8       8        256x256     20K    128           8
+2      8       8        448x336     5K     128           32
+3      128     8        448x336     2K     64            64
+=====  ======  =======  ==========  =====  ============  =============
 
 Loss: MSE + 0.5 perceptual on colour, smooth-L1 log-depth + 0.1 gradient + 0.1 normal on
 depth (paper §3.4). ScanNet is dense, so input frames are not down-weighted as targets

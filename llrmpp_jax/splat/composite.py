@@ -100,13 +100,11 @@ def _cumulative(
     ``reverse`` runs from the end.
 
     Two levels of unrolled running products: within blocks of 4 entries, then across the
-    blocks' totals, which XLA fuses into a few element-wise passes. Per ``[64, 64, 64]``
-    chunk on the 2-core development CPU: 0.13 ms, against 0.16 ms for
-    ``lax.associative_scan`` (log2(K) passes) and 0.18 ms for one chain of K. In the
-    splatter at 256x256 it took the forward from 103 to 97 ms and forward + backward from
-    273 to 249 ms (medians of 6 alternating runs). Blocks of 8 made XLA fuse the backward
-    badly (+45%); ``lax.cumprod`` lowers to a ``reduce_window`` of K operations per output
-    on CPU (7x slower at K = 64).
+    blocks' totals, which XLA fuses into a few element-wise passes. On CPU that is faster
+    than ``lax.associative_scan`` (log2(K) passes) or one chain of K, and it shortens the
+    splatter's forward and backward; blocks of 8 made XLA fuse the backward badly, and
+    ``lax.cumprod`` lowers to a ``reduce_window`` of K operations per output on CPU
+    (docs/lab-notes.md, "The splatter's running products").
     """
     if reverse:
         return _cumulative(x[:, ::-1], op, identity, exclusive)[:, ::-1]
@@ -215,7 +213,7 @@ def _forward_group(
         stop = ch.active & (t_in * om <= cfg.t_min)
         incl = ch.active & ~stop & ~done[:, None, :]
         w = jnp.where(incl, a * t_in, 0.0)
-        # Channel-major accumulator: XLA:CPU runs this contraction ~1.4x faster than "->gpc".
+        # Channel-major accumulator: XLA:CPU runs this contraction faster than "->gpc".
         acc = acc + jnp.einsum("gkp,gkc->gcp", w, features[ch.gid], precision=_HIGHEST)
         trans = trans * jnp.prod(jnp.where(incl, om, 1.0), axis=1)
         done = done | jnp.any(stop, axis=1)

@@ -13,7 +13,7 @@ pixels) touches. The compositor works on smaller blocks of ``composite_tile`` pi
 each block's list holds the Gaussians of its 16x16 tile that can reach the block at all
 (:func:`~llrmpp_jax.splat.binning.screen_extents`), so every pixel composites exactly the
 entries it would with 16x16 lists, and a block of 64 pixels evaluates far fewer
-(Gaussian, pixel) pairs than a tile of 256 (``experiments/results/splat_speed.json``).
+(Gaussian, pixel) pairs than a tile of 256 (docs/speed-cpu.md, "The splatter").
 
 Sizing the intersection buffer
 ------------------------------

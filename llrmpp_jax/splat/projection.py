@@ -42,7 +42,7 @@ from jax import lax
 from llrmpp_jax.array_typing import Array, Bool, Float, Int
 from llrmpp_jax.splat.config import SplatConfig
 
-# |M| rows beyond this would overflow det(Sigma2d) ~ |M|^4 in float32.
+# Rows of M longer than this would overflow det(Sigma2d) ~ |M|^4 in float32.
 _MAX_FOOTPRINT = 1e9
 # Radii are stored as int32; any larger radius already covers every canvas.
 _MAX_RADIUS = 2.0**30
