@@ -94,7 +94,7 @@ from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.model import init_params, reconstruct
 from llrmpp_jax.nn.backbone import count_params, parse_block_pattern
-from llrmpp_jax.data.stage_batches import batch_config
+from llrmpp_jax.experiment_data import batch_config
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GIB = 2.0**30

@@ -19,7 +19,7 @@ import argparse
 import numpy as np
 
 from llrmpp_jax.cli import parse_size, with_data
-from llrmpp_jax.data.held_out import eval_samples
+from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import baseline_predictions, predict, predict_refined
 from llrmpp_jax.experiment import load_experiment

@@ -24,7 +24,7 @@ import subprocess
 
 import numpy as np
 
-from llrmpp_jax.data.held_out import eval_samples
+from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
 from llrmpp_jax.experiment import load_experiment

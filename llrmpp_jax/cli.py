@@ -108,8 +108,7 @@ def _read_capture(path: str, kind: str):
 def cmd_eval(args) -> int:
     from llrmpp_jax.evaluate import evaluate, format_table
     from llrmpp_jax.metrics import load_lpips_params
-    from llrmpp_jax.data.held_out import eval_samples
-    from llrmpp_jax.data.sources import held_out_description, scene_source
+    from llrmpp_jax.experiment_data import eval_samples, held_out_description, scene_source
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")

@@ -24,10 +24,10 @@ import time
 import jax
 import numpy as np
 
-from llrmpp_jax.data.held_out import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
 from llrmpp_jax.experiment import load_experiment
+from llrmpp_jax.experiment_data import eval_samples
 from dataclasses import replace
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.pretrained import load_pretrained

@@ -24,6 +24,7 @@ from llrmpp_jax.errors import MissingInputError, UserError
 DataKind = Literal["procedural", Format]  # endless generated scenes, or a dataset of a readable format
 DATA_KINDS: tuple[str, ...] = typing.get_args(DataKind)
 EvalInputs = Literal["kmeans", "uniform"]  # see DataConfig
+ProceduralEval = Literal["window", "split"]  # see DataConfig
 EvalSplit = Literal["train", "val", "test"]  # see DataConfig
 LrSchedule = Literal["long_lrm", "stage"]  # see StageConfig
 PerceptualNet = Literal["vgg16", "vgg19"]  # see ExperimentConfig
@@ -39,7 +40,8 @@ class DataConfig:
     (other kinds; ``auto`` detects the format, see :func:`~llrmpp_jax.data.formats.read_scene`);
     ``eval_path`` the same for held-out scenes.
 
-    Held-out split of real scenes (:func:`llrmpp_jax.data.held_out.eval_split`): targets every
+    Held-out split of real scenes (:func:`llrmpp_jax.data.held_out.eval_split`, as
+    :func:`llrmpp_jax.experiment_data.eval_samples` reads this config): targets every
     8th frame of the first ``eval_max_frames`` (None: all); inputs from the others by
     ``eval_inputs``: ``"kmeans"`` (DL3DV: the dataset's cached k-means indices -- in the
     scene JSONs or in ``eval_index``, Long-LRM's ``dl3dv_fold_8_kmeans_input_idx.json`` --
@@ -54,6 +56,16 @@ class DataConfig:
     ``num_eval_scenes`` of them are evaluated. ScanNetv2's test split is its 100 rooms
     ``scene0707_00`` to ``scene0806_00`` (the download's ``scans_test/``), the split the
     paper evaluates on (§4.3: "the test split includes 100 rooms").
+
+    Held-out views of procedural scenes (``procedural_eval``): ``"window"``, one draw of the
+    training view sampler in a window of ``eval_span`` frames (None: the whole path) from a
+    fixed generator per scene, whose entropy includes the experiment's ``seed`` unless
+    ``eval_views_follow_seed`` is False (then every seed of one config is scored on the
+    same views, as the ablations' paired seeds need); ``"split"``, the split of real scenes
+    above. ``rescale``: Long-LRM's per-window normalisation of the cameras
+    (:func:`~llrmpp_jax.geometry.normalize_scene`) in training and held-out samples; False
+    keeps the scenes' world units (one depth scale across windows, the ablations' small
+    scales).
     """
 
     kind: DataKind = "procedural"
@@ -63,6 +75,9 @@ class DataConfig:
     eval_seed_offset: int = 1_000_000_000
     num_eval_scenes: int = 8
     eval_span: int | None = None  # window of frames for procedural/held-out evaluation
+    procedural_eval: ProceduralEval = "window"
+    eval_views_follow_seed: bool = True
+    rescale: bool = True
     eval_inputs: EvalInputs = "kmeans"
     eval_max_frames: int | None = None
     eval_index: str | None = None
@@ -91,7 +106,7 @@ class DataConfig:
     def eval_reads_training_scenes(self) -> bool:
         """True when the held-out evaluation reads the training scenes (real data with no
         ``eval_path`` of its own, as ``llrmpp train --data`` sets up); training then leaves the
-        evaluation's target frames out (``data.sources.scene_source``)."""
+        evaluation's target frames out (``experiment_data.scene_source``)."""
         return self.kind != "procedural" and os.path.abspath(self.held_out_path or "") == os.path.abspath(self.path or "")
 
     def __post_init__(self) -> None:
@@ -105,6 +120,8 @@ class DataConfig:
         if self.eval_split is not None and not named:
             raise UserError(f"DataConfig: eval_split={self.eval_split!r} selects nothing: name it as {{split}} "
                             f"in eval_path ({self.eval_path!r}) or scene_list ({self.scene_list!r})")
+        if self.procedural_eval not in typing.get_args(ProceduralEval):
+            raise UserError(f"DataConfig.procedural_eval must be 'window' or 'split', got {self.procedural_eval!r}")
         if self.eval_inputs not in typing.get_args(EvalInputs):
             raise UserError(f"DataConfig.eval_inputs must be 'kmeans' or 'uniform', got {self.eval_inputs!r}")
         if self.kind != "procedural" and not self.path:

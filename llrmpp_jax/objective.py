@@ -26,20 +26,18 @@ Long-LRM logs it).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import jax.numpy as jnp
 
 from llrmpp_jax import config as C
 from llrmpp_jax.errors import UserError
+from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.gaussian_depth import gaussian_depth_loss
 from llrmpp_jax.losses import depth_loss, rgb_loss
 from llrmpp_jax.model import reconstruct, render
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 from llrmpp_jax.train.step import LossFn
-
-if TYPE_CHECKING:
-    from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 
 
 @dataclass(frozen=True)

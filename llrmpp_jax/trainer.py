@@ -28,11 +28,10 @@ from tqdm.auto import tqdm
 
 from llrmpp_jax import train as T
 from llrmpp_jax.data import BatchIterator
-from llrmpp_jax.data.held_out import eval_samples
-from llrmpp_jax.data.sources import EVAL_EVERY, scene_source
-from llrmpp_jax.data.stage_batches import batch_config
+from llrmpp_jax.data.sources import EVAL_EVERY
 from llrmpp_jax.evaluate import evaluate, picture_grid
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig
+from llrmpp_jax.experiment_data import batch_config, eval_samples, scene_source
 from llrmpp_jax.model import init_params
 from llrmpp_jax.objective import load_perceptual, make_loss_fn
 from llrmpp_jax.train.loop import Hook, StepInfo, run_stage

@@ -280,7 +280,7 @@ def test_workdir_reconstruct_render_export_feature_mode(tmp_path):
 def test_train_data_reads_any_capture_through_read_scene():
     """``train --data PATH --format auto``: the trainer's scenes come from read_scene, so a
     COLMAP folder and a nerfstudio folder both load (the old COLMAP image_dir crash)."""
-    from llrmpp_jax.data.sources import scene_source
+    from llrmpp_jax.experiment_data import scene_source
     from tests.helpers.environment import shared_path
 
     for name, frames in (("beer", 71), ("fox", 50)):
@@ -305,8 +305,7 @@ def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
     """``train --data beer``: the evaluation targets every 8th of beer's 71 frames; the
     training scene holds the other 62, camera for camera, and none of the targets."""
     from llrmpp_jax.data.formats import read_scene
-    from llrmpp_jax.data.held_out import eval_samples
-    from llrmpp_jax.data.sources import scene_source
+    from llrmpp_jax.experiment_data import eval_samples, scene_source
     from tests.helpers.environment import shared_path
     from llrmpp_jax.experiment import ExperimentConfig
 

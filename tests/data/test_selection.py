@@ -18,7 +18,6 @@ from llrmpp_jax.data.formats import read_colmap_scene, read_long_lrm_scene, read
 from llrmpp_jax.data.held_out import eval_split
 from llrmpp_jax.data.scene import in_memory_scene
 from llrmpp_jax.data.selection import eval_views, every_nth, kmeans_inputs, training_views, uniform_inputs
-from llrmpp_jax.experiment import DataConfig
 from tests.helpers.environment import shared_path
 
 
@@ -130,9 +129,8 @@ def synthetic_scene(n, rng):
 
 
 def test_scannet_split_on_a_1500_frame_sequence(rng):
-    data = DataConfig(eval_inputs="uniform", eval_max_frames=1280)
     scene = synthetic_scene(1500, rng)
-    inputs, targets, how = eval_split(data, 128, scene)
+    inputs, targets, how = eval_split(scene, 128, "uniform", max_frames=1280)
     want_inputs, want_targets = long_lrm_uniform_rule(1500)
     np.testing.assert_array_equal(inputs, want_inputs)
     np.testing.assert_array_equal(targets, want_targets)
@@ -141,8 +139,7 @@ def test_scannet_split_on_a_1500_frame_sequence(rng):
 
 
 def test_scannet_split_of_a_short_scene_says_what_it_uses(rng):
-    data = DataConfig(eval_inputs="uniform", eval_max_frames=1280)
-    inputs, targets, how = eval_split(data, 128, synthetic_scene(900, rng))
+    inputs, targets, how = eval_split(synthetic_scene(900, rng), 128, "uniform", max_frames=1280)
     want_inputs, want_targets = long_lrm_uniform_rule(900)
     np.testing.assert_array_equal(inputs, want_inputs)
     np.testing.assert_array_equal(targets, want_targets)
@@ -155,22 +152,21 @@ def test_cached_kmeans_indices_are_used_and_checked(tmp_path, rng):
     without the key the official k-means runs; an out-of-range index is one clear line."""
     scene = synthetic_scene(40, rng)
     path = write_long_lrm_scene(scene, str(tmp_path / "s"), image_ext=".png", bits=8)
-    data = DataConfig(kind="long_lrm", path=str(tmp_path))
     read = read_long_lrm_scene(path)
-    inputs, targets, how = eval_split(data, 4, read, path)
+    inputs, targets, how = eval_split(read, 4, json_path=path)
     assert "k-means" in how
     np.testing.assert_array_equal(inputs, official_kmeans_split(read.c2w[:, :3, 3], read.c2w[:, :3, 2], 4)[0])
     meta = json.load(open(path))
     meta["fold_8_kmeans_4_input"] = [33, 2, 5, 9]
     json.dump(meta, open(path, "w"))
-    inputs, targets, how = eval_split(data, 4, read, path)
+    inputs, targets, how = eval_split(read, 4, json_path=path)
     np.testing.assert_array_equal(inputs, [2, 5, 9, 33])
     np.testing.assert_array_equal(targets, np.arange(0, 40, 8))
     assert how == "inputs: the scene JSON's cached 'fold_8_kmeans_4_input'"
     meta["fold_8_kmeans_4_input"] = [1, 2, 40, 9]
     json.dump(meta, open(path, "w"))
     with pytest.raises(ValueError, match=r"'fold_8_kmeans_4_input' holds frame index 40, out of range for a scene of 40"):
-        eval_split(data, 4, read, path)
+        eval_split(read, 4, json_path=path)
 
 
 def test_too_few_frames_is_an_error():
@@ -222,15 +218,14 @@ def test_long_lrm_kmeans_index_file(tmp_path, rng):
     index_path = str(tmp_path / "idx.json")
     json.dump([{"scene_name": "seq", "fold_8_kmeans_4_input": [30, 3, 12, 20], "fold_8_kmeans_2_input": [1, 2]},
                {"scene_name": "other", "fold_8_kmeans_4_input": [1, 2, 3, 4]}], open(index_path, "w"))
-    data = DataConfig(eval_index=index_path)
     index = read_kmeans_index(index_path)
-    inputs, targets, how = eval_split(data, 4, scene, index=index)
+    inputs, targets, how = eval_split(scene, 4, index=index, index_name=index_path)
     np.testing.assert_array_equal(inputs, [3, 12, 20, 30])
     np.testing.assert_array_equal(targets, np.arange(0, 40, 8))
     assert how == f"inputs: 'fold_8_kmeans_4_input' of {index_path}"
-    inputs, _, how = eval_split(data, 3, scene, index=index)  # no 3-input entry: computed
+    inputs, _, how = eval_split(scene, 3, index=index, index_name=index_path)  # no 3-input entry: computed
     assert "k-means" in how
     np.testing.assert_array_equal(inputs, official_kmeans_split(scene.c2w[:, :3, 3], scene.c2w[:, :3, 2], 3)[0])
     with pytest.raises(ValueError, match=r"seq 'fold_8_kmeans_4_input' holds frame index 45, out of range for a scene "
                                          r"of 40 frames"):
-        eval_split(data, 4, scene, index={"seq": {"fold_8_kmeans_4_input": [1, 45, 2, 3]}})
+        eval_split(scene, 4, index={"seq": {"fold_8_kmeans_4_input": [1, 45, 2, 3]}}, index_name=index_path)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from llrmpp_jax.data.formats import read_scannet_scene
-from llrmpp_jax.data.sources import held_out_description, scene_source
 from llrmpp_jax.errors import MissingInputError, UserError
 from llrmpp_jax.experiment import DataConfig, load_experiment
+from llrmpp_jax.experiment_data import held_out_description, scene_source
 from tests.helpers.fake_scannet import FRAMES, ROOMS, fake_scannet, split_data
 from tests.helpers.typechecks import unchecked
 
