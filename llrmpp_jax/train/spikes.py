@@ -45,7 +45,7 @@ def skip_gradient_spikes(
     ``r > factor`` is accepted after about ``log(r / factor) / ((1 - decay) log(factor))``
     steps (10 for r = 30, 20 for r = 100 at the defaults) instead of being skipped forever. Nothing is skipped during the first
     ``warmup`` gradients, whose norms fall fast. Non-finite gradients are left to the train
-    step's own guard (they do not enter the mean).
+    step's guard outside it (:func:`~llrmpp_jax.train.guards.skip_nonfinite`; they do not enter the mean).
     """
     if factor <= 1.0:
         raise ValueError(f"skip_gradient_spikes: factor={factor} must be > 1")
