@@ -29,7 +29,8 @@ stage-4 step, written as JSON.
 
    Every case runs with and without remat (``jax.checkpoint`` of every backbone and decoder
    block). The step is the project's own: ``objective.make_loss_fn`` ->
-   ``train.make_train_step`` -> ``train.pmap_train_step`` (donated state, 1 device), on
+   ``train.make_train_step`` -> the runner (``trainer.stage_runner``: jit over a mesh of
+   1 device, donated state), on
    procedural batches from ``data.BatchIterator``. Reported: compile time
    (``lower().compile()``), XLA's ``memory_analysis()`` of the compiled step (argument,
    output, alias and temp bytes; ``xla_total_bytes`` = temp + argument + output, which
@@ -164,14 +165,15 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     bcfg = batch_config(exp, stage)
     it = BatchIterator(ProceduralSource(exp.data.procedural), bcfg, seed=0, num_workers=1)
     t0 = time.perf_counter()
-    batches = [T.shard_for_pmap(next(it)) for _ in range(steps + 1)]
+    host_batches = [next(it) for _ in range(steps + 1)]
     it.close()
     data_s = (time.perf_counter() - t0) / (steps + 1)
-    step_fn, optimizer = make_step(exp, stage, None)
+    runner, optimizer = make_step(exp, stage, None)
+    batches = [runner.place_batch(b) for b in host_batches]
     params = init_params(jax.random.key(0), exp.model, stage.num_inputs, h, w)
-    state = T.replicate_for_pmap(T.init_train_state(params, optimizer, jax.random.key(1)))
+    state = runner.place_state(T.init_train_state(params, optimizer, jax.random.key(1)))
     t0 = time.perf_counter()
-    compiled = T.pmap_train_step(step_fn, donate=True).lower(state, batches[0]).compile()
+    compiled = runner.step.lower(state, batches[0]).compile()
     compile_s = time.perf_counter() - t0
     memory = memory_analysis_bytes(compiled)
     times, metrics = [], None
@@ -201,14 +203,15 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
         "memory_analysis": memory,
         "max_rss_bytes": _max_rss_bytes(),
         "device_peak_bytes_in_use": dev_stats.get("peak_bytes_in_use"),
-        "final_loss": float(np.asarray(metrics["loss"])[0]) if ran else None,
-        "splat_dropped": float(np.asarray(metrics["splat_dropped"])[0]) if ran else None,
+        "final_loss": float(metrics["loss"]) if ran else None,
+        "splat_dropped": float(metrics["splat_dropped"]) if ran else None,
     }
 
 
 def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: dict | None):
-    """Stage 4's per-device step (closing over ``vgg_params``) and its inputs as
-    ShapeDtypeStructs in the pmap layout: ``(step, state, batch, (b, v, t, h, w))``."""
+    """Stage 4's step on one device (the runner's jitted step, closing over ``vgg_params``)
+    and its inputs as ShapeDtypeStructs (state, batch ``[b, ...]``): ``(step, state, batch,
+    (b, v, t, h, w))``."""
     if stage.global_batch % PAPER_STAGE4_DEVICES:
         raise ValueError(f"stage {stage.name}: global_batch {stage.global_batch} does not split over "
                          f"{PAPER_STAGE4_DEVICES} devices")
@@ -217,23 +220,22 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
     w = 960
     v, t = stage.num_inputs, stage.num_targets
     params = jax.eval_shape(lambda k: init_params(k, exp.model, 2, 32, 32), jax.random.key(0))
-    step_fn, optimizer = make_step(exp, stage, vgg_params)
+    runner, optimizer = make_step(exp, stage, vgg_params)
     state = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, jax.random.key(1)), params)
-    lead = lambda x: jax.ShapeDtypeStruct((1,) + x.shape, x.dtype)  # noqa: E731 (pmap axis of 1)
-    f32 = lambda *s: jax.ShapeDtypeStruct((1, b) + s, jnp.float32)  # noqa: E731
+    f32 = lambda *s: jax.ShapeDtypeStruct((b,) + s, jnp.float32)  # noqa: E731
     batch = {"input_images": f32(v, h, w, 3), "input_c2w": f32(v, 4, 4), "input_intrinsics": f32(v, 4),
              "target_images": f32(t, h, w, 3), "target_c2w": f32(t, 4, 4), "target_intrinsics": f32(t, 4)}
     if "depth" in exp.model.outputs:
         batch["target_depth"] = f32(t, h, w)
-    return step_fn, jax.tree.map(lead, state), batch, (b, v, t, h, w)
+    return runner.step, state, batch, (b, v, t, h, w)
 
 
 def compile_paper() -> dict:
     """Lower and compile the stage-4 per-device step for CPU (run inside its own process)."""
     exp, stage = paper_stage4_experiment()
-    step_fn, state, batch, _ = paper_abstract_args(exp, stage, perceptual_for_compile(exp))
+    step, state, batch, _ = paper_abstract_args(exp, stage, perceptual_for_compile(exp))
     t0 = time.perf_counter()
-    lowered = T.pmap_train_step(step_fn, donate=True).lower(state, batch)
+    lowered = step.lower(state, batch)
     lower_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     compiled = lowered.compile()
@@ -283,13 +285,12 @@ def paper_estimate() -> dict:
     cfg = exp.model
     _, state, batch, (b, v, t, h, w) = paper_abstract_args(exp, stage, None)
     cdt = jnp.dtype(jnp.bfloat16 if exp.bf16 else jnp.float32).itemsize
-    params = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), state.params)
+    params = state.params
     n_params = count_params(params)
     adam = _nbytes(state.opt_state)
     gauss = jax.eval_shape(
         lambda p, i, c, k: reconstruct(p, cfg, i, c, k), params,
-        *(jax.ShapeDtypeStruct(x.shape[1:], x.dtype) for x in
-          (batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])))
+        batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
     n_gauss = int(gauss.means.shape[1])
     d = cfg.backbone.dims[0]
     m = cfg.backbone.mamba

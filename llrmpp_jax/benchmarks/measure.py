@@ -56,7 +56,7 @@ def xla_cost(compiled) -> dict[str, float | None]:
         ca = compiled.cost_analysis() or {}
     except Exception:  # noqa: BLE001 -- a backend without it must not lose the timings around it
         ca = {}
-    if isinstance(ca, list):  # one entry per program of a pmap on some jax versions
+    if isinstance(ca, list):  # one entry per program on some jax versions
         ca = ca[0] if ca else {}
     get = lambda k: float(ca[k]) if k in ca else None  # noqa: E731
     return {"flops": get("flops"), "bytes_accessed": get("bytes accessed")}

@@ -14,8 +14,8 @@ memory analysis, no run). Here it runs: the ``dl3dv`` recipe's stage 4 (32 input
 ``config.for_accelerators`` sets it, the sequential SSD inter-chunk recurrence, Long-LRM's
 VGG19 perceptual term with random weights of its shapes unless the file names weights: the
 cost does not depend on the weights), with the project's own step
-(``objective.make_loss_fn`` -> ``train.make_train_step`` -> ``train.pmap_train_step``, donated
-state) and the model's parameters initialised as for training (on the host CPU:
+(``objective.make_loss_fn`` -> ``train.make_train_step`` -> the runner's jit over a one-device
+mesh, ``trainer.stage_runner``, donated state) and the model's parameters initialised as for training (on the host CPU:
 ``paper.host_init_params``; the init's own XLA:GPU compile took 52 s on an H200).
 ``--scale cpu`` swaps in ``config.tiny()`` (same stage, bf16, VGG19 term and code paths)
 with 2 inputs + 1 target at 64x96 and the blockwise kernel.
@@ -57,6 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh
 
 from llrmpp_jax import config as C
 from llrmpp_jax import train as T
@@ -69,20 +70,21 @@ from llrmpp_jax.experiment import ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.nn.attention import ATTENTION_IMPLEMENTATIONS
 from llrmpp_jax.nn.backbone import count_params
 from llrmpp_jax.objective import load_perceptual, make_loss_fn
-from llrmpp_jax.trainer import optimizer_config
+from llrmpp_jax.trainer import optimizer_config, stage_runner
 
 GIB = 2.0**30
 PAPER_STAGE4_DEVICES = 64  # paper Table 8: stage 4 trains a global batch of 64 on 64 GPUs
 
 
-def make_step(exp: ExperimentConfig, stage: StageConfig,
-              vgg_params: dict | None) -> tuple[T.step.StepFn, optax.GradientTransformation]:
-    """The trainer's per-device step for ``stage`` and its optimizer (settings as ``trainer.train``)."""
+def make_step(exp: ExperimentConfig, stage: StageConfig, vgg_params: dict | None, mesh: Mesh | None = None,
+              donate: bool = True) -> tuple[T.Runner, optax.GradientTransformation]:
+    """The trainer's runner for ``stage`` (``trainer.stage_runner``: settings as
+    ``trainer.train``; ``donate``d state) over ``mesh`` (default: a mesh of the first device)
+    and its optimizer."""
     opt_cfg = optimizer_config(stage)
     optimizer = T.make_optimizer(opt_cfg)
-    step = T.make_train_step(make_loss_fn(exp, vgg_params, stage), optimizer, T.make_schedule(opt_cfg),
-                             compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32)
-    return step, optimizer
+    mesh = T.make_data_mesh(jax.devices()[:1]) if mesh is None else mesh
+    return stage_runner(exp, stage, vgg_params, optimizer, T.make_schedule(opt_cfg), mesh, donate=donate), optimizer
 
 
 def paper_stage4_experiment() -> tuple[ExperimentConfig, StageConfig]:
@@ -136,18 +138,18 @@ def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int]
     b = stage.global_batch // PAPER_STAGE4_DEVICES
     (v, t), (h, w) = views, size
     vgg = perceptual_for_compile(exp)
-    step_fn, optimizer = make_step(exp, stage, vgg)
+    runner, optimizer = make_step(exp, stage, vgg)
     params = host_init_params(model)
-    state = T.replicate_for_pmap(T.init_train_state(params, optimizer, jax.random.key(1)))
+    state = runner.place_state(T.init_train_state(params, optimizer, jax.random.key(1)))
     host_batches = [synthetic_batch(b, v, t, h, w, seed=i) for i in range(2)]
-    batches = [T.shard_for_pmap(x) for x in host_batches]
-    # Steps run through the jitted pmap, not an AOT executable: on jax 0.10.2 (CPU) the
+    batches = [runner.place_batch(x) for x in host_batches]
+    # Steps run through the jitted step, not an AOT executable: on jax 0.10.2 (CPU) the
     # executable from ``lower().compile()`` of this donated step returned NaN perceptual
     # losses (the VGG params it closes over came back as garbage) where the jitted call
     # and the undonated executable agree. The first call therefore includes the compile:
     # compile_s = first call - median step. XLA's memory analysis comes from a separate
     # AOT compile after the steps, never executed.
-    step = T.pmap_train_step(step_fn, donate=True)
+    step = runner.step
     times, metrics = [], None
     progress(f"{impl}: state and batches ready; first call (compile + one step) ...")
     for i in range(steps + 1):  # the first call compiles
@@ -178,9 +180,9 @@ def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int]
         "step_s_median": step_s, "step_s_all": times,
         "xla_flops": xla_cost(compiled)["flops"], "model_flops": flops,
         **throughput(flops, step_s, jax.devices()[0].device_kind),
-        "loss": float(np.asarray(metrics["loss"])[0]),
-        "splat_dropped": float(np.asarray(metrics["splat_dropped"])[0]),
-        "skipped_total": float(np.asarray(metrics["skipped_total"])[0]),  # non-finite or guarded steps
+        "loss": float(metrics["loss"]),
+        "splat_dropped": float(metrics["splat_dropped"]),
+        "skipped_total": float(metrics["skipped_total"]),  # non-finite or guarded steps
     }
 
 
@@ -194,10 +196,9 @@ def profile_step(impl: str, views: tuple[int, int], size: tuple[int, int], block
     exp, stage = experiment(scale, impl, block)
     b = stage.global_batch // PAPER_STAGE4_DEVICES
     (v, t), (h, w) = views, size
-    step_fn, optimizer = make_step(exp, stage, perceptual_for_compile(exp))
-    state = T.replicate_for_pmap(T.init_train_state(host_init_params(exp.model), optimizer, jax.random.key(1)))
-    batch = T.shard_for_pmap(synthetic_batch(b, v, t, h, w))
-    prof = profile_program(T.pmap_train_step(step_fn), (state, batch), repeats=1)
+    runner, optimizer = make_step(exp, stage, perceptual_for_compile(exp), donate=False)
+    state = runner.place_state(T.init_train_state(host_init_params(exp.model), optimizer, jax.random.key(1)))
+    prof = profile_program(runner.step, (state, runner.place_batch(synthetic_batch(b, v, t, h, w))), repeats=1)
     return {"program": "train_step", "attention_impl": impl, "model": "paper_dl3dv" if scale == "paper" else "tiny",
             "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w], "environment": environment(),
             "profile": prof.to_json()}

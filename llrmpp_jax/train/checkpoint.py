@@ -163,8 +163,8 @@ def save_checkpoint(
 ) -> Path:
     """Save ``state`` as step ``int(state.step)``; return the step folder.
 
-    ``state`` is unreplicated (host arrays, or global arrays replicated on a mesh; for a
-    pmap state pass ``sharding.unreplicate(state)``). ``data_state``: JSON mapping that
+    ``state`` is one copy of the state (host arrays, or the runner's global arrays
+    replicated on a mesh), not a stack of per-device copies. ``data_state``: JSON mapping that
     restarts the data iterator (e.g. ``{"position": 1200}``). ``config``: the run config
     (dataclass or JSON data). ``keep``: how many most recent steps to keep. A step
     already present (e.g. one rejected on restore) is replaced.
@@ -176,7 +176,7 @@ def save_checkpoint(
     if np.ndim(state.step) != 0:
         raise ValueError(
             f"save_checkpoint: state.step has shape {np.shape(state.step)}, expected (); "
-            f"unreplicate a pmap state first"
+            f"save one copy of the state, not per-device copies stacked"
         )
     directory = Path(directory).absolute()
     step = int(state.step)

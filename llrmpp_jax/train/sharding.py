@@ -1,13 +1,11 @@
-"""Placing the train state and host batches on data-parallel devices.
+"""Placing the train state and host batches on a data-parallel device mesh (one layout).
 
-Two layouts, one per step wrapper in ``step.py``:
-
-* pmap: every leaf gets a leading device axis -- the state replicated ``[n_dev, ...]``,
-  the batch split ``[n_dev, B/n_dev, ...]`` (local devices of this process).
-* mesh: a 1-D :class:`jax.sharding.Mesh` with axis ``"batch"`` over all (global) devices;
-  the state replicated, each batch leaf a global ``[B_global, ...]`` array built from
-  this process's ``[B_local, ...]`` rows (multi-host: ``jax.distributed.initialize``
-  first, then every process passes only its own rows).
+A 1-D :class:`jax.sharding.Mesh` with axis ``"batch"`` (:func:`make_data_mesh`, default:
+every global device): the state replicated (:func:`~llrmpp_jax.train.step.state_sharding`),
+each batch leaf a global ``[B_global, ...]`` array split over ``"batch"``
+(:func:`~llrmpp_jax.train.step.batch_sharding`) built from this process's ``[B_local, ...]``
+rows (multi-host: ``jax.distributed.initialize`` first, then every process passes only its
+own rows).
 """
 
 from __future__ import annotations
@@ -17,9 +15,9 @@ from typing import Any
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh
 
-from llrmpp_jax.train.step import AXIS
+from llrmpp_jax.train.step import AXIS, batch_sharding, state_sharding
 
 
 def _batch_rows(batch: Any, n_shards: int, caller: str) -> int:
@@ -41,36 +39,6 @@ def _batch_rows(batch: Any, n_shards: int, caller: str) -> int:
     return rows
 
 
-def _put_for_pmap(tree: Any, n: int) -> Any:
-    """Place ``[n, ...]`` leaves row by row on the first ``n`` local devices, laid out
-    as ``pmap`` lays out its outputs (so feeding them back does not recompile)."""
-    mesh = Mesh(np.asarray(jax.local_devices()[:n]), (AXIS,))
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(AXIS)))
-
-
-def shard_for_pmap(batch: Any, n_devices: int | None = None) -> Any:
-    """Split every leaf ``[B, ...]`` -> ``[n_dev, B/n_dev, ...]``, row ``i`` on local
-    device ``i``. ``n_devices`` defaults to ``jax.local_device_count()``."""
-    n = jax.local_device_count() if n_devices is None else n_devices
-    rows = _batch_rows(batch, n, "shard_for_pmap")
-    split = jax.tree.map(
-        lambda x: np.reshape(np.asarray(x), (n, rows // n, *np.shape(x)[1:])), batch
-    )
-    return _put_for_pmap(split, n)
-
-
-def replicate_for_pmap(tree: Any, n_devices: int | None = None) -> Any:
-    """``n_devices`` copies of every leaf: ``[...]`` -> ``[n_dev, ...]``, one per device."""
-    n = jax.local_device_count() if n_devices is None else n_devices
-    stacked = jax.tree.map(lambda x: np.broadcast_to(np.asarray(x)[None], (n, *np.shape(x))), tree)
-    return _put_for_pmap(stacked, n)
-
-
-def unreplicate(tree: Any) -> Any:
-    """Row 0 of every leaf of a pmap-replicated pytree: ``[n_dev, ...]`` -> ``[...]``."""
-    return jax.tree.map(lambda x: x[0], tree)
-
-
 def make_data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     """1-D mesh with axis ``"batch"`` over ``devices`` (default: all global devices)."""
     devs = jax.devices() if devices is None else list(devices)
@@ -79,7 +47,7 @@ def make_data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
 
 def replicate_on_mesh(tree: Any, mesh: Mesh) -> Any:
     """Every leaf as a global array replicated over ``mesh`` (same value on each process)."""
-    sharding = NamedSharding(mesh, PartitionSpec())
+    sharding = state_sharding(mesh)
 
     def put(x):
         host = np.asarray(x)
@@ -94,7 +62,13 @@ def shard_for_mesh(batch: Any, mesh: Mesh) -> Any:
     devices this process owns."""
     local = sum(d.process_index == jax.process_index() for d in mesh.devices.flat)
     _batch_rows(batch, local, "shard_for_mesh")
-    sharding = NamedSharding(mesh, PartitionSpec(AXIS))
+    sharding = batch_sharding(mesh)
     return jax.tree.map(
         lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch
     )
+
+
+def host_copy(tree: Any) -> Any:
+    """Every leaf as a host NumPy array: ``[...]`` of a replicated (or single-device) array,
+    on every process (for checkpoints, logs and evaluation)."""
+    return jax.tree.map(lambda x: np.asarray(jax.device_get(x)), tree)

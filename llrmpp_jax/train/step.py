@@ -1,16 +1,18 @@
 """The data-parallel train step: ``(state, batch) -> (state, metrics)``, written per device.
 
 The step sees its device's shard of the batch and averages the gradients, the loss and
-the loss's metrics over the named axis ``"batch"`` with ``lax.pmean``, so the same
-function runs under ``jax.pmap`` (:func:`pmap_train_step`) and under ``jax.jit`` of a
-``shard_map`` over a device mesh (:func:`sharded_train_step`). With equal per-device
-shards the averaged gradient is the gradient of the global-batch mean loss, so the
-update does not depend on the device count.
+the loss's metrics over the named axis ``"batch"`` with ``lax.pmean``. The runner
+(:mod:`llrmpp_jax.train.runner`) runs it as ``jax.jit`` of a ``shard_map`` over a device
+mesh (:func:`sharded_train_step`), on one host or many; the same function also runs under
+``jax.pmap`` (:func:`pmap_train_step`, a compatibility wrapper the runner does not use).
+With equal per-device shards the averaged gradient is the gradient of the global-batch
+mean loss, so the update does not depend on the device count.
 
-Long-LRM's guards (reference facts §2.1): a step whose loss or gradient norm is not
-finite is skipped -- parameters and optimizer state are returned bitwise unchanged,
-``skipped`` is incremented, ``step`` still advances (the data iterator and PRNG move on).
-With ``skip_grad_norm_above`` (Long-LRM: 5 x the clip norm 10 = 50) a finite step whose
+Long-LRM's guards (reference facts §2.1) are optax wrappers around the optimizer
+(:func:`~llrmpp_jax.train.guards.guard_steps`): a step whose loss or gradient norm is not
+finite is skipped -- zero updates, optimizer state bitwise unchanged, ``skipped``
+incremented, ``step`` still advances (the data iterator and PRNG move on). With
+``skip_grad_norm_above`` (Long-LRM: 5 x the clip norm 10 = 50) a finite step whose
 pre-clip gradient norm exceeds it is skipped the same way, except that the learning-rate
 schedule advances (Long-LRM still calls ``scheduler.step()`` there).
 """
@@ -24,10 +26,11 @@ import jax
 import jax.numpy as jnp
 import optax
 from jax import lax
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from llrmpp_jax.array_typing import Array, DTypeLike, Float, KeyArray
-from llrmpp_jax.train.optimizer import advance_schedule, schedule_count
+from llrmpp_jax.train.guards import guard_steps, skip_reasons
+from llrmpp_jax.train.optimizer import schedule_count
 from llrmpp_jax.train.state import TrainState, step_key
 
 AXIS = "batch"
@@ -52,17 +55,19 @@ def make_train_step(
     compute_dtype: DTypeLike = jnp.float32,
     skip_grad_norm_above: float | None = None,
 ) -> StepFn:
-    """Build the per-device train step (to be wrapped by pmap or shard_map over ``"batch"``).
+    """Build the per-device train step (run by :func:`sharded_train_step`: shard_map over ``"batch"``).
 
     ``loss_fn(params, batch, key) -> (loss [], metrics {name: []})`` is the mean loss of
     this device's batch shard. With ``compute_dtype=jnp.bfloat16`` the float32 parameters
     are cast to bf16 before ``loss_fn`` (gradients, parameters and optimizer stay float32).
     ``schedule`` is the optimizer's learning-rate schedule; it is only reported.
-    ``skip_grad_norm_above`` also skips steps whose finite (pre-clip) gradient norm
-    exceeds it (Long-LRM's ``grad_clip_norm * allowed_gradnorm_factor`` = 50): parameters
-    and Adam moments stay bitwise unchanged but the schedule advances
-    (:func:`~llrmpp_jax.train.optimizer.advance_schedule`), as Long-LRM's scheduler does;
-    ``None`` skips only non-finite steps, which leave the schedule where it was.
+    The step updates through ``guard_steps(optimizer, skip_grad_norm_above)``
+    (:mod:`llrmpp_jax.train.guards`), whose state is ``optimizer``'s: non-finite steps
+    are skipped, and with ``skip_grad_norm_above`` also steps whose finite (pre-clip)
+    gradient norm exceeds it (Long-LRM's ``grad_clip_norm * allowed_gradnorm_factor`` =
+    50): parameters and Adam moments stay unchanged (a zero update) but the schedule
+    advances, as Long-LRM's scheduler does; ``None`` skips only non-finite steps, which
+    leave the schedule where it was.
 
     The loss's key is ``fold_in(fold_in(base, step), device)``: deterministic per
     (step, device), so a random loss draws different noise on 1 and on 2 devices.
@@ -91,6 +96,8 @@ def make_train_step(
             raise ValueError(f"loss_fn metrics use reserved names {clash}; rename them")
         return loss.astype(jnp.float32), metrics
 
+    guarded = guard_steps(optimizer, skip_grad_norm_above)
+
     def train_step(state: TrainState, batch: Any) -> tuple[TrainState, dict[str, Array]]:
         key = step_key(state, lax.axis_index(AXIS))
         # Mark the replicated parameters as device-varying so that, under shard_map's
@@ -104,28 +111,13 @@ def make_train_step(
         loss = lax.pmean(loss, AXIS)
         metrics = lax.pmean(jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), metrics), AXIS)
         grad_norm = optax.tree.norm(grads).astype(jnp.float32)
-        finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-        too_large = finite & (
-            jnp.zeros((), jnp.bool_) if skip_grad_norm_above is None else grad_norm > skip_grad_norm_above
-        )
-        ok = finite & ~too_large
-
-        def apply(_):
-            # optax mixes Python floats with its int32 count (``b1 ** count``), which
-            # strict promotion rejects; its outputs keep the parameters' float32.
-            with jax.numpy_dtype_promotion("standard"):
-                updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-            return optax.apply_updates(state.params, updates), opt_state
-
-        def keep(_):
-            return state.params, state.opt_state
-
-        def keep_but_schedule(_):
-            return state.params, advance_schedule(state.opt_state)
-
-        branch = jnp.where(ok, 0, jnp.where(too_large, 1, 2))
-        params, opt_state = lax.switch(branch, (apply, keep_but_schedule, keep), None)
-        skipped_now = (~ok).astype(jnp.int32)
+        nonfinite, too_large = skip_reasons(loss, grad_norm, skip_grad_norm_above)
+        # optax mixes Python floats with its int32 count (``b1 ** count``), which strict
+        # promotion rejects; its outputs keep the parameters' float32.
+        with jax.numpy_dtype_promotion("standard"):
+            updates, opt_state = guarded.update(grads, state.opt_state, state.params, loss=loss)
+        params = optax.apply_updates(state.params, updates)
+        skipped_now = (nonfinite | too_large).astype(jnp.int32)
         new_state = TrainState(
             step=state.step + 1,
             params=params,
@@ -152,18 +144,28 @@ def make_train_step(
     return train_step
 
 
-def pmap_train_step(step_fn: StepFn, *, donate: bool = False) -> StepFn:
-    """``jax.pmap`` over local devices: state replicated ``[n_dev, ...]``, batch
-    ``[n_dev, B/n_dev, ...]`` (see ``sharding.replicate_for_pmap`` / ``shard_for_pmap``);
-    metrics come back ``[n_dev]`` (identical rows). ``donate`` reuses the state buffers."""
-    return jax.pmap(step_fn, axis_name=AXIS, donate_argnums=(0,) if donate else ())
+def state_sharding(mesh: Mesh) -> NamedSharding:
+    """Where the runner keeps the train state on ``mesh``: replicated on every device."""
+    return NamedSharding(mesh, PartitionSpec())
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+    """Where the runner puts a global batch on ``mesh``: every leaf ``[B, ...]`` split along
+    its leading axis over the mesh's ``"batch"`` axis (``B / n_dev`` rows a device)."""
+    return NamedSharding(mesh, PartitionSpec(AXIS))
 
 
 def sharded_train_step(step_fn: StepFn, mesh: Mesh, *, donate: bool = False) -> StepFn:
-    """``jax.jit`` of ``shard_map`` over ``mesh``'s ``"batch"`` axis: state replicated
-    (``sharding.replicate_on_mesh``), batch a global ``[B, ...]`` array split over
-    ``"batch"`` (``sharding.shard_for_mesh``); metrics are replicated scalars.
-    Multi-host: every process calls it with its process-local batch shard."""
+    """The runner's step: ``jax.jit`` of ``shard_map(step_fn)`` over ``mesh``'s ``"batch"``
+    axis, ``(state, batch) -> (state, metrics)``. The state comes in and goes out on
+    :func:`state_sharding` (replicated), the batch is a global ``[B, ...]`` array on
+    :func:`batch_sharding`, the metrics are replicated float32 scalars. ``donate`` reuses
+    the state's buffers.
+
+    The shardings are fixed here, so ``sharded_train_step(step_fn, mesh).lower(state, batch)``
+    also takes ``jax.ShapeDtypeStruct`` trees, for ahead-of-time compiles on any mesh
+    (compile-only devices of another platform included). Multi-host: every process calls it
+    with global arrays built from its process-local rows (``sharding.shard_for_mesh``)."""
     if AXIS not in mesh.axis_names:
         raise ValueError(
             f"sharded_train_step: mesh axes {mesh.axis_names} lack the data axis {AXIS!r}"
@@ -174,4 +176,15 @@ def sharded_train_step(step_fn: StepFn, mesh: Mesh, *, donate: bool = False) -> 
         in_specs=(PartitionSpec(), PartitionSpec(AXIS)),
         out_specs=(PartitionSpec(), PartitionSpec()),
     )
-    return jax.jit(mapped, donate_argnums=(0,) if donate else ())
+    replicated, split = state_sharding(mesh), batch_sharding(mesh)
+    return jax.jit(mapped, in_shardings=(replicated, split), out_shardings=(replicated, replicated),
+                   donate_argnums=(0,) if donate else ())
+
+
+def pmap_train_step(step_fn: StepFn, *, donate: bool = False) -> StepFn:
+    """Compatibility wrapper, not used by the runner: ``step_fn`` under ``jax.pmap`` over
+    the local devices, the one ``jax.pmap`` of the package. It shows the per-device step
+    is still pmap-ready (``tests/train/test_step.py`` checks it against the runner).
+    State replicated ``[n_dev, ...]``, batch ``[n_dev, B/n_dev, ...]``, metrics ``[n_dev]``
+    (identical rows). ``donate`` reuses the state buffers."""
+    return jax.pmap(step_fn, axis_name=AXIS, donate_argnums=(0,) if donate else ())

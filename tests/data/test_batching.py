@@ -4,6 +4,7 @@ count, resuming, per-process slices of the global batch, and skipping bad scenes
 import warnings
 from dataclasses import dataclass, replace
 
+import jax
 import numpy as np
 import pytest
 
@@ -11,7 +12,7 @@ from llrmpp_jax.data.batching import BatchConfig, BatchIterator, FileSource, Pro
 from llrmpp_jax.data.preprocess import ViewGeometry
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
-from llrmpp_jax.train.sharding import shard_for_pmap
+from llrmpp_jax.train.sharding import make_data_mesh, shard_for_mesh
 
 SRC = ProceduralSource(ProceduralConfig(height=24, width=32, num_frames=10))
 CFG = BatchConfig(global_batch=4, num_inputs=3, num_targets=2, geometry=ViewGeometry(multiple=8), with_depth=True)
@@ -36,9 +37,11 @@ def test_layout_and_values():
     assert b["input_images"].min() >= 0 and b["input_images"].max() <= 1
     np.testing.assert_allclose(np.abs(b["input_c2w"][..., :3, 3]).max(axis=(1, 2)), 1.0, rtol=1e-6)
     assert (b["target_depth"] > 0).all()
-    sharded = shard_for_pmap(b, 2)  # the trainer's split of a batch over 2 devices
-    assert sharded["target_depth"].shape == (2, 2, 2, 24, 32)
-    np.testing.assert_array_equal(sharded["input_c2w"][1, 0], b["input_c2w"][2])
+    mesh = make_data_mesh(jax.devices()[:2])
+    sharded = shard_for_mesh(b, mesh)  # the runner's split of a batch over 2 devices
+    assert sharded["target_depth"].shape == (4, 2, 24, 32)
+    rows = {s.device: np.asarray(s.data) for s in sharded["input_c2w"].addressable_shards}
+    np.testing.assert_array_equal(rows[mesh.devices[1]][0], b["input_c2w"][2])  # device 1 holds rows 2-3
 
 
 def test_world_units_batch_is_the_rescaled_batch_undone():

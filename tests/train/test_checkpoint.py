@@ -29,16 +29,10 @@ from llrmpp_jax.train.checkpoint import (
     save_checkpoint,
 )
 from llrmpp_jax.train.optimizer import make_optimizer, make_schedule
-from llrmpp_jax.train.sharding import (
-    make_data_mesh,
-    replicate_for_pmap,
-    replicate_on_mesh,
-    shard_for_mesh,
-    shard_for_pmap,
-    unreplicate,
-)
+from llrmpp_jax.train.runner import make_runner
+from llrmpp_jax.train.sharding import host_copy, make_data_mesh, replicate_on_mesh, shard_for_mesh
 from llrmpp_jax.train.state import init_train_state
-from llrmpp_jax.train.step import make_train_step, pmap_train_step, sharded_train_step
+from llrmpp_jax.train.step import make_train_step, sharded_train_step
 from tests.helpers.environment import ROOT
 from tests.helpers.toy_train import CFG, assert_tree_equal, toy_batch, toy_loss, toy_params
 
@@ -65,17 +59,15 @@ def fresh_state(seed: int = SEED, width: int = 16):
     return init_train_state(toy_params(jax.random.key(seed), width), tx, jax.random.key(seed + 1))
 
 
-def pmap_step():
-    return pmap_train_step(make_train_step(noisy_loss, make_optimizer(CFG), make_schedule(CFG)))
+def toy_runner():
+    return make_runner(make_train_step(noisy_loss, make_optimizer(CFG), make_schedule(CFG)))
 
 
-def run_pmap(state, start: int, stop: int, step=None):
-    """Train an unreplicated ``state`` on batches ``start..stop-1`` with pmap."""
-    step = step or pmap_step()
-    pstate = replicate_for_pmap(state)
-    for position in range(start, stop):
-        pstate, _ = step(pstate, shard_for_pmap(batch_at(position)))
-    return unreplicate(pstate)
+def run_steps(state, start: int, stop: int, runner=None):
+    """Train a host ``state`` on batches ``start..stop-1`` through the runner; a host copy back."""
+    runner = runner or toy_runner()
+    done = runner.run(state, map(batch_at, range(start, stop)), steps=stop, start=start)
+    return host_copy(done.state)
 
 
 def test_resume_equals_uninterrupted(tmp_path):
@@ -108,7 +100,7 @@ def test_resume_equals_uninterrupted(tmp_path):
 
 
 def test_resume_after_sigkill(tmp_path):
-    """A pmap training subprocess saving every step is SIGKILLed (possibly mid-save);
+    """A training subprocess (the runner) saving every step is SIGKILLed (possibly mid-save);
     resuming from whatever survives and training to 2j reproduces an uninterrupted run."""
     proc = subprocess.Popen(
         [sys.executable, "-m", __name__, str(tmp_path)],
@@ -132,22 +124,22 @@ def test_resume_after_sigkill(tmp_path):
         restored = restore_checkpoint(tmp_path, fresh_state(seed=7))
     j = restored.step
     assert j >= 3 and restored.data_state == {"position": j}
-    step, resumed = pmap_step(), restored.state
+    runner, resumed = toy_runner(), restored.state
     for position in range(j, 2 * j):
         # Saving as it goes replaces a step the kill left without a manifest.
-        resumed = run_pmap(resumed, position, position + 1, step)
+        resumed = run_steps(resumed, position, position + 1, runner)
         save_checkpoint(tmp_path, resumed, data_state={"position": position + 1}, keep=2)
-    full = run_pmap(fresh_state(), 0, 2 * j, step)
+    full = run_steps(fresh_state(), 0, 2 * j, runner)
     assert_tree_equal(resumed, full)
     assert_tree_equal(restore_checkpoint(tmp_path, fresh_state(seed=7)).state, full)
 
 
 @pytest.fixture(scope="module")
 def three_states():
-    """States after 1, 2, 3 steps of the pmap run."""
-    state, step, states = fresh_state(), pmap_step(), []
+    """States after 1, 2, 3 steps of the runner."""
+    state, runner, states = fresh_state(), toy_runner(), []
     for position in range(3):
-        state = run_pmap(state, position, position + 1, step)
+        state = run_steps(state, position, position + 1, runner)
         states.append(state)
     return states
 
@@ -225,9 +217,10 @@ def test_keep_last_n_and_abstract_template(tmp_path, three_states):
     assert_tree_equal(restored.state.params, state.params)
 
 
-def test_save_rejects_replicated_state(tmp_path, three_states):
+def test_save_rejects_stacked_per_device_copies(tmp_path, three_states):
+    stacked = jax.tree.map(lambda x: np.stack([x, x]), three_states[0])  # pmap's layout of a state
     with pytest.raises(ValueError, match=r"state.step has shape \(2,\), expected \(\)"):
-        save_checkpoint(tmp_path, replicate_for_pmap(three_states[0]))
+        save_checkpoint(tmp_path, stacked)
 
 
 @pytest.mark.parametrize("before, after", [("stage", "long_lrm"), ("long_lrm", "stage")])
@@ -282,9 +275,9 @@ def test_a_stage_resumes_across_a_change_of_lr_schedule(tmp_path, before, after)
 
 def _train_until_killed(directory: str) -> None:
     """The subprocess of :func:`test_resume_after_sigkill`: save after every step."""
-    state, step = fresh_state(), pmap_step()
+    state, runner = fresh_state(), toy_runner()
     for position in range(1000):
-        state = run_pmap(state, position, position + 1, step)
+        state = run_steps(state, position, position + 1, runner)
         save_checkpoint(directory, state, data_state={"position": position + 1}, keep=2)
         print(f"saved {position + 1}", flush=True)
 

@@ -8,15 +8,9 @@ import optax
 import pytest
 
 from llrmpp_jax.train.optimizer import make_optimizer, make_schedule
-from llrmpp_jax.train.sharding import (
-    make_data_mesh,
-    replicate_for_pmap,
-    replicate_on_mesh,
-    shard_for_mesh,
-    shard_for_pmap,
-    unreplicate,
-)
-from llrmpp_jax.train.state import TrainState, init_train_state
+from llrmpp_jax.train.runner import make_runner
+from llrmpp_jax.train.sharding import host_copy, make_data_mesh, replicate_on_mesh, shard_for_mesh
+from llrmpp_jax.train.state import init_train_state
 from llrmpp_jax.train.step import make_train_step, pmap_train_step, sharded_train_step
 from tests.helpers.toy_train import (
     CFG,
@@ -30,9 +24,19 @@ from tests.helpers.toy_train import (
 from tests.helpers.typechecks import unchecked
 
 
+def _stacked(tree, n: int):
+    """pmap's state layout: ``n`` copies of every leaf, ``[...]`` -> ``[n, ...]`` (host arrays)."""
+    return jax.tree.map(lambda x: np.broadcast_to(np.asarray(x)[None], (n, *np.shape(x))), tree)
+
+
+def _split(batch, n: int):
+    """pmap's batch layout: ``[B, ...]`` -> ``[n, B/n, ...]``, row ``i`` for device ``i``."""
+    return jax.tree.map(lambda x: np.reshape(x, (n, -1, *np.shape(x)[1:])), batch)
+
+
 def test_two_devices_equal_one_device(key, rng):
-    """3 steps with pmap (2 devices), jit+shard_map (2 and 1 devices) == plain oracle
-    (with and without donating the state buffers)."""
+    """3 steps of the runner (jit+shard_map over 2 and 1 devices, with and without donating
+    the state buffers) == plain oracle."""
     assert jax.local_device_count() == 2
     tx, schedule = make_optimizer(CFG), make_schedule(CFG)
     k_init, k_run = jax.random.split(key)
@@ -40,12 +44,6 @@ def test_two_devices_equal_one_device(key, rng):
     batches = [toy_batch(rng) for _ in range(3)]
     want, history = oracle_steps(state0.params, tx, batches)
     step = make_train_step(toy_loss, tx, schedule)
-
-    pstep = pmap_train_step(step, donate=True)
-    pstate = replicate_for_pmap(state0)
-    for b in batches:
-        pstate, pmetrics = pstep(pstate, shard_for_pmap(b))
-    assert_tree_close(unreplicate(pstate).params, want, atol=1e-5)
 
     for devices, donate in ((jax.devices(), False), (jax.devices()[:1], True)):
         mesh = make_data_mesh(devices)
@@ -55,13 +53,39 @@ def test_two_devices_equal_one_device(key, rng):
             sstate, smetrics = sstep(sstate, shard_for_mesh(b, mesh))
         assert_tree_close(sstate.params, want, atol=1e-5)
         assert int(sstate.step) == 3 and int(sstate.skipped) == 0
+        # Metrics are global-batch means.
+        loss, aux = history[-1]
+        assert float(smetrics["loss"]) == pytest.approx(float(loss), rel=1e-5)
+        assert float(smetrics["mae"]) == pytest.approx(float(aux["mae"]), rel=1e-5)
+        assert float(smetrics["lr"]) == pytest.approx(float(schedule(2)), rel=1e-6)
 
-    # Metrics are global-batch means, the same under both wrappers.
-    loss, aux = history[-1]
-    for m in (unreplicate(pmetrics), smetrics):
-        assert float(m["loss"]) == pytest.approx(float(loss), rel=1e-5)
-        assert float(m["mae"]) == pytest.approx(float(aux["mae"]), rel=1e-5)
-        assert float(m["lr"]) == pytest.approx(float(schedule(2)), rel=1e-6)
+
+def test_the_step_under_pmap_gets_the_runners_result(key, rng):
+    """The per-device step stays pmap-ready: under ``jax.pmap`` over 2 devices (the
+    compatibility wrapper ``pmap_train_step``) 3 steps give the runner's state and metrics
+    (<= 1e-6; both average the same per-device gradients with ``pmean``), the runner's
+    matching the plain oracle (test above). A random loss checks that device ``i`` draws
+    the same key under both."""
+    tx, schedule = make_optimizer(CFG), make_schedule(CFG)
+    state0 = init_train_state(toy_params(key), tx, jax.random.fold_in(key, 1))
+    batches = [toy_batch(rng) for _ in range(3)]
+
+    def noisy_loss(params, batch, k):
+        loss, aux = toy_loss(params, batch, k)
+        return loss + 0.1 * jax.random.uniform(k, (), jnp.float32), aux
+
+    step = make_train_step(noisy_loss, tx, schedule)
+    runner = make_runner(step, make_data_mesh(), donate=True)
+    pstep = pmap_train_step(step)
+    state, pstate = runner.place_state(state0), _stacked(state0, 2)
+    for b in batches:
+        state, metrics = runner.step(state, runner.place_batch(b))
+        pstate, pmetrics = pstep(pstate, _split(b, 2))
+    got = host_copy(pstate)
+    assert_tree_close(jax.tree.map(lambda x: x[1], got), jax.tree.map(lambda x: x[0], got), atol=0)
+    assert_tree_close(jax.tree.map(lambda x: x[0], got), host_copy(state), atol=1e-6)
+    for k in ("loss", "mae", "grad_norm", "lr", "skipped"):
+        assert float(np.asarray(pmetrics[k])[0]) == pytest.approx(float(metrics[k]), rel=1e-6, abs=1e-7), k
 
 
 def test_nan_image_step_is_skipped(key, rng):
@@ -118,24 +142,23 @@ def test_large_grad_norm_skip_advances_the_schedule(key, rng):
         state0.params))
     threshold = 5 * CFG.grad_clip_norm
     assert norm(huge) > threshold > norm(good)
-    step = pmap_train_step(make_train_step(toy_loss, tx, schedule, skip_grad_norm_above=threshold))
-    pstate, m = step(replicate_for_pmap(state0), shard_for_pmap(huge))
-    state1 = unreplicate(pstate)
-    assert float(m["grad_norm"][0]) == pytest.approx(norm(huge), rel=1e-5)
+    runner = make_runner(make_train_step(toy_loss, tx, schedule, skip_grad_norm_above=threshold), donate=False)
+    state1, m = runner.step(runner.place_state(state0), runner.place_batch(huge))
+    assert float(m["grad_norm"]) == pytest.approx(norm(huge), rel=1e-5)
     assert (int(state1.step), int(state1.skipped)) == (1, 1)
-    assert [float(m[k][0]) for k in ("skipped", "skipped_total", "skipped_grad_norm", "skipped_grad_norm_total")] \
+    assert [float(m[k]) for k in ("skipped", "skipped_total", "skipped_grad_norm", "skipped_grad_norm_total")] \
         == [1.0, 1.0, 1.0, 1.0]
     assert_tree_equal(state1.params, state0.params)
     adam0, adam1 = state0.opt_state[1][0], state1.opt_state[1][0]
     assert_tree_equal((adam1.mu, adam1.nu, adam1.count), (adam0.mu, adam0.nu, adam0.count))
     assert int(state1.opt_state[1][-1].count) == 1  # the schedule's count
 
-    pstate, m = step(pstate, shard_for_pmap(good))
-    assert float(m["lr"][0]) == pytest.approx(float(schedule(1)), rel=1e-6) and float(schedule(1)) > 0
-    assert [float(m[k][0]) for k in ("skipped", "skipped_total", "skipped_grad_norm_total")] == [0.0, 1.0, 1.0]
+    state2, m = runner.step(state1, runner.place_batch(good))
+    assert float(m["lr"]) == pytest.approx(float(schedule(1)), rel=1e-6) and float(schedule(1)) > 0
+    assert [float(m[k]) for k in ("skipped", "skipped_total", "skipped_grad_norm_total")] == [0.0, 1.0, 1.0]
     grads = jax.grad(lambda p: toy_loss(p, good, None)[0])(state0.params)
     want = numpy_adamw_first_update(state0.params, grads, float(schedule(1)), CFG)
-    assert_tree_close(unreplicate(pstate).params, want, atol=1e-6)
+    assert_tree_close(state2.params, want, atol=1e-6)
 
 
 def test_step_key_per_device(key, rng):
@@ -148,13 +171,13 @@ def test_step_key_per_device(key, rng):
         loss, _ = toy_loss(params, batch, k)
         return loss, {"u": jax.random.uniform(k, (), jnp.float32)}
 
-    pstep = pmap_train_step(make_train_step(noisy_loss, tx, make_schedule(CFG)))
-    pstate = replicate_for_pmap(state0)
+    runner = make_runner(make_train_step(noisy_loss, tx, make_schedule(CFG)))
+    state = runner.place_state(state0)
     for s in range(2):
-        pstate, m = pstep(pstate, shard_for_pmap(toy_batch(rng)))
+        state, m = runner.step(state, runner.place_batch(toy_batch(rng)))
         want = np.mean([float(jax.random.uniform(
             jax.random.fold_in(jax.random.fold_in(base, s), d), (), jnp.float32)) for d in (0, 1)])
-        assert float(m["u"][0]) == pytest.approx(want, rel=1e-6)
+        assert float(m["u"]) == pytest.approx(want, rel=1e-6)
 
 
 def test_bf16_compute(key, rng):
@@ -194,26 +217,26 @@ def test_bad_inputs(key, rng):
         init_train_state(bad, tx, key)
     with pytest.raises(ValueError, match="typed PRNG key"), unchecked():
         init_train_state(params, tx, jax.random.PRNGKey(0))
-    with pytest.raises(ValueError, match="batch size 7 does not divide over 2 devices"):
-        shard_for_pmap(toy_batch(rng, 7))
     with pytest.raises(ValueError, match="batch size 5 does not divide over 2 devices"):
         shard_for_mesh(toy_batch(rng, 5), make_data_mesh())
     with pytest.raises(ValueError, match="share a leading batch axis"):
-        shard_for_pmap({"image": np.zeros((4, 3)), "target": np.zeros((6,))})
+        shard_for_mesh({"image": np.zeros((4, 3)), "target": np.zeros((6,))}, make_data_mesh())
     with pytest.raises(ValueError, match="compute_dtype=float16"):
         make_train_step(toy_loss, tx, make_schedule(CFG), compute_dtype=jnp.float16)
 
-    state = replicate_for_pmap(init_train_state(params, tx, key))
-    batch = shard_for_pmap(toy_batch(rng))
+    mesh = make_data_mesh()
+    state = replicate_on_mesh(init_train_state(params, tx, key), mesh)
+    batch = shard_for_mesh(toy_batch(rng), mesh)
     vector_loss = make_train_step(lambda p, b, k: (jnp.zeros((2,), jnp.float32), {}), tx,
                                   make_schedule(CFG))
     with pytest.raises(ValueError, match=r"loss of shape \(2,\), expected a scalar"):
-        pmap_train_step(vector_loss)(state, batch)
+        sharded_train_step(vector_loss, mesh)(state, batch)
     reserved = make_train_step(lambda p, b, k: (toy_loss(p, b, k)[0], {"lr": jnp.zeros(())}),
                                tx, make_schedule(CFG))
     with pytest.raises(ValueError, match=r"reserved names \['lr'\]"):
-        pmap_train_step(reserved)(state, batch)
-    assert isinstance(unreplicate(state), TrainState)
+        sharded_train_step(reserved, mesh)(state, batch)
+    with pytest.raises(ValueError, match="lack the data axis 'batch'"):
+        sharded_train_step(reserved, jax.sharding.Mesh(np.asarray(jax.devices()), ("data",)))
 
 
 @pytest.mark.slow
