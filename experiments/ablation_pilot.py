@@ -67,14 +67,14 @@ def main() -> None:
     for name in args.rows.split(","):
         scale, variant = chosen_row(name, base_scale)
         cfg = variant.build(scale.base)
-        samples = A.eval_samples(scale, "depth" in cfg.outputs)
+        samples = A.held_out_samples(cfg, scale)
         per_budget: dict[int, list[dict]] = {b: [] for b in budgets}
         seconds = []
         for seed in range(scale.seeds):
             trained = A.train(cfg, scale, variant, seed, snapshots=budgets)
             seconds.append(trained.seconds)
             for b in budgets:
-                per_budget[b].append(A.evaluate(trained.snapshots[b], cfg, scale, samples, lp))
+                per_budget[b].append(A.row_scores(trained.snapshots[b], cfg, samples, lp))
             print(f"{name} seed {seed}: {trained.seconds:.0f} s, PSNR by budget "
                   + ", ".join(f"{b}: {per_budget[b][-1]['psnr']:.2f}" for b in budgets), flush=True)
         refs = A.references(cfg, scale, samples, lp)

@@ -51,7 +51,7 @@ else:
                   decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
                                   canvas_ratio=round(1 / canvas), partitions=S))
     variant = A.Variant({}, lambda b: cfg, {})
-held_out = A.eval_samples(scale, depth=depth)
+held_out = A.held_out_samples(cfg, scale)
 samples = held_out[:4]  # the Gaussian statistics use the first four
 snaps = sorted({0, 10, 25, 50, 100, 200, steps // 2, steps})
 
@@ -60,9 +60,9 @@ recon = jax.jit(lambda p, s: reconstruct(p, cfg, s["input_images"], s["input_c2w
 def stats(params):
     rows = []
     for s in samples:
-        g = recon(params, s)
+        g = recon(params, {k: v[None] for k, v in s.items()})
         o = np.asarray(g.opacities).ravel(); sc = np.log(np.asarray(g.scales)).ravel()
-        cam = np.asarray(s["input_c2w"])[0, :, :3, 3]
+        cam = np.asarray(s["input_c2w"])[:, :3, 3]
         d = np.linalg.norm(np.asarray(g.means)[0][:, None] - cam[None], axis=-1).min(1)
         feat = np.linalg.norm(np.asarray(g.features)[0], axis=-1)
         rows.append(dict(op_mean=o.mean(), op_lt01=(o < 0.01).mean(), op_gt09=(o > 0.9).mean(),
@@ -74,7 +74,7 @@ res = {}
 for seed in seeds:
     t = A.train(cfg, scale, variant, seed=seed, snapshots=snaps)
     t.snapshots[0] = A.init_model(cfg, scale, seed)
-    ev = A.evaluate(t.params, cfg, scale, samples=held_out)
+    ev = A.row_scores(t.params, cfg, held_out)
     res[seed] = dict(losses=t.losses.tolist(), grad_norms=t.grad_norms.tolist(), seconds=t.seconds,
                      snap={str(k): stats(v) for k, v in sorted(t.snapshots.items())},
                      eval=ev)

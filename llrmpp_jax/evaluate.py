@@ -9,8 +9,8 @@ Baselines, measured on the same targets (they show whether the model learned any
 Metrics are per target view, then averaged per scene, then over scenes (Long-LRM's order):
 PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG; with a depth
 head, the depth metrics in metres (the sample's scene normalisation undone first). The
-model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``)
-and diagnostics (so a blur shows in numbers): the PSNR of the input views re-rendered from
+model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``),
+``splat_dropped`` (splat intersections lost to capacity) and diagnostics (so a blur shows in numbers): the PSNR of the input views re-rendered from
 the Gaussians, the mean predicted scale and opacity, and the fraction of Gaussians with
 opacity above 0.01. Optionally a ``refined_<n>`` method beside the model: the same Gaussians
 refined ``n`` steps against the scene's inputs first (``refine.py``; the paper's Table 1
@@ -40,10 +40,11 @@ from llrmpp_jax.refine import RefineConfig, refine
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
-def _predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
+def predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
                          key: KeyArray | None) -> tuple[Gaussians, jax.Array]:
-    """The (pruned, colour mode with ``head.prune_ratio > 0``) Gaussians of a batched sample,
-    and Long-LRM's ``gaussian_usage`` [B] measured before pruning."""
+    """The (pruned, colour mode with ``head.prune_ratio > 0``) Gaussians of a batched sample
+    (leading axis B), and Long-LRM's ``gaussian_usage`` [B] measured before pruning: the
+    reconstruction :func:`predict` renders (``key`` None: ``jax.random.key(0)``)."""
     g = reconstruct(params, cfg, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"])
     usage = gaussian_usage(g.opacities)
     key = jax.random.key(0) if key is None else key
@@ -51,9 +52,10 @@ def _predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
-def _render_sample(params: dict, cfg: ModelConfig, g: Gaussians, sample: dict,
+def render_sample(params: dict, cfg: ModelConfig, g: Gaussians, sample: dict,
                    diagnose: bool) -> dict[str, jax.Array]:
-    """``g`` rendered at the sample's targets (and, with ``diagnose``, its inputs): see :func:`predict`."""
+    """``g`` rendered at the batched sample's targets (and, with ``diagnose``, its inputs):
+    :func:`predict`'s outputs less ``gaussian_usage``."""
     h, w = sample["target_images"].shape[2:4]
     out = render(params, cfg, g, sample["target_c2w"], sample["target_intrinsics"], h, w, cfg.outputs)
     result = dict(out.images, dropped=out.dropped)
@@ -76,8 +78,8 @@ def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None =
     (pruned) Gaussians (``"input_rgb" [B, V, H, W, 3]``) and the scalars of
     :func:`gaussian_statistics`.
     """
-    g, usage = _predicted_gaussians(params, cfg, sample, key)
-    return dict(_render_sample(params, cfg, g, sample, diagnose), gaussian_usage=usage)
+    g, usage = predicted_gaussians(params, cfg, sample, key)
+    return dict(render_sample(params, cfg, g, sample, diagnose), gaussian_usage=usage)
 
 
 def predict_refined(params: dict, cfg: ModelConfig, sample: dict, steps: int,
@@ -86,10 +88,10 @@ def predict_refined(params: dict, cfg: ModelConfig, sample: dict, steps: int,
     against the sample's input views (:func:`llrmpp_jax.refine.refine`: the paper's
     post-prediction optimisation, Table 1's "Long-LRM_10"). ``gaussian_usage`` is that of the
     refined opacities."""
-    g, _ = _predicted_gaussians(params, cfg, sample, None)
+    g, _ = predicted_gaussians(params, cfg, sample, None)
     g, _ = refine(params, cfg, g, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"],
                   steps=steps, rc=rc, vgg_params=vgg_params)
-    out = _render_sample(params, cfg, g, sample, True)
+    out = render_sample(params, cfg, g, sample, True)
     return dict(out, gaussian_usage=gaussian_usage(g.opacities))
 
 
@@ -123,16 +125,17 @@ def image_metrics(pred: np.ndarray, target: np.ndarray, lpips_params: dict | Non
 
 def _model_diagnostics(out: dict, sample: dict[str, np.ndarray]) -> dict[str, float]:
     """A model row's extra columns from a batch-of-one prediction with ``diagnose``: usage,
+    ``splat_dropped`` (splat intersections lost to capacity over the scene's targets),
     input-view re-render PSNR, Gaussian statistics and (with a depth head and depth targets)
-    the depth metrics in metres."""
+    the depth metrics in metres, averaged over the targets with valid depth."""
     again = jnp.clip(out["input_rgb"][0], 0.0, 1.0)
-    extra = {"gaussian_usage": float(out["gaussian_usage"][0]),
+    extra = {"gaussian_usage": float(out["gaussian_usage"][0]), "splat_dropped": float(np.sum(out["dropped"])),
              "input_psnr": float(jnp.mean(psnr(again, jnp.asarray(sample["input_images"])))),
              **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")}}
     if "depth" in out and "target_depth" in sample:
         metres = np.float32(1.0) / sample["scene_scale"]
         dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(sample["target_depth"] * metres))
-        extra.update({k: float(jnp.mean(v)) for k, v in dm.items()})
+        extra.update({k: float(jnp.nanmean(v)) for k, v in dm.items()})  # a map without valid depth: NaN
     return extra
 
 

@@ -286,7 +286,7 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     monkeypatch.setattr(tables, "run_seed", fake_run_seed)
     monkeypatch.setattr(tables, "time_model", lambda *a: {})
     monkeypatch.setattr(tables, "references", lambda *a: [])
-    monkeypatch.setattr(tables, "_held_out", lambda scale, depth: [None])
+    monkeypatch.setattr(tables, "_held_out", lambda scale, cfg: [None])
     monkeypatch.delenv("LLRMPP_NOTEBOOK_ROWS", raising=False)
     scale = dataclasses.replace(ablation.make_scale("smoke", paper_views=4), seeds=3, max_seeds=6, workers=1)
     V, O = ablation.Variant, ablation.Ordering
@@ -420,6 +420,34 @@ def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
             ray_distances.append(distance[depth > 0])
     assert abs(float(np.mean(np.concatenate(logs))) - ablation.PROCEDURAL_DEPTH_BIAS) < 0.15
     assert np.percentile(np.concatenate(ray_distances), 99) < ablation.PROCEDURAL_MAX_DIST
+
+
+def test_rows_are_scored_on_the_ablations_held_out_views(ablation):
+    """A row's held-out samples (``llrmpp train``'s eval_samples of its experiment) are the
+    ablations' own: procedural scenes of seed EVAL_SEED + i in world units, the paper's split
+    at the smoke scale (every 8th frame a target, k-means inputs) and at the cpu scale one
+    draw of the training view sampler from the generator of entropy (7, i) in 8-frame
+    windows, the same for every training seed. The oracle builds them from the scene and
+    the selection functions."""
+    import numpy as np
+    from llrmpp_jax.data import ProceduralConfig, ViewGeometry, eval_views, make_sample, procedural_scene, training_views
+
+    for name in ("smoke", "cpu"):
+        scale = dataclasses.replace(ablation.make_scale(name, paper_views=4, depth=True), eval_scenes=2)
+        samples = ablation.held_out_samples(scale.base, scale)
+        assert len(samples) == 2
+        proc = ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames)
+        for i, s in enumerate(samples):
+            scene = procedural_scene(ablation.EVAL_SEED + i, proc)
+            if name == "smoke":
+                inputs, targets = eval_views(scene.c2w, scale.num_inputs)
+            else:
+                inputs, targets = training_views(np.random.default_rng([7, i]), len(scene), scale.num_inputs,
+                                                 scale.num_targets, 8, 8, input_weight=0.0)
+            want = make_sample(scene, inputs, targets, ViewGeometry(), with_depth=True, rescale=False)
+            assert set(s) == set(want)
+            for k in want:
+                np.testing.assert_array_equal(s[k], want[k], err_msg=f"{name} {k}")
 
 
 def test_summary_lists_every_table_and_ordering(tmp_path, monkeypatch):

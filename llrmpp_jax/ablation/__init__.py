@@ -4,7 +4,9 @@ A notebook lists its table's rows as :class:`Variant` s (row labels, a function 
 turns the scale's base :class:`~llrmpp_jax.config.ModelConfig` into the row's config,
 and the paper's numbers) and the paper's orderings as :class:`Ordering` s, then calls
 :func:`run_table`: every runnable row is trained on procedural scenes with :func:`train`
-once per seed, scored on held-out procedural scenes with :func:`evaluate` and timed with
+once per seed, scored on held-out procedural scenes with :func:`row_scores` (``llrmpp
+train``'s own :func:`llrmpp_jax.evaluate.evaluate` on :func:`held_out_samples`, the
+:func:`llrmpp_jax.experiment_data.eval_samples` of the row's experiment) and timed with
 :func:`time_model`; :func:`references` scores the untrained chosen row and the two
 baselines (mean colour, nearest input view) on the same scenes. :func:`compare` turns the
 per-seed scores into paired differences with 95% intervals and a verdict per ordering,
@@ -69,16 +71,16 @@ from llrmpp_jax.ablation.scales import (
     scale_name,
     smoke_base,
 )
-from llrmpp_jax.ablation.scoring import eval_samples, evaluate, references, time_model
+from llrmpp_jax.ablation.scoring import held_out_experiment, held_out_samples, references, row_scores, time_model
 from llrmpp_jax.ablation.stats import compare, interval, seeds_to_resolve, summarise
 from llrmpp_jax.ablation.tables import SeedRun, TableRun, progress, run_seed, run_table
-from llrmpp_jax.ablation.training import Trained, init_model, row_objective, train
+from llrmpp_jax.ablation.training import Trained, init_model, row_experiment, row_objective, train
 
 __all__ = [
     "CPU_STEPS", "CPU_WORKERS", "Column", "EVAL_SEED", "METRICS", "Ordering", "PROCEDURAL_DEPTH_BIAS",
     "PROCEDURAL_MAX_DIST", "SCALES", "Scale", "SeedRun", "TRAIN_SCENES", "TableRun", "Trained", "Variant",
-    "commit", "compare", "cpu_base", "eval_samples", "evaluate", "format_orderings", "format_table", "init_model",
-    "interval", "machine", "make_scale", "ordering_cells", "plot", "progress", "references", "row_objective",
-    "run_seed", "run_table", "save", "scale_name", "seeds_to_resolve", "selected", "smoke_base", "summarise",
-    "time_model", "train",
+    "commit", "compare", "cpu_base", "format_orderings", "format_table", "held_out_experiment", "held_out_samples",
+    "init_model", "interval", "machine", "make_scale", "ordering_cells", "plot", "progress", "references",
+    "row_experiment", "row_objective", "row_scores", "run_seed", "run_table", "save", "scale_name", "seeds_to_resolve",
+    "selected", "smoke_base", "summarise", "time_model", "train",
 ]

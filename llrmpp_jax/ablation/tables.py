@@ -22,7 +22,7 @@ import numpy as np
 from llrmpp_jax import config as C
 from llrmpp_jax.ablation.rows import Ordering, Variant, selected
 from llrmpp_jax.ablation.scales import Scale
-from llrmpp_jax.ablation.scoring import eval_samples, evaluate, references, time_model
+from llrmpp_jax.ablation.scoring import held_out_samples, references, row_scores, time_model
 from llrmpp_jax.ablation.stats import compare, summarise
 from llrmpp_jax.ablation.training import train
 from llrmpp_jax.metrics import load_lpips_params
@@ -45,9 +45,10 @@ class TableRun:
 
 
 @functools.lru_cache(maxsize=None)
-def _held_out(scale: Scale, depth: bool) -> tuple[dict[str, np.ndarray], ...]:
-    """:func:`eval_samples`, made once per process."""
-    return tuple(eval_samples(scale, depth))
+def _held_out(scale: Scale, cfg: C.ModelConfig) -> tuple[dict[str, np.ndarray], ...]:
+    """:func:`~llrmpp_jax.ablation.scoring.held_out_samples` of a row of ``cfg``, made once
+    per process."""
+    return tuple(held_out_samples(cfg, scale))
 
 
 @functools.lru_cache(maxsize=None)
@@ -59,7 +60,7 @@ def _lpips_params(scale: Scale) -> Any:
 @dataclass
 class SeedRun:
     """One row trained at one seed and scored on the held-out scenes: the
-    :func:`evaluate` ``scores``, the :class:`Trained` ``losses``, ``seconds`` and
+    :func:`~llrmpp_jax.ablation.scoring.row_scores` ``scores``, the :class:`Trained` ``losses``, ``seconds`` and
     ``dropped``, and its ``params`` when asked for (the row's timings use seed 0's)."""
 
     scores: dict[str, float]
@@ -70,9 +71,10 @@ class SeedRun:
 
 
 def run_seed(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int, keep_params: bool = False) -> SeedRun:
-    """:func:`train` ``cfg`` at ``seed`` and :func:`evaluate` it on the held-out scenes."""
+    """:func:`train` ``cfg`` at ``seed`` and score it on the held-out scenes
+    (:func:`~llrmpp_jax.ablation.scoring.row_scores`)."""
     trained = train(cfg, scale, variant, seed)
-    scores = evaluate(trained.params, cfg, scale, _held_out(scale, "depth" in cfg.outputs), _lpips_params(scale))
+    scores = row_scores(trained.params, cfg, _held_out(scale, cfg), _lpips_params(scale))
     return SeedRun(scores, trained.losses, trained.seconds, trained.dropped, trained.params if keep_params else None)
 
 
@@ -184,8 +186,8 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
     without a config are kept with ``status`` saying why. One result dict per row: its
     labels, ``paper`` numbers, ``status``, ``seeds`` (how many it ran), and for run rows
     ``params``, ``decoder_params``, ``decoder_dim`` (None in colour mode), ``train_s`` (per
-    seed, mean), ``final_loss``, ``train_dropped``, the :func:`evaluate` scores summarised
-    over seeds and the :func:`time_model` timings (seed 0's params, timed in this process
+    seed, mean), ``final_loss``, ``train_dropped``, the
+    :func:`~llrmpp_jax.ablation.scoring.row_scores` summarised over seeds and the :func:`time_model` timings (seed 0's params, timed in this process
     after every training has finished, so no worker competes with them).
 
     Every row runs ``scale.seeds`` seeds; seed ``s`` gives every row the same training
@@ -233,7 +235,7 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
                             "status": f"not run: {v.note}"})
             continue
         cfg, per_seed = configs[index], [runs[index][seed] for seed in sorted(runs[index])]
-        samples = _held_out(scale, "depth" in cfg.outputs)
+        samples = _held_out(scale, cfg)
         row = _scores(index, v, per_seed)
         row.update(time_model(per_seed[0].params, cfg, scale, samples[0]),
                    params=count_params(per_seed[0].params),
@@ -250,5 +252,5 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
     refs = []
     if chosen:
         cfg = chosen[0].build(scale.base)
-        refs = references(cfg, scale, _held_out(scale, "depth" in cfg.outputs), _lpips_params(scale))
+        refs = references(cfg, scale, _held_out(scale, cfg), _lpips_params(scale))
     return TableRun(scale, results, refs, curves, time.perf_counter() - t_start, comparisons)
