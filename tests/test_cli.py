@@ -47,6 +47,36 @@ def test_paper_stage_tables():
     assert scannet.model.outputs == ("rgb", "depth")
 
 
+def test_no_function_in_cli_is_over_60_lines():
+    """Each ``llrmpp`` verb is a short command plus a short options function (``llrmpp_jax/cli.py``'s
+    docstring): a function of ``cli.py`` over 60 lines, decorators and docstring included, is a
+    verb that needs splitting."""
+    import ast
+
+    import llrmpp_jax.cli as cli
+
+    with open(cli.__file__) as f:
+        tree = ast.parse(f.read())
+    long = [(node.name, node.lineno, node.end_lineno - min([node.lineno, *(d.lineno for d in node.decorator_list)]) + 1)
+            for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    assert long and not [row for row in long if row[2] > 60], [row for row in long if row[2] > 60]
+
+
+def test_the_parser_s_verbs_are_the_registry_s():
+    """``build_parser`` adds exactly the verbs of ``cli.VERBS``, in their order (``llrmpp --help``'s),
+    each running its registered command, so a new verb is one entry there."""
+    import argparse
+
+    from llrmpp_jax.cli import VERBS, build_parser
+
+    parser = build_parser()
+    verbs, = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert list(verbs.choices) == [v.name for v in VERBS] and len(VERBS) == len({v.name for v in VERBS})
+    assert [c.help for c in verbs._choices_actions] == [v.help for v in VERBS]
+    for verb in VERBS:
+        assert verbs.choices[verb.name].get_default("fn") is verb.command, verb.name
+
+
 def _run_cli(*args) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", *args], capture_output=True, text=True,
                           timeout=300, cwd=ROOT)
