@@ -24,6 +24,7 @@ the chip, and report whether it fits, how long it took to compile and what a ste
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import re
 import time
@@ -32,12 +33,13 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from llrmpp_jax.plan.hlo_cost import Chip, estimate_hlo
-from llrmpp_jax.plan.programs import GROUPS, PROGRAMS, program
+from llrmpp_jax.plan.programs import GROUPS, PROGRAMS, Program, program
 from llrmpp_jax.plan.targets import TARGETS, Target, compile_devices, target
 
-__all__ = ["GROUPS", "PROGRAMS", "TARGETS", "chip_model", "compile_row", "plan", "resolve_programs"]
+__all__ = ["GROUPS", "PROGRAMS", "TARGETS", "Program", "chip_model", "compile_row", "plan", "resolve_programs"]
 
-_NEEDS = re.compile(r"(?:Used|used|requires?|needs?)\s+([0-9.]+)([KMGT])i?B?\b", re.I)
+# libtpu: "... the total memory required for HLO temporaries (20.00G) exceeds available HBM (15.75G)."
+_NEEDS = re.compile(r"\(([0-9.]+)([KMGT])i?B?\)\s*exceeds available HBM\s*\(([0-9.]+)([KMGT])i?B?\)", re.I)
 _UNIT = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
 
@@ -84,31 +86,47 @@ def chip_model(name: str) -> Chip:
     return Chip(t.peak_flops, t.hbm_bytes_per_s, t.ici_bytes_per_s, gather_row_s=rates[0], scatter_row_s=rates[1])
 
 
-def _needs_bytes(message: str) -> float | None:
+@contextlib.contextmanager
+def _as_run():
+    import jax
+
+    with jax.enable_x64(False), jax.numpy_dtype_promotion("standard"):
+        yield
+
+
+def _needs_bytes(message: str) -> tuple[float | None, float | None]:
+    """(bytes the program needs, bytes the chip has) from the compiler's out-of-memory message."""
     m = _NEEDS.search(message)
-    return float(m.group(1)) * _UNIT[m.group(2).upper()] if m else None
+    if not m:
+        return None, None
+    return float(m.group(1)) * _UNIT[m.group(2).upper()], float(m.group(3)) * _UNIT[m.group(4).upper()]
 
 
-def compile_row(prog_name: str, t: Target, flops_cache: dict[str, float | None] | None = None) -> dict:
-    """Compile program ``prog_name`` for target ``t`` and return its row (see the module doc)."""
+def compile_row(prog: Program, t: Target, flops_cache: dict[str, float | None] | None = None) -> dict:
+    """Compile ``prog`` for target ``t`` and return its row (see the module doc);
+    ``flops_cache`` keeps the programs' model FLOPs across targets."""
     import jax
     from jax.sharding import Mesh
 
     from llrmpp_jax.benchmarks.measure import memory_analysis_bytes
 
-    prog = program(prog_name)
-    row: dict = {"program": prog_name, "describe": prog.describe, "target": t.name, "chips": t.chips,
+    row: dict = {"program": prog.name, "describe": prog.describe, "target": t.name, "chips": t.chips,
                  "device_kind": t.device_kind, "hbm_bytes": t.hbm_bytes, "peak_flops": t.peak_flops}
     mesh = Mesh(np.asarray(compile_devices(t)), ("batch",))
     t0 = time.perf_counter()
     try:
-        fn, args = prog.build(mesh, t.platform)
-        compiled = fn.lower(*args).compile()
+        # As the programs run: TPUs have no 64-bit integers (XLA emulates them, loop counters
+        # included), the model's programs are float32/bf16 throughout, and its bf16 programs
+        # mix bf16 parameters with float32 cameras under JAX's standard promotion.
+        with _as_run():
+            fn, args = prog.build(mesh, t.platform)
+            compiled = fn.lower(*args).compile()
     except Exception as e:  # noqa: BLE001 -- the compiler's verdict is the row, not a crash
         message = " ".join(str(e).split())
         row.update(compiled=False, compile_s=time.perf_counter() - t0, error=message[:600])
         if "RESOURCE_EXHAUSTED" in message or "exceeds" in message and "memory" in message.lower():
-            row.update(fits=False, needs_bytes=_needs_bytes(message))
+            need, have = _needs_bytes(message)
+            row.update(fits=False, needs_bytes=need, hbm_available_bytes=have)
         return row
     row["compile_s"] = time.perf_counter() - t0
     mem = memory_analysis_bytes(compiled)
@@ -119,9 +137,10 @@ def compile_row(prog_name: str, t: Target, flops_cache: dict[str, float | None] 
     est = estimate_hlo(compiled.as_text(), chip_model(t.name))
     row["estimate"] = est.to_json()
     cache = {} if flops_cache is None else flops_cache
-    if prog_name not in cache:
-        cache[prog_name] = prog.flops(t.platform) if prog.flops else None
-    flops = cache[prog_name]
+    if prog.name not in cache:
+        with _as_run():
+            cache[prog.name] = prog.flops(t.platform) if prog.flops else None
+    flops = cache[prog.name]
     row["model_flops"] = flops
     if flops:
         row["matmul_limit_s"] = flops / t.peak_flops
@@ -143,7 +162,7 @@ def plan(programs: Sequence[str], targets: Sequence[str], log: Callable[[str], N
     for name in names:
         for t in chips:
             log(f"compiling {name} for {t.name} ...")
-            row = compile_row(name, t, flops)
+            row = compile_row(program(name), t, flops)
             rows.append(row)
             log(summary_line(row))
             if save:
@@ -157,7 +176,8 @@ def summary_line(row: dict) -> str:
     head = f"{row['program']} on {row['target']}: "
     if not row["compiled"]:
         need = row.get("needs_bytes")
-        what = f"does not fit: needs {need / gib:.1f} GiB of {row['hbm_bytes'] / gib:.0f}" if need else \
+        have = row.get("hbm_available_bytes") or row["hbm_bytes"]
+        what = f"does not fit: needs {need / gib:.1f} GiB of {have / gib:.2f}" if need else \
             ("does not fit" if row.get("fits") is False else f"error: {row['error'][:200]}")
         return head + f"{what} (compile {row['compile_s']:.0f} s)"
     est = row["estimate"]
