@@ -13,8 +13,9 @@ calls with ``jax.profiler`` (:func:`llrmpp_jax.profiling.profile_program`): mill
 per call per phase (projection, binning, sort, composite forward and backward, decoder,
 loss, ...) and the top ops. Programs: the refinement objective's value and gradient on
 ``--views-per-step`` input views (what one update computes; Adam's update is negligible),
-and ``render_features`` forward and forward+backward of ``llrmpp_jax.benchmarks.splat``'s
-scene (100k Gaussians, 128x128, F=32). Writes JSON and prints a Markdown table.
+and the splatter's (``splat.rasterize``, rows labelled ``render_features``) forward and
+forward+backward on ``llrmpp_jax.benchmarks.splat``'s scene (100k Gaussians, 128x128, F=32).
+Writes JSON and prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -36,8 +37,8 @@ def refine_step_profile(args) -> dict:
     from llrmpp_jax.capture.render import frame_photos
     from llrmpp_jax.gaussians import Gaussians
     from llrmpp_jax.params_io import load_params
-    from llrmpp_jax.model import fit_splat_capacity
-    from llrmpp_jax.refine import CAPACITY_HEADROOM, RefineConfig, objective, to_unconstrained
+    from llrmpp_jax.model import fit_capacity
+    from llrmpp_jax.refine import RefineConfig, objective, to_unconstrained
 
     saved = load_gs(args.gaussians)
     params, _ = load_params(args.checkpoint, saved.model)
@@ -47,8 +48,8 @@ def refine_step_profile(args) -> dict:
     intr = jnp.asarray(saved.intrinsics[idx][None], jnp.float32)
     g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
     h, w = images.shape[2:4]
-    cfg = fit_splat_capacity(params, saved.model, g, c2w, intr, h, w, headroom=CAPACITY_HEADROOM)
     rc = RefineConfig(views_per_step=args.views_per_step)
+    cfg = fit_capacity(params, saved.model, g, c2w, intr, h, w, headroom=rc.capacity_headroom)
     fn = objective(cfg, rc)
     grad = jax.value_and_grad(fn, has_aux=True)
     prof = profile_program(lambda y, a: grad(y, a), (to_unconstrained(g, cfg), (params, images, c2w, intr, None)),
@@ -60,7 +61,7 @@ def refine_step_profile(args) -> dict:
 
 def splat_profiles(args) -> list[dict]:
     from llrmpp_jax.benchmarks.splat import make_scene
-    from llrmpp_jax.splat import SplatConfig, render_features
+    from llrmpp_jax.splat import SplatConfig, rasterize
 
     n, (wd, ht) = 100_000, (128, 128)
     means, quats, scales, opac, feats, c2w, intr = make_scene(np.random.default_rng(0), n, 32, ht, wd)
@@ -68,7 +69,7 @@ def splat_profiles(args) -> list[dict]:
     cot = jnp.asarray(np.random.default_rng(1).normal(size=(ht, wd, 32)), jnp.float32)
 
     def forward(m, q, s, o, x):
-        return render_features(m, q, s, o, x, c2w, intr, ht, wd, cfg)[:3]
+        return rasterize(m, q, s, o, x, c2w, intr, ht, wd, cfg)[:3]
 
     def loss(m, q, s, o, x):
         f, t, d = forward(m, q, s, o, x)

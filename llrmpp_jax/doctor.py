@@ -7,7 +7,7 @@ or a new backend shows up here as a failed check):
 
 * ``scan``      -- chunked SSD (:func:`ssd_scan`, the batched and the fused forms) vs the
   sequential recurrence, float32.
-* ``splat``     -- tiled splatter (:func:`render_features`) vs the brute-force renderer.
+* ``splat``     -- tiled splatter (:func:`~llrmpp_jax.splat.rasterize`) vs the brute-force renderer.
 * ``attention`` -- blockwise attention vs plain ``jax.nn.dot_product_attention``,
   forward and gradients of q, k, v, with uneven blocks and a mask.
 * ``model``     -- a tiny model's forward (reconstruct + render) is finite.
@@ -73,7 +73,7 @@ def check_scan() -> float:
 
 def check_splat() -> float:
     """Tiled splatter vs the brute-force O(N x pixels) renderer: 300 Gaussians, 48x40 canvas."""
-    from llrmpp_jax.splat import render_features
+    from llrmpp_jax.splat import rasterize
     from llrmpp_jax.splat.reference import render_features_reference
 
     r = np.random.default_rng(1)
@@ -84,7 +84,7 @@ def check_splat() -> float:
         means, r.normal(size=(n, 4)), np.exp(r.uniform(-4.5, -2.5, (n, 3))) * z[:, None],
         r.uniform(0.1, 0.9, n), r.normal(size=(n, 3)), np.eye(4), [w, w, w / 2, h / 2],
     )]
-    got = render_features(*args, h, w)
+    got = rasterize(*args, h, w)
     want = jax.jit(render_features_reference, static_argnums=(7, 8))(*args, h, w)
     return max(_rel(got.features, want[0]), _rel(got.transmittance, want[1]))
 

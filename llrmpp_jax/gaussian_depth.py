@@ -21,7 +21,7 @@ from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.losses import depth_loss
-from llrmpp_jax.splat.render import SplatOutput, expected_depth, render_feature_copies
+from llrmpp_jax.splat import rasterize
 
 
 def splatted_depth(
@@ -34,15 +34,12 @@ def splatted_depth(
 ) -> tuple[Float[Array, "B T H W"], Float[Array, "B T H W"]]:
     """Expected camera z (scene units) and accumulated alpha of the Gaussians at each target
     camera, ``height x width`` pixels (``intrinsics`` given at that size)."""
-    zeros = jnp.zeros(g.means.shape[:-1] + (1,), g.means.dtype)
+    def one(means, quats, scales, opac, cam, k):
+        out = rasterize(means, quats, scales, opac, None, cam, k, height, width, cfg.splat, render_mode="ED")
+        return out.depth, 1.0 - out.transmittance
 
-    def one(means, quats, scales, opac, feat, cam, k):
-        out = render_feature_copies(means, quats, scales, opac[None], feat, cam, k, height, width, cfg.splat)
-        one_copy = SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
-        return expected_depth(one_copy), 1.0 - one_copy.transmittance
-
-    per_target = jax.vmap(one, (None, None, None, None, None, 0, 0))
-    return jax.vmap(per_target)(g.means, g.quats, g.scales, g.opacities, zeros, c2w, intrinsics)
+    per_target = jax.vmap(one, (None, None, None, None, 0, 0))
+    return jax.vmap(per_target)(g.means, g.quats, g.scales, g.opacities, c2w, intrinsics)
 
 
 def gaussian_depth_loss(

@@ -24,21 +24,20 @@ in the normalised scene frame (see ``geometry.normalize_scene``).
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import NamedTuple
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, ArrayLike, Float, Int, KeyArray
+from llrmpp_jax.array_typing import Array, ArrayLike, Float, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.decoder import TargetDecoder, partition_opacities
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
-from llrmpp_jax.splat import count_intersections, expected_depth, fitted_capacity, render_feature_copies, render_sh
+from llrmpp_jax import splat
 
 
 
@@ -108,11 +107,10 @@ class LongLRMPP(nn.Module):
             bg = jnp.asarray(cfg.background, jnp.float32)
 
             def one(g, cam, k):
-                rgb, out = render_sh(g.means, g.quats, g.scales, g.opacities,
-                                     g.features.reshape(g.features.shape[0], -1, 3),
-                                     cam, k, height, width, cfg.splat, bg)
-                depth = expected_depth(out)  # gsplat "ED": accumulated camera z / accumulated alpha
-                return {"rgb": rgb, "depth": depth[..., None]}, out.stats.num_dropped
+                out = splat.rasterize(g.means, g.quats, g.scales, g.opacities,
+                                      g.features.reshape(g.features.shape[0], -1, 3), cam, k, height, width,
+                                      cfg.splat, render_mode="RGB+ED", background=bg)
+                return {"rgb": out.features, "depth": out.depth[..., None]}, out.stats.num_dropped
 
             images, dropped = per_target(one)(gaussians, c2w, intrinsics)
             return RenderOutput({o: images[o] for o in outputs}, jnp.sum(dropped, axis=1))
@@ -124,8 +122,7 @@ class LongLRMPP(nn.Module):
         copies = jax.vmap(partition_opacities)(gaussians.opacities, self.partition(gaussians.features))
 
         def one(g, opac_s, cam, k):  # one scene, one target camera, all S copies
-            out = render_feature_copies(g.means, g.quats, g.scales, opac_s, g.features,
-                                        cam, k / r, hc, wc, cfg.splat)
+            out = splat.rasterize(g.means, g.quats, g.scales, opac_s, g.features, cam, k / r, hc, wc, cfg.splat)
             return out.features, out.stats.num_dropped
 
         canvas, dropped = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, 0, 0))(
@@ -137,20 +134,11 @@ class LongLRMPP(nn.Module):
         images = {k: v.reshape(b, t, height, width, -1) for k, v in images.items()}
         return RenderOutput(images, jnp.sum(dropped, axis=1))
 
-    def splat_intersections(self, gaussians: Gaussians, c2w, intrinsics, height: int, width: int):
-        cfg = self.cfg
-        per_target = lambda f: jax.vmap(jax.vmap(f, (None, None, 0, 0)), (0, 0, 0, 0))  # noqa: E731  over B, T
-        if cfg.head.mode == "color":
-            opac, scale, hc, wc = gaussians.opacities, 1.0, height, width
-        else:
-            r = cfg.decoder.canvas_ratio
-            opac = jax.vmap(partition_opacities)(gaussians.opacities, self.partition(gaussians.features))
-            scale, hc, wc = float(r), height // r, width // r
-
-        def one(g, o, cam, k):
-            return count_intersections(g.means, g.quats, g.scales, cam, k / scale, hc, wc, cfg.splat, o)
-
-        return per_target(one)(gaussians, opac, c2w, intrinsics)
+    def splat_opacities(self, gaussians: Gaussians):
+        """The opacities :meth:`render` splats: ``[B, N]`` (colour) or the S copies ``[B, S, N]``."""
+        if self.cfg.head.mode == "color":
+            return gaussians.opacities
+        return jax.vmap(partition_opacities)(gaussians.opacities, self.partition(gaussians.features))
 
     def __call__(self, images, c2w, intrinsics, target_c2w, target_intrinsics,
                  outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
@@ -196,31 +184,24 @@ def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[Arra
                                 tuple(outputs), method="render")
 
 
-def splat_intersections(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B T 4 4"],
-                        intrinsics: Float[ArrayLike, "B T 4"], height: int, width: int) -> Int[Array, "B T"]:
-    """(Gaussian, compositor block) pairs each render of :func:`render` at these cameras
-    fills: size ``cfg.splat.max_intersections`` by the largest (feature mode counts the
-    canvas and all S partition copies, as the render does)."""
-    return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
-                                method="splat_intersections")
-
-
-def fit_splat_capacity(
-    params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B V 4 4"],
-    intrinsics: Float[ArrayLike, "B V 4"], height: int, width: int, headroom: float = 1.0, minimum: int = 0,
+def fit_capacity(
+    params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B T 4 4"],
+    intrinsics: Float[ArrayLike, "B T 4"], height: int, width: int, *, headroom: float = 1.0, minimum: int = 0,
 ) -> ModelConfig:
-    """``cfg`` with ``splat.max_intersections`` sized for rendering ``gaussians`` at these
-    cameras: ``headroom`` x the most slots any view needs (:func:`splat_intersections`),
-    rounded up by :func:`~llrmpp_jax.splat.render.fitted_capacity`, and at least ``minimum``.
-    Without it a render
-    takes the trace-time buffer of ``intersections_per_gaussian`` slots per Gaussian, which a
-    full-resolution colour render of a capture can overflow, dropping the farthest entries.
-    A config that sets the capacity keeps it."""
+    """``cfg`` with its splat capacity sized for :func:`render` of ``gaussians`` at these
+    ``height x width`` cameras (:func:`llrmpp_jax.splat.fit_capacity` of the splats the render
+    makes: the ``H/r x W/r`` canvases and all S partition copies in feature mode). Without it
+    a render takes the trace-time buffer of ``intersections_per_gaussian`` slots per
+    Gaussian, which a full-resolution colour render of a capture can overflow, dropping the
+    farthest entries. A config that sets the capacity keeps it."""
     if cfg.splat.max_intersections is not None:
         return cfg
-    needed = int(jnp.max(splat_intersections(params, cfg, gaussians, c2w, intrinsics, height, width)))
-    capacity = max(fitted_capacity(math.ceil(headroom * needed)), minimum)
-    return dataclasses.replace(cfg, splat=dataclasses.replace(cfg.splat, max_intersections=capacity))
+    r = cfg.decoder.canvas_ratio if cfg.head.mode == "feature" else 1
+    opacities = LongLRMPP(cfg).apply({"params": params}, gaussians, method="splat_opacities")
+    fitted = splat.fit_capacity(gaussians.means, gaussians.quats, gaussians.scales, opacities, c2w,
+                                jnp.asarray(intrinsics) / float(r), height // r, width // r, cfg.splat,
+                                headroom=headroom, minimum=minimum)
+    return dataclasses.replace(cfg, splat=fitted)
 
 
 def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Float[Array, "... N S"]:

@@ -24,12 +24,11 @@ paper's setting, exactly the full-batch fit). The default, 8, covers the procedu
 scenes' 8 inputs, so their 10-step numbers are the full-batch ones; a 32-input capture
 fits 8 views a step (``docs/results.md``, "Refinement").
 
-Splat buffer. The intersection capacity is fitted to the scene before the first step:
-``1.25x`` the most (Gaussian, block) pairs any input view needs with the starting
-Gaussians (:func:`llrmpp_jax.model.splat_intersections`), rounded by
-:func:`llrmpp_jax.splat.render.fitted_capacity` (Gaussians move and grow during the fit;
-overflow is still counted in ``RefineInfo.dropped``). A config that sets
-``splat.max_intersections`` keeps it.
+Splat buffer. The splat capacity is fitted to the scene before the first step
+(:func:`llrmpp_jax.model.fit_capacity` at the input views with the starting Gaussians, with
+``RefineConfig.capacity_headroom``: Gaussians move and grow during the fit; overflow is
+still counted in ``RefineInfo.dropped``). A config that sets ``splat.max_intersections``
+keeps it.
 
 Solver. ``optimistix.OptaxMinimiser`` around ``optax.multi_transform`` of one Adam per
 field (learning rates in :class:`RefineConfig`), driven through optimistix's iterative
@@ -62,10 +61,8 @@ from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.metrics import psnr
-from llrmpp_jax.model import fit_splat_capacity, render
+from llrmpp_jax.model import fit_capacity, render
 from llrmpp_jax.perceptual import VGGParams
-
-CAPACITY_HEADROOM = 1.25  # splat buffer = this x the starting Gaussians' most-needed slots
 
 
 @dataclass(frozen=True)
@@ -94,6 +91,7 @@ class RefineConfig:
     rate_scale: float | None = None  # every rate times this; None: rate_scale_for(steps)
     perceptual_weight: float = 0.0  # the paper trains with 0.5 (needs VGG params)
     views_per_step: int = 8  # input views fitted per update (a random subset; all when >= V)
+    capacity_headroom: float = 1.25  # splat capacity: this x the starting Gaussians' most-needed slots
     rtol: float = 0.0
     atol: float = 0.0
 
@@ -277,7 +275,7 @@ def refine(
     h, w = int(images.shape[2]), int(images.shape[3])
     args = (params, jnp.asarray(images), jnp.asarray(c2w), jnp.asarray(intrinsics), vgg_params)
     gaussians = jax.tree.map(jnp.asarray, gaussians)
-    cfg = fit_splat_capacity(params, cfg, gaussians, args[2], args[3], h, w, headroom=CAPACITY_HEADROOM)
+    cfg = fit_capacity(params, cfg, gaussians, args[2], args[3], h, w, headroom=rc.capacity_headroom)
     # Fresh buffers: the step donates y, which must not alias the caller's arrays.
     y = jax.tree.map(jnp.array, to_unconstrained(gaussians, cfg))
     state = _init(y, args, cfg, rc)

@@ -20,7 +20,7 @@ from llrmpp_jax.nn import remat_loops
 from llrmpp_jax.nn.backbone import count_params
 from llrmpp_jax.nn.remat_loops import remat_blocks
 from llrmpp_jax.perceptual import load_vgg16_lpips
-from llrmpp_jax.splat import render_features
+from llrmpp_jax.splat import rasterize
 from tests.helpers.environment import GOLDEN, shared_path
 from tests.helpers.golden import golden_colour_scene, golden_model_config
 from tests.helpers.scenes import orbit_scene
@@ -110,8 +110,8 @@ def test_single_partition_equals_no_partition(key):
     g = reconstruct(params, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
     got = render(params, cfg, g, c2w[:, 2:], intr[:, 2:], 32, 48).images["rgb"]
 
-    canvas = render_features(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.features[0],
-                             c2w[0, 2], intr[0, 2] / 2, 16, 24, cfg.splat).features
+    canvas = rasterize(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.features[0],
+                       c2w[0, 2], intr[0, 2] / 2, 16, 24, cfg.splat).features
     rays = plucker(*pixel_rays(c2w[0, 2], intr[0, 2] / 2, 16, 24))
     x = jnp.concatenate([canvas, rays], axis=-1)[None, None]
     want = TargetDecoder(cfg.decoder).apply({"params": params["decoder"]}, x)["rgb"]

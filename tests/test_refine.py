@@ -123,16 +123,19 @@ def test_a_step_fits_the_views_its_key_draws(rng, views):
 
 
 def test_refine_sizes_the_splat_buffer_from_the_scene(rng):
-    """The capacity is fitted_capacity(ceil(1.25 x the most pairs any input view needs)),
-    counted independently here view by view with count_intersections."""
-    from llrmpp_jax.splat import count_intersections, fitted_capacity
+    """The capacity is ceil(1.25 x the most pairs any input view needs) rounded up to the
+    next m 2^e (m in 8..15), the pairs counted here view by view by the binning of a render
+    (``stats.num_intersections``)."""
+    from llrmpp_jax.splat import rasterize
 
     g, c2w, intr = known_scene(rng, n=80, views=3)
     images = jnp.asarray(rng.uniform(0.1, 0.9, (1, 3, H, W, 3)), jnp.float32)
     _, info = refine({}, COLOUR, g, images, c2w, intr, steps=1)
-    most = max(int(count_intersections(g.means[0], g.quats[0], g.scales[0], c2w[0, v], intr[0, v], H, W,
-                                       COLOUR.splat, g.opacities[0])) for v in range(3))
-    assert info.capacity == fitted_capacity(int(np.ceil(1.25 * most))) and info.dropped == 0
+    most = max(int(rasterize(g.means[0], g.quats[0], g.scales[0], g.opacities[0], None, c2w[0, v], intr[0, v], H, W,
+                             COLOUR.splat, render_mode="D").stats.num_intersections) for v in range(3))
+    want = int(np.ceil(1.25 * most))
+    sizes = sorted({m << e for m in range(8, 16) for e in range(24)})
+    assert info.capacity == min(x for x in sizes if x >= want) and info.dropped == 0
     assert info.compile_s > 0 and info.step_s > 0
 
 

@@ -1,6 +1,6 @@
 """Benchmark of the feature splatter: forward and forward+backward time and memory.
 
-Sweeps N Gaussians x canvases (W x H) at F features, times ``render_features`` (jitted,
+Sweeps N Gaussians x canvases (W x H) at F features, times ``splat.rasterize`` (jitted,
 warm, best of ``--repeats``) and ``value_and_grad`` of a random linear function of its
 outputs w.r.t. means, quats, scales, opacities and features, and the brute-force
 ``render_features_reference`` (forward; fwd+bwd too when its scan residuals fit
@@ -19,9 +19,8 @@ random rotations and features. So the work (intersections x 256 pixels) grows wi
 with the pixel count.
 
 Capacity: ``--capacity default`` uses ``SplatConfig``'s trace-time buffer (8 slots per
-Gaussian), ``fitted`` sizes it from the scene as the eager entry points and ``refine`` do
-(:func:`llrmpp_jax.splat.render.fitted_capacity` of the exact count); ``both`` (the
-default) times the two.
+Gaussian), ``fitted`` sizes it from the scene as eager renders and ``refine`` do
+(:func:`llrmpp_jax.splat.fit_capacity`); ``both`` (the default) times the two.
 
 ``--rounds R`` runs the sweep R times and keeps each row's median over the rounds (every
 round's time under ``fwd_s_rounds`` / ``fwd_bwd_s_rounds``): a shared machine's timings drift
@@ -36,7 +35,6 @@ Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -46,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.splat import SplatConfig, count_intersections, fitted_capacity, render_features
+from llrmpp_jax.splat import SplatConfig, fit_capacity, rasterize
 from llrmpp_jax.splat.reference import render_features_reference
 
 
@@ -98,12 +96,11 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
     rng = np.random.default_rng(seed)
     means, quats, scales, opac, feats, c2w, intr = make_scene(rng, n, f, height, width)
     if fitted:
-        needed = int(count_intersections(means, quats, scales, c2w, intr, height, width, cfg, opacities=opac))
-        cfg = dataclasses.replace(cfg, max_intersections=fitted_capacity(needed))
+        cfg = fit_capacity(means, quats, scales, opac, c2w, intr, height, width, cfg)
     cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((height, width, f), (height, width), (height, width))]
 
     def forward(m, q, s, o, x):
-        return render_features(m, q, s, o, x, c2w, intr, height, width, cfg)
+        return rasterize(m, q, s, o, x, c2w, intr, height, width, cfg)
 
     def loss(m, q, s, o, x):
         out = forward(m, q, s, o, x)

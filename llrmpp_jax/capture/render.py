@@ -33,8 +33,8 @@ from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
-from llrmpp_jax.model import fit_splat_capacity, render
-from llrmpp_jax.splat import expected_depth, render_features
+from llrmpp_jax.model import fit_capacity, render
+from llrmpp_jax.splat import rasterize
 
 PATHS = ("targets", "inputs", "spline", "orbit")
 
@@ -122,9 +122,8 @@ def _render_rgb(params, cfg: ModelConfig, g: Gaussians, c2w, k, height: int, wid
 
 @functools.partial(jax.jit, static_argnames=("cfg", "height", "width"))
 def _render_depth(g: Gaussians, cfg: ModelConfig, c2w, k, height: int, width: int):
-    ones = jnp.ones((g.means.shape[0], 1), g.means.dtype)
-    out = render_features(g.means, g.quats, g.scales, g.opacities, ones, c2w, k, height, width, cfg.splat)
-    return expected_depth(out)
+    return rasterize(g.means, g.quats, g.scales, g.opacities, None, c2w, k, height, width, cfg.splat,
+                     render_mode="ED").depth
 
 
 def render_views(
@@ -139,12 +138,12 @@ def render_views(
 ) -> RenderedViews:
     """Render ``saved``'s Gaussians at each camera (normalised frame, the view size of
     ``saved``), one jitted view at a time with a progress bar. The splat buffer is sized for
-    the most any of these views needs (:func:`~llrmpp_jax.model.fit_splat_capacity`), so no
+    the most any of these views needs (:func:`~llrmpp_jax.model.fit_capacity`), so no
     entry is dropped."""
     h, w = saved.image_hw
     g = Gaussians(*(jnp.asarray(x) for x in saved.gaussians))
-    cfg = fit_splat_capacity(params, saved.model, jax.tree.map(lambda x: x[None], g),
-                             jnp.asarray(c2w, jnp.float32)[None], jnp.asarray(intrinsics, jnp.float32)[None], h, w)
+    cfg = fit_capacity(params, saved.model, jax.tree.map(lambda x: x[None], g),
+                       jnp.asarray(c2w, jnp.float32)[None], jnp.asarray(intrinsics, jnp.float32)[None], h, w)
     rgb, dep = [], []
     for i in tqdm(range(len(c2w)), desc="render", disable=not progress, dynamic_ncols=True):
         cam = jnp.asarray(c2w[i], jnp.float32), jnp.asarray(intrinsics[i], jnp.float32)

@@ -23,18 +23,19 @@ JAX needs it as a static shape, so it is a capacity:
 
 * ``max_intersections`` (an int) fixes the buffer size; ``None`` derives it at trace time
   as ``ceil(intersections_per_gaussian * N)`` (at least one slot per block, at most
-  ``N * blocks``, which can never overflow). Called outside ``jit`` with concrete arrays,
-  the render entry points size it from the scene itself instead
-  (:func:`llrmpp_jax.splat.render.fitted_capacity`).
+  ``N * blocks``, which can never overflow): :meth:`SplatConfig.capacity`. Called
+  outside ``jit`` with concrete arrays, :func:`~llrmpp_jax.splat.rasterize` sizes it from
+  the scene itself instead (:func:`~llrmpp_jax.splat.fit_capacity`).
 * A Gaussian of screen footprint sigma (pixels) touches about ``(1 + 6 sigma / 8)^2``
   blocks. Long-LRM++ at its paper config predicts ~4.2M Gaussians whose footprint is about
   one canvas pixel (16 Gaussians per 8x8-pixel token rendered at half resolution), i.e.
   2-4 blocks each, and not all of them are in a target's frustum. The default of
   8 slots per Gaussian leaves a 2x margin there (tested at that density in
   ``tests/splat/test_binning.py``); colour mode (one Gaussian per pixel) is similar.
-* Measure a real model with :func:`llrmpp_jax.splat.count_intersections` on a few
-  scenes and set ``max_intersections`` to ~1.25x the largest count; every render also
-  reports ``stats.num_intersections`` and ``stats.overflow``. Memory is about 12 bytes
+* :func:`llrmpp_jax.splat.fit_capacity` sets ``max_intersections`` from the cameras a
+  scene will be rendered at (with a ``headroom`` factor for Gaussians that still move, as
+  in refinement); :func:`llrmpp_jax.model.fit_capacity` does it for a model's render.
+  Every render also reports ``stats.num_intersections`` and ``stats.overflow``. Memory is about 12 bytes
   per slot plus the sort's scratch, per rendered camera.
 * On overflow the buffer keeps the intersections of the nearest Gaussians (entries are
   emitted in depth order) and drops the farthest ones; ``stats.overflow`` is set and

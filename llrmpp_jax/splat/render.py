@@ -1,10 +1,12 @@
-"""Public entry points: render feature Gaussians (or SH colour Gaussians) for one camera.
+"""The splatter's entry point: :func:`rasterize` renders Gaussians for one camera in one of
+gsplat's render modes (features, SH colour, depth, expected depth), and :func:`fit_capacity`
+sizes its intersection buffer from the cameras.
 
-``render_features`` = projection -> tile binning -> front-to-back composite, jitted with
-``height``, ``width`` and ``cfg`` static. Everything is ``jax.vmap``-able (over cameras,
-over scenes); ``render_feature_copies`` renders S opacity copies of the same Gaussians
+``rasterize`` = projection -> tile binning -> front-to-back composite, jitted with
+``height``, ``width``, ``cfg`` and the mode static. Everything is ``jax.vmap``-able (over
+cameras, over scenes); ``[S, N]`` opacities render S opacity copies of the same Gaussians
 (Long-LRM++'s multi-space partition) sharing one projection and one binning, which is
-cheaper than vmapping ``render_features`` over the copies.
+cheaper than vmapping over the copies.
 
 Bad input:
 
@@ -22,6 +24,7 @@ Bad input:
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import NamedTuple
 
 import jax
@@ -51,11 +54,11 @@ class SplatStats(NamedTuple):
 
 
 class SplatOutput(NamedTuple):
-    """A rendered canvas. Compose a background b as ``features + transmittance[..., None] * b``."""
+    """A rendered canvas (:func:`rasterize`; a leading S axis with ``[S, N]`` opacities)."""
 
-    features: Float[Array, "H W F"]  # sum_i w_i f_i, no background
+    features: Float[Array, "H W C"]  # sum_i w_i f_i (+ transmittance * background if one was given)
     transmittance: Float[Array, "H W"]  # final T = prod_i (1 - alpha_i); alpha = 1 - T
-    depth: Float[Array, "H W"]  # sum_i w_i z_i, camera z, unnormalised (divide by 1 - T)
+    depth: Float[Array, "H W"]  # camera z: sum_i w_i z_i, or over alpha in the "ED" modes
     stats: SplatStats
 
 
@@ -64,13 +67,12 @@ class SplatOutput(NamedTuple):
 EXPECTED_DEPTH_MIN_ALPHA = 1e-10
 
 
-def expected_depth(out: SplatOutput) -> Float[Array, "*batch H W"]:
-    """gsplat's "ED" render mode: accumulated camera z over accumulated alpha
-    (``out.depth / (1 - out.transmittance)``), 0 where nothing was drawn. The one
-    definition used by the model's depth, the depth loss, ``llrmpp render --depth`` and
-    the viewer."""
-    alpha = 1.0 - out.transmittance
-    return jnp.where(alpha > 0, out.depth / jnp.maximum(alpha, EXPECTED_DEPTH_MIN_ALPHA), 0.0)
+def _expected_depth(depth: Float[Array, "*batch H W"], transmittance: Float[Array, "*batch H W"]
+                    ) -> Float[Array, "*batch H W"]:
+    """gsplat's "ED": accumulated camera z over accumulated alpha (``1 - transmittance``),
+    0 where nothing was drawn."""
+    alpha = 1.0 - transmittance
+    return jnp.where(alpha > 0, depth / jnp.maximum(alpha, EXPECTED_DEPTH_MIN_ALPHA), 0.0)
 
 
 def _compute_dtype(means: ArrayLike) -> jnp.dtype:
@@ -191,200 +193,208 @@ def _render_copies(
     return SplatOutput(canvas[..., :f], trans, canvas[..., f], stats)
 
 
-_render_copies_jit = jax.jit(_render_copies, static_argnames=("height", "width", "cfg"))
+RENDER_MODES = ("F", "F+ED", "RGB", "RGB+ED", "D", "ED")
 
 
-def render_feature_copies(
+def _check_inputs(
+    means, quats, scales, opacities, features, c2w, intrinsics, height, width, background, render_mode, sh_degree
+) -> int | None:
+    """The entry point's checks: ``ValueError`` naming the bad argument. Returns the SH
+    degree of an "RGB" mode (None otherwise)."""
+    if render_mode not in RENDER_MODES:
+        raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    colour = render_mode.split("+")[0]
+    opac_shape = ("N",) if len(_shape(opacities, "opacities")) == 1 else ("*", "N")
+    per_gaussian = dict(means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
+                        opacities=(opacities, opac_shape))
+    degree = None
+    if colour in ("D", "ED"):
+        if features is not None or background is not None:
+            raise ValueError(f"render_mode {render_mode!r} renders depth only: pass features=None, background=None")
+    elif features is None:
+        raise ValueError(f"render_mode {render_mode!r} needs features; depth alone is render_mode 'D' or 'ED'")
+    elif colour == "F":
+        per_gaussian["features"] = (features, ("N", "*"))
+    else:
+        m = _shape(features, "features")
+        if len(m) != 3 or m[2] != 3:
+            raise ValueError(f"features must have shape (N, sh, 3) (SH coefficients) in render_mode "
+                             f"{render_mode!r}, got {m}")
+        degree = round(m[1] ** 0.5) - 1 if sh_degree is None else sh_degree
+        if not 0 <= degree <= MAX_DEGREE or num_sh_bases(degree) > m[1]:
+            raise ValueError(
+                f"sh_degree {degree} (0..{MAX_DEGREE}) needs {num_sh_bases(degree)} coefficients; "
+                f"features has shape {m}"
+            )
+        if sh_degree is None and num_sh_bases(degree) != m[1]:
+            raise ValueError(f"features has sh={m[1]} coefficients, not a square; pass sh_degree")
+        per_gaussian["features"] = (features, ("N", "*", 3))
+    if colour != "RGB" and sh_degree is not None:
+        raise ValueError(f"sh_degree is for the 'RGB' render modes, got render_mode {render_mode!r}")
+    if background is not None:
+        channels = 3 if colour == "RGB" else _shape(features, "features")[-1]
+        if _shape(background, "background") != (channels,):
+            raise ValueError(f"background must have shape ({channels},), got {_shape(background, 'background')}")
+    _check_shapes(height, width, c2w, intrinsics, **per_gaussian)
+    _check_values(c2w, intrinsics, **{name: x for name, (x, _) in per_gaussian.items()})
+    return degree
+
+
+def rasterize(
     means: Float[ArrayLike, "N 3"],
     quats: Float[ArrayLike, "N 4"],
     scales: Float[ArrayLike, "N 3"],
-    opacities: Float[ArrayLike, "S N"],
-    features: Float[ArrayLike, "N F"],
+    opacities: Float[ArrayLike, "N"] | Float[ArrayLike, "S N"],
+    features: Float[ArrayLike, "N F"] | Float[ArrayLike, "N sh 3"] | None,
     c2w: Float[ArrayLike, "4 4"],
     intrinsics: Float[ArrayLike, "4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
+    *,
+    render_mode: str = "F",
+    background: Float[ArrayLike, "C"] | None = None,
+    sh_degree: int | None = None,
 ) -> SplatOutput:
-    """Render S copies of the same Gaussians that differ only in opacity.
-
-    Returns features ``[S, H, W, F]``, transmittance and depth ``[S, H, W]``; ``stats``
-    (one projection and binning for all copies) has no S axis. A Gaussian whose opacity is
-    non-finite in any copy is dropped from all copies (under jit).
-    """
-    _check_shapes(
-        height, width, c2w, intrinsics,
-        means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
-        opacities=(opacities, ("*", "N")), features=(features, ("N", "*")),
-    )
-    _check_values(c2w, intrinsics, means=means, quats=quats, scales=scales, opacities=opacities, features=features)
-    cfg = _fit_capacity(cfg, means, quats, scales, opacities, c2w, intrinsics, height, width)
-    return _render_copies_jit(means, quats, scales, opacities, features, c2w, intrinsics, height, width, cfg)
-
-
-def render_features(
-    means: Float[ArrayLike, "N 3"],
-    quats: Float[ArrayLike, "N 4"],
-    scales: Float[ArrayLike, "N 3"],
-    opacities: Float[ArrayLike, "N"],
-    features: Float[ArrayLike, "N F"],
-    c2w: Float[ArrayLike, "4 4"],
-    intrinsics: Float[ArrayLike, "4"],
-    height: int,
-    width: int,
-    cfg: SplatConfig = SplatConfig(),
-) -> SplatOutput:
-    """Render N feature Gaussians to an ``[height, width, F]`` canvas for one camera.
+    """Render N Gaussians for one camera (gsplat's ``rasterization`` with its render modes).
 
     ``means`` world positions, ``quats`` (w, x, y, z) (normalised inside), ``scales``
-    linear (not log), ``opacities`` in [0, 1], ``features`` any width F; ``c2w`` OpenCV
-    camera-to-world, ``intrinsics`` (fx, fy, cx, cy) in pixels of this canvas. Computes in
-    float32 (float64 if ``means`` is float64). Differentiable w.r.t. means, quats, scales,
-    opacities and features.
+    linear (not log), ``opacities`` in [0, 1]; ``c2w`` OpenCV camera-to-world,
+    ``intrinsics`` (fx, fy, cx, cy) in pixels of the ``height x width`` canvas.
+    ``render_mode`` says what ``features`` holds and what comes out:
+
+    * ``"F"``: ``features [N, F]`` (any width F); ``out.features [H, W, F]`` = ``sum_i w_i f_i``.
+    * ``"RGB"``: ``features [N, sh, 3]`` SH coefficients (Long-LRM's colour mode; degree
+      ``sh_degree``, default ``sqrt(sh) - 1``, extra coefficients ignored); each Gaussian's
+      colour is ``max(SH(mean - camera centre) + 0.5, 0)`` (gsplat) and
+      ``out.features [H, W, 3]`` their composite.
+    * ``"D"``: ``features=None``, depth only (``out.features`` has 0 channels).
+    * ``"ED"`` or a ``"+ED"`` suffix: ``out.depth`` is the expected camera z
+      ``sum_i w_i z_i / (1 - T)`` (0 where nothing was drawn) instead of the accumulated
+      ``sum_i w_i z_i``.
+
+    ``background`` (``[F]`` or ``[3]``; "F" and "RGB" modes) is composited under the
+    canvas: ``features + transmittance * background``; None adds none. ``opacities`` of
+    shape ``[S, N]`` render S copies of the Gaussians that differ only in opacity
+    (Long-LRM++'s partition copies), sharing one projection and one binning: every output
+    but ``stats`` then has a leading S axis, and a Gaussian whose opacity is non-finite in
+    any copy is dropped from all (under jit).
+
+    Computes in float32 (float64 if ``means`` is float64). Differentiable w.r.t. means,
+    quats, scales, opacities and features; ``jax.vmap``-able over cameras and scenes.
+    Called outside ``jit`` with ``cfg.max_intersections`` unset, the buffer is sized from
+    this scene (:func:`fit_capacity`).
     """
-    _check_shapes(
-        height, width, c2w, intrinsics,
-        means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
-        opacities=(opacities, ("N",)), features=(features, ("N", "*")),
-    )
-    _check_values(c2w, intrinsics, means=means, quats=quats, scales=scales, opacities=opacities, features=features)
-    cfg = _fit_capacity(cfg, means, quats, scales, opacities, c2w, intrinsics, height, width)
-    out = _render_copies_jit(
-        means, quats, scales, opacities[None, :], features, c2w, intrinsics, height, width, cfg
-    )
-    return SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
+    degree = _check_inputs(means, quats, scales, opacities, features, c2w, intrinsics, height, width, background,
+                           render_mode, sh_degree)
+    if not any(isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)):
+        cfg = fit_capacity(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
+    return _rasterize_jit(means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg,
+                          render_mode, degree)
 
 
-def render_sh(
-    means: Float[ArrayLike, "N 3"],
-    quats: Float[ArrayLike, "N 4"],
-    scales: Float[ArrayLike, "N 3"],
-    opacities: Float[ArrayLike, "N"],
-    sh_coeffs: Float[ArrayLike, "N sh 3"],
-    c2w: Float[ArrayLike, "4 4"],
-    intrinsics: Float[ArrayLike, "4"],
-    height: int,
-    width: int,
-    cfg: SplatConfig = SplatConfig(),
-    background: Float[ArrayLike, "3"] | None = None,
-    *,
-    sh_degree: int | None = None,
-) -> tuple[Float[Array, "H W 3"], SplatOutput]:
-    """Long-LRM colour mode: SH colours seen from the camera, splatted over a background.
-
-    Colour of a Gaussian = ``max(SH(mean - camera centre) + 0.5, 0)`` (gsplat);
-    ``rgb = features + transmittance * background`` (default white). ``sh_degree``
-    defaults to ``sqrt(sh) - 1``; with fewer, the extra coefficients are ignored.
-    Returns ``(rgb [H, W, 3], output)`` where ``output.features`` has no background.
-    """
-    m = _shape(sh_coeffs, "sh_coeffs")
-    if len(m) != 3 or m[2] != 3:
-        raise ValueError(f"sh_coeffs must have shape (N, sh, 3), got {m}")
-    degree = round(m[1] ** 0.5) - 1 if sh_degree is None else sh_degree
-    if not 0 <= degree <= MAX_DEGREE or num_sh_bases(degree) > m[1]:
-        raise ValueError(
-            f"sh_degree {degree} (0..{MAX_DEGREE}) needs {num_sh_bases(degree)} coefficients; "
-            f"sh_coeffs has shape {m}"
-        )
-    if sh_degree is None and num_sh_bases(degree) != m[1]:
-        raise ValueError(f"sh_coeffs has sh={m[1]} coefficients, not a square; pass sh_degree")
-    background = jnp.ones((3,), jnp.float32) if background is None else background
-    if _shape(background, "background") != (3,):
-        raise ValueError(f"background must have shape (3,), got {_shape(background, 'background')}")
-    _check_shapes(
-        height, width, c2w, intrinsics,
-        means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
-        opacities=(opacities, ("N",)), sh_coeffs=(sh_coeffs, ("N", "*", 3)),
-    )
-    _check_values(c2w, intrinsics, means=means, quats=quats, scales=scales, opacities=opacities, sh_coeffs=sh_coeffs)
-    cfg = _fit_capacity(cfg, means, quats, scales, opacities, c2w, intrinsics, height, width)
-    return _render_sh_jit(
-        means, quats, scales, opacities, sh_coeffs, c2w, intrinsics, background, height, width, cfg, degree
-    )
-
-
-def _render_sh(means, quats, scales, opacities, sh_coeffs, c2w, intrinsics, background, height, width, cfg, degree):
+def _rasterize(means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, mode,
+               degree):
     dtype = _compute_dtype(means)
-    # Sanitise before evaluating SH so a bad Gaussian cannot put NaN into gradients; the
-    # renderer then drops it (keep=False) and counts it as non-finite.
-    coeff_ok = jnp.all(jnp.isfinite(sh_coeffs), axis=(1, 2))
-    coeffs = jnp.where(coeff_ok[:, None, None], sh_coeffs.astype(dtype), 0.0)
-    safe_means = jnp.where(jnp.isfinite(means), means, 0.0).astype(dtype)
-    colors = sh_colors(safe_means, coeffs, c2w.astype(dtype), degree)
-    out = _render_copies(
-        means, quats, scales, opacities[None, :], colors, c2w, intrinsics, height, width, cfg,
-        keep=coeff_ok,
-    )
-    out = SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
-    rgb = out.features + out.transmittance[:, :, None] * background.astype(dtype)[None, None, :]
-    return rgb, out
+    copies = opacities.ndim == 2
+    keep = None
+    if degree is not None:
+        # Sanitise before evaluating SH so a bad Gaussian cannot put NaN into gradients; the
+        # renderer then drops it (keep=False) and counts it as non-finite.
+        keep = jnp.all(jnp.isfinite(features), axis=(1, 2))
+        coeffs = jnp.where(keep[:, None, None], features.astype(dtype), 0.0)
+        safe_means = jnp.where(jnp.isfinite(means), means, 0.0).astype(dtype)
+        features = sh_colors(safe_means, coeffs, c2w.astype(dtype), degree)
+    elif features is None:
+        features = jnp.zeros((means.shape[0], 0), dtype)
+    out = _render_copies(means, quats, scales, opacities if copies else opacities[None, :], features, c2w, intrinsics,
+                         height, width, cfg, keep=keep)
+    if not copies:
+        out = SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
+    canvas, depth = out.features, out.depth
+    if background is not None:
+        under = background.astype(dtype).reshape((1,) * (canvas.ndim - 1) + (-1,))
+        canvas = canvas + out.transmittance[..., None] * under
+    if mode.endswith("ED"):
+        depth = _expected_depth(depth, out.transmittance)
+    return SplatOutput(canvas, out.transmittance, depth, out.stats)
 
 
-_render_sh_jit = jax.jit(_render_sh, static_argnames=("height", "width", "cfg", "degree"))
+_rasterize_jit = jax.jit(_rasterize, static_argnames=("height", "width", "cfg", "mode", "degree"))
 
 
-def count_intersections(
-    means: Float[ArrayLike, "N 3"],
-    quats: Float[ArrayLike, "N 4"],
-    scales: Float[ArrayLike, "N 3"],
-    c2w: Float[ArrayLike, "4 4"],
-    intrinsics: Float[ArrayLike, "4"],
+def fit_capacity(
+    means: Float[ArrayLike, "*B N 3"],
+    quats: Float[ArrayLike, "*B N 4"],
+    scales: Float[ArrayLike, "*B N 3"],
+    opacities: Float[ArrayLike, "*B N"] | Float[ArrayLike, "*B S N"],
+    c2w: Float[ArrayLike, "... 4 4"],
+    intrinsics: Float[ArrayLike, "... 4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
-    opacities: Float[ArrayLike, "N"] | Float[ArrayLike, "S N"] | None = None,
-) -> Int[Array, ""]:
-    """(Gaussian, compositor block) pairs a render of this scene needs: size
-    ``max_intersections`` by it.
+    *,
+    headroom: float = 1.0,
+    minimum: int = 0,
+) -> SplatConfig:
+    """``cfg`` with its capacity (``max_intersections``) sized for rendering these Gaussians
+    at these cameras on ``height x width`` canvases.
 
-    With ``opacities`` (``[N]``, or ``[S, N]`` for the copies of
-    :func:`render_feature_copies`) the exact number a render fills; without, an upper bound
-    that also counts the blocks where a Gaussian is too faint to be drawn
-    (:func:`~llrmpp_jax.splat.binning.screen_extents`). Saturates at 2**30 - 1. Cheap
-    (projection only, no sort, no composite).
+    The capacity is ``headroom`` x the most (Gaussian, compositor block) slots any camera's
+    render fills (the exact count, opacity-trimmed as the render bins; with ``[S, N]``
+    copies, of the most opaque copy), rounded up to the next size of the form ``m 2^e``
+    with ``m`` in 8..15 (wastes under 1/8; similar scenes share one compiled program), and
+    at least ``minimum``. One scene (``means [N, 3]``, cameras ``[T, 4, 4]`` / ``[T, 4]``
+    or a single ``[4, 4]`` / ``[4]``) or B (a leading B axis on all). A ``cfg`` that sets
+    the capacity keeps it. Eager (returns a static config); the count is a projection per
+    camera, no sort and no composite.
     """
-    _check_shapes(
-        height, width, c2w, intrinsics,
-        means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
-    )
-    if opacities is not None:
-        opacities = jnp.asarray(opacities)
-        opacities = jnp.max(opacities.reshape(-1, opacities.shape[-1]), axis=0)
-    return _count_jit(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
+    if cfg.max_intersections is not None:
+        return cfg
+    means = jnp.asarray(means)
+    lead = means.ndim - 2  # 0: one scene, 1: B scenes
+    arrays = [jnp.asarray(x) for x in (means, quats, scales, opacities)]
+    scenes = [x if lead else x[None] for x in arrays]
+    cams = [jnp.asarray(x) for x in (c2w, intrinsics)]
+    b = scenes[0].shape[0]
+    cams = [x.reshape(b, -1, *x.shape[x.ndim - tail:]) for x, tail in zip(cams, (2, 1))]
+    def one(x, lead):  # a zero-size-in-memory stand-in of one scene's / camera's array
+        return np.broadcast_to(np.zeros((), x.dtype), x.shape[lead:])
+
+    _check_shapes(height, width, one(cams[0], 2), one(cams[1], 2),
+                  **{name: (one(x, 1), shape) for name, x, shape in zip(
+                      ("means", "quats", "scales", "opacities"), scenes,
+                      (("N", 3), ("N", 4), ("N", 3), ("N",) if scenes[3].ndim == 2 else ("*", "N")))})
+    needed = int(jnp.max(_count_jit(*scenes, *cams, height, width, cfg)))
+    return dataclasses.replace(cfg, max_intersections=max(_round_capacity(math.ceil(headroom * needed)), minimum))
 
 
 def _count(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg):
+    """Slots one scene's render fills at one camera (saturating at 2**30 - 1)."""
     dtype = _compute_dtype(means)
     means, quats, scales, c2w, intrinsics = (
         jnp.asarray(x).astype(dtype) for x in (means, quats, scales, c2w, intrinsics)
     )
-    keep = None
-    if opacities is not None:
-        keep = jnp.isfinite(opacities)
-        opacities = jnp.where(keep, opacities, 0.0).astype(dtype)
+    opacities = jnp.max(opacities.reshape(-1, opacities.shape[-1]), axis=0)  # the most opaque copy
+    keep = jnp.isfinite(opacities)
+    opacities = jnp.where(keep, opacities, 0.0).astype(dtype)
     proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=keep)
     counts = intersection_counts(proj, height, width, cfg, opacities)
     return lax.reduce(counts, jnp.int32(0), lambda a, b: jnp.minimum(a + b, SATURATION), (0,))
 
 
-_count_jit = jax.jit(_count, static_argnames=("height", "width", "cfg"))
+def _count_views(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg):
+    """``[B, T]`` slots of B scenes at each of their T cameras."""
+    per_camera = jax.vmap(_count, (None, None, None, None, 0, 0, None, None, None))
+    return jax.vmap(per_camera, (0, 0, 0, 0, 0, 0, None, None, None))(
+        means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
 
 
-def fitted_capacity(needed: int) -> int:
-    """Buffer size for a scene that needs ``needed`` slots: the next size of the form
-    ``m 2^e`` with ``m`` in 8..15, so it wastes under 1/8 and renders of similar scenes share
-    one compiled program."""
+_count_jit = jax.jit(_count_views, static_argnames=("height", "width", "cfg"))
+
+
+def _round_capacity(needed: int) -> int:
+    """The next size ``>= needed`` of the form ``m 2^e`` with ``m`` in 8..15 (any size below 8)."""
     needed = max(int(needed), 1)
     e = max(needed.bit_length() - 4, 0)
     return min(-(-needed // (1 << e)) << e, SATURATION)
-
-
-def _fit_capacity(cfg: SplatConfig, means, quats, scales, opacities, c2w, intrinsics, height, width) -> SplatConfig:
-    """``cfg`` with ``max_intersections`` fitted to this scene when it is unset and the
-    inputs are concrete (called outside ``jit``); under a trace, ``cfg`` as it is."""
-    if cfg.max_intersections is not None or any(
-        isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)
-    ):
-        return cfg
-    needed = int(count_intersections(means, quats, scales, c2w, intrinsics, height, width, cfg, opacities))
-    return dataclasses.replace(cfg, max_intersections=fitted_capacity(needed))

@@ -37,8 +37,8 @@ from llrmpp_jax.config import ModelConfig
 from dataclasses import replace
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
-from llrmpp_jax.model import fit_splat_capacity, render
-from llrmpp_jax.splat import expected_depth, render_features
+from llrmpp_jax.model import fit_capacity, render
+from llrmpp_jax.splat import rasterize
 
 OUTPUTS = ("rgb", "depth")
 # A browser camera can come closer than any input camera: room for this many times the most
@@ -109,10 +109,9 @@ def render_view(
         out = render(p, c, gaussians, c2w[None, None], intrinsics[None, None], height, width, (output,))
         return out.images[output][0, 0]
     g = jax.tree.map(lambda a: a[0], gaussians)
-    no_features = jnp.zeros((g.means.shape[0], 1), g.means.dtype)
-    out = render_features(g.means, g.quats, g.scales, g.opacities, no_features, c2w, intrinsics, height, width,
-                          cfg.splat)
-    return expected_depth(out)[:, :, None]
+    out = rasterize(g.means, g.quats, g.scales, g.opacities, None, c2w, intrinsics, height, width, cfg.splat,
+                    render_mode="ED")
+    return out.depth[:, :, None]
 
 
 def display_image(image: Float[np.ndarray, "H W C"], output: str) -> np.ndarray:
@@ -181,8 +180,8 @@ class ViewRenderer:
         scale = np.array([width / w0, height / h0, width / w0, height / h0], np.float32)
         k = np.asarray(intrinsics, np.float32) * scale
         default = cfg.splat.capacity(self._gaussians.means.shape[1], height, width)
-        return fit_splat_capacity(self._params, cfg, self._gaussians, jnp.asarray(c2w, jnp.float32)[None],
-                                  jnp.asarray(k)[None], height, width, headroom=VIEW_HEADROOM, minimum=default)
+        return fit_capacity(self._params, cfg, self._gaussians, jnp.asarray(c2w, jnp.float32)[None],
+                            jnp.asarray(k)[None], height, width, headroom=VIEW_HEADROOM, minimum=default)
 
     @property
     def max_partitions(self) -> int:

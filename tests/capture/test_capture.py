@@ -181,10 +181,10 @@ def test_render_views_sizes_the_splat_buffer_so_nothing_is_dropped(rng):
     """The wide Gaussians of ``tests.helpers.wide_gaussians`` overflow the trace-time buffer
     of 8 slots per Gaussian, which drops the farthest entries (the far wall of a real capture
     went missing that way). ``render_views`` sizes the buffer for its cameras: its renders
-    equal ``render_sh`` with room for every Gaussian in every block (atol 1e-5)."""
+    equal ``splat.rasterize`` in "RGB" mode with room for every Gaussian in every block (atol 1e-5)."""
     from llrmpp_jax.capture.render import render_views
     from llrmpp_jax.model import render
-    from llrmpp_jax.splat import SplatConfig, render_sh
+    from llrmpp_jax.splat import SplatConfig, rasterize
     from tests.helpers.wide_gaussians import INTRINSICS, SIZE, wide_colour_scene
 
     g, cfg, c2w = wide_colour_scene(rng)
@@ -199,7 +199,7 @@ def test_render_views_sizes_the_splat_buffer_so_nothing_is_dropped(rng):
     got = render_views({}, saved, c2w, intr, ["a", "b"], progress=False).rgb
     room = SplatConfig(max_intersections=n * (h // 8) * (w // 8))
     for v in range(2):
-        want, out = render_sh(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :], c2w[v].astype(np.float32),
-                              intr[v].astype(np.float32), h, w, room)
-        assert not bool(out.stats.overflow)
-        np.testing.assert_allclose(got[v], np.clip(np.asarray(want), 0.0, 1.0), atol=1e-5)
+        want = rasterize(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :], c2w[v].astype(np.float32),
+                         intr[v].astype(np.float32), h, w, room, render_mode="RGB", background=np.ones(3, np.float32))
+        assert not bool(want.stats.overflow)
+        np.testing.assert_allclose(got[v], np.clip(np.asarray(want.features), 0.0, 1.0), atol=1e-5)

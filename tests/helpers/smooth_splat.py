@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from llrmpp_jax.splat import render_features
+from llrmpp_jax.splat import rasterize
 from tests.oracles.splat import TILE, oracle_project, oracle_render
 
 H, W, N, F = 21, 35, 40, 3
@@ -53,7 +53,7 @@ def smooth_scene(rng):
 def _loss(means, quats, scales, opac, feats, c2w, intr, cot):
     """sum(cot * (features, transmittance, depth)) of one render (cot: the cotangents)."""
     d = means.dtype
-    out = render_features(means, quats, scales, opac, feats, c2w.astype(d), intr.astype(d), H, W)
+    out = rasterize(means, quats, scales, opac, feats, c2w.astype(d), intr.astype(d), H, W)
     return sum(jnp.sum(x * g.astype(d)) for x, g in zip(out[:3], cot))
 
 

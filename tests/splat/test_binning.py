@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from llrmpp_jax.splat import SplatConfig, count_intersections
-from llrmpp_jax.splat.binning import bin_gaussians, depth_order, depth_positions
+from llrmpp_jax.splat import SplatConfig
+from llrmpp_jax.splat.binning import bin_gaussians, depth_order, depth_positions, intersection_counts
 from llrmpp_jax.splat.projection import project_gaussians
 from tests.oracles.splat import BLOCK, oracle_block_reached, oracle_project, oracle_tile_lists, random_scene
 
@@ -19,6 +19,13 @@ H, W, N = 37, 53, 300
 def _bin(means, quats, scales, c2w, intr, capacity, opacities=None):
     proj = project_gaussians(means, quats, scales, c2w, intr, H, W)
     return bin_gaussians(proj, H, W, capacity, SplatConfig(), opacities)
+
+
+@functools.partial(jax.jit, static_argnames=("height", "width"))
+def _count(means, quats, scales, c2w, intr, height=H, width=W, opacities=None):
+    """Slots the buffer needs: the sum of the per-Gaussian block counts."""
+    proj = project_gaussians(means, quats, scales, c2w, intr, height, width)
+    return jnp.sum(intersection_counts(proj, height, width, SplatConfig(), opacities))
 
 
 def _lists(bins):
@@ -40,7 +47,7 @@ def test_tile_lists_match_oracle(rng):
     assert _lists(bins) == expected
     assert int(bins.num_intersections) == needed and not bool(bins.overflow)
     assert int(bins.num_dropped) == 0
-    assert int(count_intersections(*scene, H, W)) == needed
+    assert int(_count(*scene)) == needed
 
 
 def test_opacity_trimmed_lists_keep_every_block_a_pixel_needs(rng):
@@ -65,8 +72,8 @@ def test_opacity_trimmed_lists_keep_every_block_a_pixel_needs(rng):
     assert int(bins.num_intersections) == needed and not bool(bins.overflow)
     assert needed < 0.9 * needed_full  # the box trim removes real work on faint Gaussians
     assert all(set(t) <= set(f) for t, f in zip(boxed, full))  # it only removes entries
-    assert int(count_intersections(*scene, H, W)) == needed_full  # the bound without opacities
-    assert int(count_intersections(*scene, H, W, opacities=opac)) == needed  # the box count with them
+    assert int(_count(*scene)) == needed_full  # the bound without opacities
+    assert int(_count(*scene, opacities=opac)) == needed  # the box count with them
 
 
 def test_overflow_is_reported_and_keeps_nearest(rng):
@@ -101,11 +108,11 @@ def test_default_capacity_holds_at_paper_density(rng):
     # Every Gaussian as opaque as it can be: the most blocks a render can fill.
     opaque = np.full(n, cfg.alpha_max, np.float32)
     scene = [a.astype(np.float32) for a in (means, quats, scales, np.eye(4), intr)]
-    needed = int(count_intersections(*scene, height, width, opacities=opaque))
+    needed = int(_count(*scene, height, width, opacities=opaque))
     capacity = cfg.capacity(n, height, width)
     print(f"paper density: {n} Gaussians need {needed} slots ({needed / n:.2f} each), capacity {capacity}")
     assert n < needed < capacity / 2, (needed, capacity)
-    assert needed < int(count_intersections(*scene, height, width))  # the bound without opacities
+    assert needed < int(_count(*scene, height, width))  # the bound without opacities
 
 
 @pytest.mark.parametrize("ties", [False, True])

@@ -1,12 +1,12 @@
-"""``render_feature_copies`` (Long-LRM++'s S partition copies sharing one projection and
-binning): values equal S separate renders (and the oracle), gradients of shared inputs
-equal the sums over copies."""
+"""``rasterize`` with ``[S, N]`` opacities (Long-LRM++'s S partition copies sharing one
+projection and binning): values equal S separate renders (and the oracle), gradients of
+shared inputs equal the sums over copies."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from llrmpp_jax.splat import render_feature_copies, render_features
+from llrmpp_jax.splat import rasterize
 from tests.helpers import smooth_splat as smooth
 from tests.oracles.splat import assert_render_close, oracle_render, random_scene
 
@@ -16,10 +16,10 @@ H, W, N, F = 37, 53, 300, 3
 def test_feature_copies_equal_separate_renders(rng):
     means, quats, scales, opac, feats, c2w, intr = random_scene(rng, N, F, H, W)
     copies = np.stack([opac, opac * rng.uniform(0, 1, N)])
-    out = render_feature_copies(means, quats, scales, copies, feats, c2w, intr, H, W)
+    out = rasterize(means, quats, scales, copies, feats, c2w, intr, H, W)
     assert out.features.shape == (2, H, W, F) and out.transmittance.shape == (2, H, W)
     for s in range(2):
-        single = render_features(means, quats, scales, copies[s], feats, c2w, intr, H, W)
+        single = rasterize(means, quats, scales, copies[s], feats, c2w, intr, H, W)
         assert_render_close([x[s] for x in out[:3]], single, atol=1e-12)
         assert_render_close(single, oracle_render(means, quats, scales, copies[s], feats, c2w, intr, H, W), atol=1e-8)
 
@@ -34,7 +34,7 @@ def test_copies_grads_equal_sum_of_separate_renders(rng):
     camera = (jnp.asarray(c2w), jnp.asarray(intr))
 
     def loss_copies(m, q, s, o, f):
-        out = render_feature_copies(m, q, s, o, f, jnp.asarray(c2w), jnp.asarray(intr), h, w)
+        out = rasterize(m, q, s, o, f, jnp.asarray(c2w), jnp.asarray(intr), h, w)
         return sum(jnp.sum(x * g) for x, g in zip(out[:3], cot))
 
     got = jax.jit(jax.grad(loss_copies, argnums=tuple(range(5))))(*args, copies, jnp.asarray(feats))

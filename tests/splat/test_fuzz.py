@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from llrmpp_jax.splat import SplatConfig, render_features
+from llrmpp_jax.splat import SplatConfig, rasterize
 
 S, N, F, H, W = 1024, 16, 4, 20, 24
 CFG = SplatConfig(chunk_size=16)
@@ -48,7 +48,7 @@ def _scenes(rng):
 
 
 def _loss(means, quats, scales, opac, feats, c2w, intr):
-    out = render_features(means, quats, scales, opac, feats, c2w, intr, H, W, CFG)
+    out = rasterize(means, quats, scales, opac, feats, c2w, intr, H, W, CFG)
     return jnp.sum(out.features) + jnp.sum(out.transmittance) + jnp.sum(out.depth), out
 
 

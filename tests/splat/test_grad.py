@@ -1,4 +1,4 @@
-"""Gradients of ``render_features`` (custom VJP of the compositor + autodiff of the projection).
+"""Gradients of ``rasterize`` (custom VJP of the compositor + autodiff of the projection).
 
 Oracles: autodiff of the brute-force reference (``splat.reference``, a ``lax.scan`` over
 depth-sorted Gaussians in gsplat's formulation) and central finite differences, both in
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from llrmpp_jax.splat import render_features
+from llrmpp_jax.splat import rasterize
 from llrmpp_jax.splat.reference import render_features_reference
 from tests.helpers.smooth_splat import F, H, W, smooth_scene, value_and_grad
 
@@ -93,7 +93,7 @@ def test_value_and_grad_value_matches_forward_and_reference_at_16k_gaussians(rng
     cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((h, w, f), (h, w), (h, w))]
 
     def loss(means, quats, scales, opac, feats, c2w, intr):
-        out = render_features(means, quats, scales, opac, feats, c2w, intr, h, w)
+        out = rasterize(means, quats, scales, opac, feats, c2w, intr, h, w)
         return sum(jnp.sum(x * g) for x, g in zip(out[:3], cot))
 
     def ref_loss(*scene):

@@ -1,4 +1,4 @@
-"""``render_features`` against the brute-force float64 oracle on hard random scenes.
+"""``rasterize`` against the brute-force float64 oracle on hard random scenes.
 
 Float64 renders must equal the oracle (every pixel against every Gaussian of its tile, in
 depth order, gsplat's alpha / transmittance rules) to 1e-8 on random posed cameras.
@@ -14,7 +14,7 @@ pixels must stay under 1 % of the canvas.
 import numpy as np
 import pytest
 
-from llrmpp_jax.splat import render_features
+from llrmpp_jax.splat import rasterize
 from tests.oracles.splat import oracle_render, random_scene
 
 N = 300  # Gaussians on a 37x53 canvas; smaller canvases get proportionally fewer
@@ -41,7 +41,7 @@ def _compare(scene, out, height, width, atol, band_margin):
 def test_matches_oracle_float64(rng, f, height, width):
     n = _n(height, width)
     scene = random_scene(rng, n, f, height, width)
-    out = render_features(*scene, height, width)
+    out = rasterize(*scene, height, width)
     assert out.features.shape == (height, width, f) and out.features.dtype == np.float64
     _compare(scene, out, height, width, atol=1e-8, band_margin=0.0)
     # The scene exercised what it should: culled and visible Gaussians, saturated pixels.
@@ -52,7 +52,7 @@ def test_matches_oracle_float64(rng, f, height, width):
 @pytest.mark.parametrize("f,height,width", [(3, 37, 53), (32, 21, 70)])
 def test_matches_oracle_float32(rng, f, height, width):
     scene = [np.asarray(a, np.float32).astype(np.float64) for a in random_scene(rng, _n(height, width), f, height, width, conditioned=True)]
-    out = render_features(*(np.asarray(a, np.float32) for a in scene), height, width)
+    out = rasterize(*(np.asarray(a, np.float32) for a in scene), height, width)
     assert out.features.shape == (height, width, f) and out.features.dtype == np.float32
     _compare(scene, out, height, width, atol=1e-5, band_margin=1e-4)
 
@@ -64,6 +64,6 @@ def test_transmittance_stop_and_alpha_clamp_float64(rng):
     opac[:] = rng.uniform(0.95, 1.0, N)
     scales[:] = np.exp(rng.uniform(-2.5, -1.0, (N, 3)))
     scene = (means, quats, scales, opac, feats, c2w, intr)
-    out = render_features(*scene, height, width)
+    out = rasterize(*scene, height, width)
     _compare(scene, out, height, width, atol=1e-8, band_margin=0.0)
     assert np.mean(np.asarray(out.transmittance) <= 1e-3) > 0.2

@@ -1,11 +1,12 @@
-"""Colour mode: SH basis against scipy's spherical harmonics, ``render_sh`` against the oracle."""
+"""Colour mode: SH basis against scipy's spherical harmonics, ``rasterize(render_mode="RGB")``
+against the oracle."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from llrmpp_jax.splat import render_sh
+from llrmpp_jax.splat import rasterize
 from llrmpp_jax.splat.sh import sh_basis
 from tests.helpers.smooth_splat import H, N, W, smooth_scene
 from tests.helpers.typechecks import unchecked
@@ -27,11 +28,13 @@ def test_sh_basis_matches_scipy(rng, degree):
 
 
 @pytest.mark.parametrize("sh_degree", [None, 1])
-def test_render_sh_matches_oracle(rng, sh_degree):
+def test_rgb_mode_matches_oracle(rng, sh_degree):
     means, quats, scales, opac, _, c2w, intr = smooth_scene(rng)
     coeffs = rng.normal(size=(N, 16, 3)) * np.concatenate([[1.0], np.full(15, 0.3)])[None, :, None]
     background = rng.uniform(0, 1, 3)
-    rgb, out = render_sh(means, quats, scales, opac, coeffs, c2w, intr, H, W, background=background, sh_degree=sh_degree)
+    args = (means, quats, scales, opac, coeffs, c2w, intr, H, W)
+    out = rasterize(*args, render_mode="RGB", sh_degree=sh_degree)
+    rgb = rasterize(*args, render_mode="RGB", background=background, sh_degree=sh_degree).features
     colors = oracle_colors(means, coeffs, c2w, 3 if sh_degree is None else sh_degree)
     assert np.any(colors == 0.0) and np.any(colors > 0.5)  # the clamp at 0 is exercised
     feats, trans, depth = oracle_render(means, quats, scales, opac, colors, c2w, intr, H, W)
@@ -40,7 +43,7 @@ def test_render_sh_matches_oracle(rng, sh_degree):
     np.testing.assert_allclose(np.asarray(out.depth), depth, atol=1e-8)
 
 
-def test_render_sh_gradient_matches_finite_differences(rng):
+def test_rgb_mode_gradient_matches_finite_differences(rng):
     """d rgb / d (coefficients, means): SH evaluation from the camera centre plus splatting."""
     means, quats, scales, opac, _, c2w, intr = smooth_scene(rng)
     coeffs = rng.normal(size=(N, 16, 3)) * 0.1 + np.array([1.0] + [0.0] * 15)[None, :, None]  # colours > 0
@@ -49,7 +52,8 @@ def test_render_sh_gradient_matches_finite_differences(rng):
     @jax.jit
     def value_and_grad(m, c):
         def loss(m, c):
-            return jnp.sum(cot * render_sh(m, quats, scales, opac, c, c2w, intr, H, W)[0])
+            return jnp.sum(cot * rasterize(m, quats, scales, opac, c, c2w, intr, H, W, render_mode="RGB",
+                                           background=jnp.ones(3)).features)
 
         return jax.value_and_grad(loss, argnums=(0, 1))(m, c)
 
@@ -65,11 +69,11 @@ def test_render_sh_gradient_matches_finite_differences(rng):
         assert abs(fd - ad) <= 1e-4 * abs(ad), (i, fd, ad)
 
 
-def test_render_sh_rejects_bad_coefficients(rng):
+def test_rgb_mode_rejects_bad_coefficients(rng):
     means, quats, scales, opac, _, c2w, intr = smooth_scene(rng)
     with pytest.raises(ValueError, match="not a square"):
-        render_sh(means, quats, scales, opac, np.zeros((N, 10, 3)), c2w, intr, H, W)
+        rasterize(means, quats, scales, opac, np.zeros((N, 10, 3)), c2w, intr, H, W, render_mode="RGB")
     with pytest.raises(ValueError, match="sh_degree 3"):
-        render_sh(means, quats, scales, opac, np.zeros((N, 9, 3)), c2w, intr, H, W, sh_degree=3)
-    with pytest.raises(ValueError, match=r"sh_coeffs must have shape \(N, sh, 3\)"), unchecked():
-        render_sh(means, quats, scales, opac, np.zeros((N, 16)), c2w, intr, H, W)
+        rasterize(means, quats, scales, opac, np.zeros((N, 9, 3)), c2w, intr, H, W, render_mode="RGB", sh_degree=3)
+    with pytest.raises(ValueError, match=r"features must have shape \(N, sh, 3\)"), unchecked():
+        rasterize(means, quats, scales, opac, np.zeros((N, 16)), c2w, intr, H, W, render_mode="RGB")

@@ -398,9 +398,9 @@ def test_four_tabs_under_load(demo, browser):
 def test_renderer_sizes_its_splat_buffer_from_the_input_cameras(rng):
     """With the scene's input cameras, a render size's buffer holds what the wide Gaussians of
     ``tests.helpers.wide_gaussians`` need (the trace-time 8 per Gaussian would drop some), also
-    at twice the inputs' size: the render equals ``render_sh`` with room for every Gaussian in
+    at twice the inputs' size: the render equals "RGB" ``rasterize`` with room for every Gaussian in
     every block (atol 1e-5). Without cameras the config's buffer is kept."""
-    from llrmpp_jax.splat import SplatConfig, render_sh
+    from llrmpp_jax.splat import SplatConfig, rasterize
     from tests.helpers.wide_gaussians import INTRINSICS, SIZE, wide_colour_scene
 
     g, cfg, c2w = wide_colour_scene(rng)
@@ -411,8 +411,9 @@ def test_renderer_sizes_its_splat_buffer_from_the_input_cameras(rng):
         k = (INTRINSICS * size / SIZE).astype(np.float32)
         frame = renderer.render(ViewKey(size, size, "rgb", 1), c2w[1], k)
         room = SplatConfig(max_intersections=g.means.shape[0] * (size // 8) ** 2)
-        want, _ = render_sh(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :],
-                            c2w[1].astype(np.float32), k, size, size, room)
+        want = rasterize(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :],
+                         c2w[1].astype(np.float32), k, size, size, room, render_mode="RGB",
+                         background=np.ones(3, np.float32)).features
         np.testing.assert_allclose(frame.image, np.asarray(want), atol=1e-5)
 
 
