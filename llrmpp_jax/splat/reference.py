@@ -4,7 +4,7 @@ Deliberately independent of the fast path (no binning, no chunks, no custom VJP)
 written in gsplat's own formulation (full 3x3 covariances, explicit Jacobian,
 ``det = a c - b^2``), so it serves as an autodiff oracle for gradients and as the
 baseline of :mod:`llrmpp_jax.benchmarks.splat`. Same semantics as
-:func:`llrmpp_jax.splat.render_features`, including gsplat's tile rule: a Gaussian is
+:func:`llrmpp_jax.splat.rasterize` (mode "F"), including gsplat's tile rule: a Gaussian is
 evaluated only at pixels whose 16x16 tile lies in its screen box.
 """
 
@@ -31,7 +31,7 @@ def render_features_reference(
     width: int,
     cfg: SplatConfig = SplatConfig(),
 ) -> tuple[Float[Array, "H W F"], Float[Array, "H W"], Float[Array, "H W"]]:
-    """``(features, transmittance, depth)`` like :func:`render_features`, by brute force.
+    """``(features, transmittance, depth)`` like :func:`~llrmpp_jax.splat.rasterize`, by brute force.
 
     Computes in ``means.dtype``; for finite inputs and a valid camera only.
     """
