@@ -646,6 +646,33 @@ def bench_options(parser: argparse.ArgumentParser) -> None:
                         help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)")
 
 
+def cmd_plan(args) -> int:
+    from llrmpp_jax.plan.planner import plan, write_rows
+
+    rows = plan(_names(args.programs, "--programs"), _names(args.targets, "--targets"),
+                save=lambda rows: write_rows(rows, args.out))
+    print(f"wrote {args.out} ({len(rows)} rows)")
+    return 0
+
+
+def _names(text: str, flag: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise UserError(f"plan: {flag} needs at least one name, got {text!r}")
+    return names
+
+
+def plan_options(parser: argparse.ArgumentParser) -> None:
+    from llrmpp_jax.plan.catalog import GROUPS, PROGRAM_NAMES
+    from llrmpp_jax.plan.targets import TARGETS
+
+    parser.add_argument("--programs", required=True,
+                        help=f"comma-separated programs or groups ({', '.join(GROUPS)}): {', '.join(PROGRAM_NAMES)}")
+    parser.add_argument("--targets", default="v5p",
+                        help=f"comma-separated chips; NAME-4 is a 4-chip data-parallel slice: {', '.join(TARGETS)}")
+    parser.add_argument("--out", default="runs/plan/plan.json", help="JSON file of the rows, rewritten after each")
+
+
 def cmd_doctor(args) -> int:
     from llrmpp_jax.doctor import run_checks
 
@@ -764,6 +791,8 @@ VERBS: tuple[Verb, ...] = (
                  "scratch; tables and pictures", demo_options, cmd_demo),
     Verb("bench", "attention, scan, splat, model (the paper's Table 1: reconstruct and render) and stage-4 "
                   "training-step benchmarks at one scale, as JSON", bench_options, cmd_bench),
+    Verb("plan", "compile programs for a TPU chip without one: HBM fit, compile time, FLOPs and a time estimate "
+                 "(JSON)", plan_options, cmd_plan),
     Verb("doctor", "versions and devices, then kernel-vs-reference checks on this device", None, cmd_doctor),
     Verb("view", "live viewer in the browser (viser) of a .gs file, a capture or a procedural scene", view_options,
          cmd_view),

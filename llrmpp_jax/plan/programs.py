@@ -37,6 +37,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from llrmpp_jax import config as C
 from llrmpp_jax.errors import UserError
+from llrmpp_jax.plan.catalog import GROUPS, PROGRAM_NAMES
 
 AXIS = "batch"
 PAPER_DEVICES = 64  # paper Table 8: the global batch of every stage trains on 64 GPUs
@@ -234,12 +235,12 @@ def _tiny_programs() -> dict[str, Callable[[], Program]]:
 
 
 PROGRAMS: dict[str, Callable[[], Program]] = {**_paper_programs(), **_tiny_programs()}
-GROUPS = {"paper": [p for p in PROGRAMS if not p.startswith("tiny")], "tiny": [p for p in PROGRAMS if p.startswith("tiny")]}
+assert tuple(PROGRAMS) == PROGRAM_NAMES, "plan/catalog.py names the programs PROGRAMS builds"
 
 
 def program(name: str) -> Program:
     """The program ``name`` (a key of :data:`PROGRAMS`); one-line ``UserError`` listing them otherwise."""
     if name not in PROGRAMS:
-        raise UserError(f"plan: unknown program {name!r}; known programs: {', '.join(PROGRAMS)} "
+        raise UserError(f"plan: unknown program {name!r}; known programs: {', '.join(PROGRAM_NAMES)} "
                         f"(groups: {', '.join(GROUPS)})")
     return PROGRAMS[name]()

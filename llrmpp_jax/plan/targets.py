@@ -68,16 +68,17 @@ def target(name: str) -> Target:
     return TARGETS[name]
 
 
-def _check_libtpu() -> None:
-    try:
-        import libtpu  # noqa: F401
-    except ImportError:
-        raise UserError(f"plan: compiling for TPU needs libtpu, which is not installed: {TPU_INSTALL}") from None
+def check_compiler(targets: list[Target]) -> None:
+    """One-line ``UserError`` with the pip command when a target's compiler is not installed."""
+    import importlib.util
+
+    if any(t.platform == "tpu" for t in targets) and importlib.util.find_spec("libtpu") is None:
+        raise UserError(f"plan: compiling for TPU needs libtpu, which is not installed: {TPU_INSTALL}")
 
 
 @functools.lru_cache(maxsize=None)
 def _topology(topology: str):
-    _check_libtpu()
+    check_compiler([t for t in TARGETS.values() if t.topology == topology])
     # libtpu asks the cloud metadata server for the host's TPU unless told not to: there is none.
     os.environ.setdefault("TPU_SKIP_MDS_QUERY", "1")
     os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")

@@ -15,7 +15,7 @@ pytest.importorskip("libtpu", reason="the TPU compiler (libtpu) is in the test e
 
 from llrmpp_jax import config as C  # noqa: E402
 from llrmpp_jax.errors import UserError  # noqa: E402
-from llrmpp_jax.plan import Program, compile_row, plan, program  # noqa: E402
+from llrmpp_jax.plan.planner import Program, compile_row, plan, program  # noqa: E402
 from llrmpp_jax.plan.targets import compile_devices, target  # noqa: E402
 
 V5E = target("v5e")
