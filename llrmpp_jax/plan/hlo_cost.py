@@ -255,6 +255,7 @@ class _Costing:
         self.comps, self.chip, self.unknown = comps, chip, unknown_trip_count
         self.memo: dict[str, Estimate] = {}
         self.inner: dict[str, tuple[float, int, int]] = {}
+        self.reads: dict[tuple[str, int], float] = {}
 
     def fused(self, name: str) -> tuple[float, int, int]:
         """(matmul FLOPs, gathered rows, scattered rows) inside a fused computation, nested
@@ -273,12 +274,61 @@ class _Costing:
             self.inner[name] = (flops, gathered, scattered)
         return self.inner[name]
 
+    def param_read(self, comp: str, index: int, full: float) -> float:
+        """HBM bytes fused computation ``comp`` reads of its parameter ``index`` (``full`` bytes):
+        only the slices it takes where every use slices it (or hands it to a nested fusion that
+        does); none where it is a buffer updated in place; else all of it."""
+        key = (comp, index)
+        if key not in self.reads:
+            body = self.comps.get(comp, [])
+            name = next((i.name for i in body if i.opcode == "parameter" and i.args == str(index)), None)
+            uses = [(i, k) for i in body for k, o in enumerate(i.operands) if o == name] if name else []
+            read = 0.0
+            for u, k in uses:
+                if u.opcode in ("dynamic-slice", "slice", "gather") and k == 0:
+                    read += hbm_bytes(u.shape)
+                elif u.opcode == "dynamic-update-slice" and k == 0:
+                    continue
+                elif u.opcode == "fusion":
+                    read += self.param_read(next(iter(_CALLS.findall(u.attrs)), ""), k, full)
+                else:
+                    read = full
+                    break
+            self.reads[key] = min(read, full) if uses else full
+        return self.reads[key]
+
+    def moved_bytes(self, ins: Instr, shapes: dict[str, str]) -> float:
+        """HBM bytes an op reads and writes: its operands and result, except that a slice
+        of an operand (``dynamic-slice``, ``slice``, ``gather``: inside a fusion too) reads only
+        what it takes and an in-place ``dynamic-update-slice`` writes only its update."""
+        operands = [hbm_bytes(shapes.get(o, "")) for o in ins.operands]
+        result = hbm_bytes(ins.shape)
+        if ins.opcode in ("dynamic-slice", "slice", "gather"):
+            return 2.0 * result + sum(operands[1:])
+        if ins.opcode == "dynamic-update-slice":
+            return 2.0 * (operands[1] if len(operands) > 1 else result) + sum(operands[2:])
+        if ins.opcode != "fusion":
+            return result + sum(operands)
+        callee = next(iter(_CALLS.findall(ins.attrs)), None)
+        body = self.comps.get(callee or "", [])
+        total = sum(self.param_read(callee or "", k, full) for k, full in enumerate(operands))
+        root = body[-1] if body else None
+        by_name = {i.name: i for i in body}
+        outs = [by_name.get(o) for o in root.operands] if root is not None and root.opcode == "tuple" else [root]
+        for out in outs:
+            if out is not None and out.opcode == "dynamic-update-slice" and len(out.operands) > 1:
+                update = by_name.get(out.operands[1])
+                total += hbm_bytes(update.shape) if update is not None else 0.0
+            elif out is not None:
+                total += hbm_bytes(out.shape)
+        return total if body else result + sum(operands)
+
     def op(self, ins: Instr, shapes: dict[str, str]) -> Estimate:
         e = Estimate()
         code = ins.opcode
-        nbytes = hbm_bytes(ins.shape) + sum(hbm_bytes(shapes.get(o, "")) for o in ins.operands)
         if code in _FREE:
             return e
+        nbytes = self.moved_bytes(ins, shapes)
         if code == "while":
             trips = _trip_count(ins, self.comps)
             if trips is None:

@@ -89,3 +89,23 @@ def test_parse_module_finds_entry_and_shapes():
     assert entry in comps and any(i.opcode == "parameter" for i in comps[entry])
     assert hbm_bytes("(f32[3,5]{1,0}, bf16[7]{0})") == 3 * 5 * 4 + 7 * 2
     assert hbm_bytes("f32[4,4]{1,0:T(8,128)S(1)}") == 0  # on-chip memory moves no HBM bytes
+
+
+def test_a_loop_reading_one_row_a_step_moves_rows_not_the_array():
+    rng = np.random.default_rng(5)
+    rows, width = int(rng.integers(40, 60)), 256
+    table = jnp.asarray(rng.normal(size=(rows, width)), jnp.float32)
+
+    def f(table):
+        def step(acc, i):
+            row = jax.lax.dynamic_index_in_dim(table, i, keepdims=False)
+            return acc + jnp.tanh(row), None
+
+        return jax.lax.scan(step, jnp.zeros((width,), jnp.float32), jnp.arange(rows))[0]
+
+    est = estimate_hlo(compiled_text(f, table), CHIP)
+    full_every_step = rows * rows * width * 4
+    # Each step reads one row and the accumulator and writes the accumulator: a few rows'
+    # bytes, far below reading the whole table every step.
+    assert est.bytes < 0.2 * full_every_step
+    assert est.bytes >= rows * width * 4  # every row is read once
