@@ -1,10 +1,11 @@
 # The two commands: `make demo` and `make test`. Both create .venv on first use.
+# `make lint`: the format, lint and type checks that CI runs before the tests.
 PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | md5sum | cut -c1-8)
 
-.PHONY: test demo install bench clean notebooks
+.PHONY: test lint demo install bench clean notebooks
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -16,6 +17,12 @@ install: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 tests
+
+# ruff and pyright take their settings from pyproject.toml ([tool.ruff], [tool.pyright]).
+lint: $(STAMP)
+	$(BIN)/ruff format --check
+	$(BIN)/ruff check
+	$(BIN)/pyright
 
 demo: $(STAMP)
 	$(BIN)/llrmpp demo --out runs/demo

@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from dataclasses import replace
 import json
 import os
 import time
+from dataclasses import replace
 
 import jax
+from git_worktree import revision
 
 from llrmpp_jax import ablation as A
 from llrmpp_jax.metrics import load_lpips_params
-
 
 # The chosen row of each table: name -> (decoder blocks, renders depth). The cpu base is
 # already the chosen head (K16 F32, canvas 0.5) and decoder (LLGGG, S=2).
@@ -59,7 +59,7 @@ def main() -> None:
         parser.error(f"--seeds and --budgets must be >= 1, got {args.seeds} and {budgets}")
     base_scale = dataclasses.replace(A.make_scale("cpu", paper_views=4), steps=budgets[-1], seeds=args.seeds)
     lp = load_lpips_params()
-    record = {"scale": str(base_scale), "budgets": budgets, "machine": A.machine(), "commit": A.commit(), "rows": {}}
+    record = {"scale": str(base_scale), "budgets": budgets, "machine": A.machine(), "commit": revision(), "rows": {}}
     t0 = time.perf_counter()
     unknown = [r for r in args.rows.split(",") if r not in CHOSEN]
     if unknown:

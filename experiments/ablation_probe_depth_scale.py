@@ -29,11 +29,11 @@ Writes ``OUT/probe_depth_scale_{mode}.json`` with the commit.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import replace
 import json
 import os
 import sys
 import time
+from dataclasses import replace
 
 # The mean log target depth of the cpu scale's training windows under Long-LRM's rescaling
 # (1.60 / 1.50 / 1.64 over three draws of 128 samples), where the depth head started then.
@@ -51,6 +51,7 @@ def main() -> None:
 
     import llrmpp_jax.ablation.scoring as scoring
     import llrmpp_jax.data.batching as batching
+    from git_worktree import revision
     from llrmpp_jax import ablation as A
     from llrmpp_jax.metrics import depth_metrics
 
@@ -93,7 +94,7 @@ def main() -> None:
         for k, p in preds.items():
             constants[k].append(np.asarray(depth_metrics(jnp.asarray(p), jnp.asarray(t))["delta_1_25"]))
     record = {
-        "probe": "depth_scale", "mode": mode, "commit": A.commit(), "machine": A.machine(), "scale": str(scale),
+        "probe": "depth_scale", "mode": mode, "commit": revision(), "machine": A.machine(), "scale": str(scale),
         "row": "Ours w/o aux losses", "seed": 0, "wall_s": time.perf_counter() - t0,
         "model": {k: row.get(k) for k in ("psnr", "ssim", "lpips", "abs_diff", "delta_1_25", "final_loss")},
         "constant_depth_delta_1_25": {k: float(np.nanmean(np.concatenate(v))) for k, v in constants.items()},

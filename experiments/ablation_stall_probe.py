@@ -12,10 +12,10 @@ Run (from the repository root; one core, ~5 min per seed on the 2-core developme
                              # Table 7's Long-LRM++ rows (aux: with the auxiliary depth losses)
 """
 import dataclasses
-from dataclasses import replace
 import json
 import os
 import sys
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -61,7 +61,8 @@ def stats(params):
     rows = []
     for s in samples:
         g = recon(params, {k: v[None] for k, v in s.items()})
-        o = np.asarray(g.opacities).ravel(); sc = np.log(np.asarray(g.scales)).ravel()
+        o = np.asarray(g.opacities).ravel()
+        sc = np.log(np.asarray(g.scales)).ravel()
         cam = np.asarray(s["input_c2w"])[:, :3, 3]
         d = np.linalg.norm(np.asarray(g.means)[0][:, None] - cam[None], axis=-1).min(1)
         feat = np.linalg.norm(np.asarray(g.features)[0], axis=-1)
@@ -78,5 +79,5 @@ for seed in seeds:
     res[seed] = dict(losses=t.losses.tolist(), grad_norms=t.grad_norms.tolist(), seconds=t.seconds,
                      snap={str(k): stats(v) for k, v in sorted(t.snapshots.items())},
                      eval=ev)
-    print(seed, "final loss %.4f" % np.mean(t.losses[-20:]), res[seed]["eval"], flush=True)
+    print(seed, f"final loss {np.mean(t.losses[-20:]):.4f}", res[seed]["eval"], flush=True)
     json.dump(res, open(out, "w"))

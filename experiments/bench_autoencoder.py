@@ -23,10 +23,10 @@ rank-64 linear code (PCA) of its 8x8 patches 25.9 / 33.9 dB.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 import json
 import os
 import time
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -37,8 +37,8 @@ from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.data.preprocess import ViewGeometry, make_sample
 from llrmpp_jax.data.synthetic import procedural_scene
 from llrmpp_jax.experiment import StageConfig, load_experiment
-from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.gaussians import Gaussians
+from llrmpp_jax.losses import rgb_loss
 from llrmpp_jax.model import LongLRMPP, append_target_rays, init_params, partition_logits, reconstruct
 from llrmpp_jax.nn.initializers import parse_init_std
 from llrmpp_jax.objective import make_objective

@@ -28,10 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.experiment import load_experiment
+from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.metrics import psnr
 from llrmpp_jax.model import reconstruct, render
 from llrmpp_jax.params_io import load_params
-from llrmpp_jax.experiment_data import eval_samples
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "learning")
 

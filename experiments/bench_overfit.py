@@ -30,11 +30,11 @@ shown view: target, prediction, |error| x4, nearest input; with depth also
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 import glob
 import json
 import os
 import time
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp

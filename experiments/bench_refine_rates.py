@@ -27,14 +27,14 @@ import dataclasses
 import json
 import os
 import time
+from dataclasses import replace
 
 from llrmpp_jax.evaluate import evaluate
 from llrmpp_jax.experiment import load_experiment
-from dataclasses import replace
+from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.refine import RefineConfig
-from llrmpp_jax.experiment_data import eval_samples
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The fields with a rate of their own: RefineConfig's lr_FIELD.

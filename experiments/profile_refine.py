@@ -36,8 +36,8 @@ def refine_step_profile(args) -> dict:
     from llrmpp_jax.capture import load_gs
     from llrmpp_jax.capture.render import frame_photos
     from llrmpp_jax.gaussians import Gaussians
-    from llrmpp_jax.params_io import load_params
     from llrmpp_jax.model import fit_capacity
+    from llrmpp_jax.params_io import load_params
     from llrmpp_jax.refine import RefineConfig, objective, to_unconstrained
 
     saved = load_gs(args.gaussians)

@@ -15,15 +15,15 @@ view: the target, the model's prediction, the prediction after its Gaussians wer
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 
 from llrmpp_jax.cli import parse_size, with_data
-from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import baseline_predictions, predict, predict_refined
 from llrmpp_jax.experiment import load_experiment
-from dataclasses import replace
+from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.pretrained import load_pretrained
 
 

@@ -24,10 +24,10 @@ import subprocess
 
 import numpy as np
 
-from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.data.image_io import write_image
-from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
+from llrmpp_jax.evaluate import evaluate, scene_picture, summary_table
 from llrmpp_jax.experiment import load_experiment
+from llrmpp_jax.experiment_data import eval_samples
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.pretrained import PREFIX, WEIGHTS_DIR, export_pretrained, read_meta
@@ -94,7 +94,7 @@ def main() -> None:
     meta = export_pretrained(params, cfg, args.name, record, reference)
     with open(os.path.join(out, "metrics.json"), "w") as f:
         json.dump({"summary": summary, "per_scene": rows, "steps": steps, "commit": commit}, f, indent=1)
-    print(format_table(summary))
+    print(summary_table(summary))
     size = os.path.getsize(os.path.join(WEIGHTS_DIR, f"{args.name}.npz"))
     print(f"shipped {args.name}: {meta['num_params']:,} params, {size / 1e6:.2f} MB, sha256 {meta['sha256'][:16]}...; "
           f"pictures and metrics in {os.path.relpath(out, ROOT)}")

@@ -29,8 +29,9 @@ undo them), a 7-minute ``max_minutes`` per run (a checkpoint, then run again to 
 checkpoint kept (the packed workdir, 14.4 MB, is one file under a lease's 16 MiB limit).
 """
 
-from llrmpp_jax.experiment import load_experiment
 from dataclasses import replace
+
+from llrmpp_jax.experiment import load_experiment
 
 
 def get_config():

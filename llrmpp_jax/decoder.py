@@ -40,7 +40,7 @@ OUTPUT_CHANNELS = {"rgb": 3, "depth": 1}
 
 
 def partition_opacities(
-    opacities: Float[Array, "N"], logits: Float[Array, "N S"]
+    opacities: Float[Array, " N"], logits: Float[Array, "N S"]
 ) -> Float[Array, "S N"]:
     """Opacity of each of the S copies: ``o * softmax(logits)_s``."""
     return jax.nn.softmax(logits, axis=-1).T * opacities[None, :]

@@ -13,8 +13,7 @@ import os
 
 import numpy as np
 
-from llrmpp_jax.data import BatchConfig, ProceduralSource, ViewGeometry, make_sample, training_views
-from llrmpp_jax.data import formats
+from llrmpp_jax.data import BatchConfig, ProceduralSource, ViewGeometry, formats, make_sample, training_views
 from llrmpp_jax.data.batching import SceneSource
 from llrmpp_jax.data.held_out import eval_split
 from llrmpp_jax.data.scene import Scene

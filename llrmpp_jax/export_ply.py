@@ -105,7 +105,7 @@ def split_similarity(world_from_scene: Float[np.ndarray, "4 4"]) -> tuple[float,
     return s, rot, m[:3, 3]
 
 
-def rotmat_to_qvec(rot: Float[np.ndarray, "3 3"]) -> Float[np.ndarray, "4"]:
+def rotmat_to_qvec(rot: Float[np.ndarray, "3 3"]) -> Float[np.ndarray, " 4"]:
     """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix (the dominant
     eigenvector of Bar-Itzhack's symmetric 4x4 matrix, as COLMAP's scripts compute it)."""
     r = np.asarray(rot, dtype=np.float64)
@@ -175,7 +175,7 @@ def ply_fields(
     cfg: ModelConfig,
     world_from_scene: Float[np.ndarray, "4 4"],
     partition_logits: Float[ArrayLike, "N S"] | Float[ArrayLike, "1 N S"] | None = None,
-) -> dict[str, Float[np.ndarray, "N"]]:
+) -> dict[str, Float[np.ndarray, " N"]]:
     """The PLY's columns (name -> float32 ``[N]``, file order; module docstring).
 
     Args:

@@ -183,11 +183,11 @@ class GaussianHead(nn.Module):
         c2w: Float[ArrayLike, "B V 4 4"],
         intrinsics: Float[ArrayLike, "B V 4"],
     ) -> Gaussians:
-        b, l, d = tokens.shape
+        b, length, d = tokens.shape
         h, w = grid
         v = c2w.shape[1]
-        if l != v * h * w:
-            raise ValueError(f"GaussianHead: {l} tokens != V*h*w = {v}*{h}*{w} from cameras and grid")
+        if length != v * h * w:
+            raise ValueError(f"GaussianHead: {length} tokens != V*h*w = {v}*{h}*{w} from cameras and grid")
         k = gaussians_per_token(self.cfg, self.token_stride)
         x = LayerNorm(name="norm")(tokens)
         raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj",

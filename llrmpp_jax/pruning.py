@@ -33,7 +33,7 @@ from llrmpp_jax.gaussians import Gaussians
 USAGE_THRESHOLD = 0.001
 
 
-def gaussian_usage(opacities: Float[Array, "B N"]) -> Float[Array, "B"]:
+def gaussian_usage(opacities: Float[Array, "B N"]) -> Float[Array, " B"]:
     """Fraction of each scene's Gaussians with opacity ``> USAGE_THRESHOLD`` (float32)."""
     return jnp.mean(opacities > USAGE_THRESHOLD, axis=-1, dtype=jnp.float32)
 

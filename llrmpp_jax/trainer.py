@@ -148,8 +148,9 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
         ckpt_dir = os.path.abspath(os.path.join(workdir, "checkpoints", stage.name))
         restored = None
         if os.path.isdir(ckpt_dir):  # shapes only: an incompatible checkpoint fails before compiling
-            shapes = jax.eval_shape(lambda: fresh_params(exp, si)) if params is None else params
-            template = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, key), shapes)
+            # B023: eval_shape calls each lambda at once, in this iteration.
+            shapes = jax.eval_shape(lambda: fresh_params(exp, si)) if params is None else params  # noqa: B023
+            template = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, key), shapes)  # noqa: B023
             restored = T.restore_checkpoint(ckpt_dir, template)
         start = 0
         if restored is not None:

@@ -1,12 +1,12 @@
 """Command line and training loop: experiment files, one-line errors, train -> resume -> eval."""
 
-from dataclasses import replace
 import glob
 import json
 import os
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -195,8 +195,8 @@ def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
 def _micro_experiment_file(tmp_path, steps: int):
     """An experiment file (for ``--config``) whose ``get_config`` is ``micro_experiment(steps)``."""
     path = tmp_path / "micro.py"
-    path.write_text("import sys\nsys.path.insert(0, %r)\nfrom tests.helpers.micro_experiment import micro_experiment\n"
-                    "def get_config():\n    return micro_experiment(%d)\n" % (ROOT, steps))
+    path.write_text(f"import sys\nsys.path.insert(0, {ROOT!r})\nfrom tests.helpers.micro_experiment import micro_experiment\n"
+                    f"def get_config():\n    return micro_experiment({steps:d})\n")
     return path
 
 
@@ -337,7 +337,6 @@ def test_training_on_the_evaluated_capture_leaves_out_its_target_frames():
     from llrmpp_jax.data.formats import read_scene
     from llrmpp_jax.experiment_data import eval_samples, scene_source
     from tests.helpers.environment import shared_path
-    from llrmpp_jax.experiment import ExperimentConfig
 
     data = DataConfig(kind="auto", path=shared_path("data", "beer"), num_eval_scenes=1)
     full = read_scene(data.path, "auto")

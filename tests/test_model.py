@@ -1,8 +1,8 @@
 """The composed model: Long-LRM golden Gaussians, paper sizes, gradients, partition, decoder."""
 
-from dataclasses import replace
 import functools
 import os
+from dataclasses import replace
 
 import flax.linen as nn
 import jax

@@ -11,6 +11,7 @@ relative (float32: the same ops on the same values, so equal up to XLA's fusion 
 """
 
 from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np

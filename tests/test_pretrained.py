@@ -1,10 +1,10 @@
 """Shipped weights (pretrained.py): checksum, config match, and one forward pass equal to the
 one recorded when they were shipped."""
 
-from dataclasses import replace
 import json
 import os
 import shutil
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -12,8 +12,7 @@ import pytest
 
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import load_experiment
-from llrmpp_jax.model import init_params
-from llrmpp_jax.model import flatten_params
+from llrmpp_jax.model import flatten_params, init_params
 from llrmpp_jax.params_io import load_params
 from llrmpp_jax.pretrained import WEIGHTS_DIR, export_pretrained, load_pretrained, reference_forward
 from tests.helpers.environment import ROOT

@@ -7,6 +7,7 @@ the golden ``gaussian_usage`` computed by the official code.
 """
 
 from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np

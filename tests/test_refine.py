@@ -1,6 +1,7 @@
 """Post-prediction refinement: it recovers known Gaussians and lowers the feature-mode loss."""
 
 from dataclasses import replace
+
 import jax
 import jax.numpy as jnp
 import numpy as np

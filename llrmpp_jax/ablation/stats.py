@@ -13,6 +13,7 @@ from scipy import stats
 
 from llrmpp_jax.ablation.rows import METRICS, Ordering
 
+
 def interval(values: Sequence[float] | np.ndarray, confidence: float = 0.95) -> dict[str, float]:
     """Mean, sample standard deviation and the half-width of the two-sided Student-t
     ``confidence`` interval of the mean (NaN for fewer than 2 values)."""

@@ -28,6 +28,7 @@ from llrmpp_jax.ablation.training import train
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.nn.backbone import count_params
 
+
 @dataclass
 class TableRun:
     """Everything a notebook shows: the ``results`` of each selected row, the
@@ -44,14 +45,14 @@ class TableRun:
     comparisons: list[dict[str, Any]] = dataclasses.field(default_factory=list)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _held_out(scale: Scale, cfg: C.ModelConfig) -> tuple[dict[str, np.ndarray], ...]:
     """:func:`~llrmpp_jax.ablation.scoring.held_out_samples` of a row of ``cfg``, made once
     per process."""
     return tuple(held_out_samples(cfg, scale))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _lpips_params(scale: Scale) -> Any:
     """The LPIPS weights when ``scale.lpips``, else None; loaded once per process."""
     return load_lpips_params() if scale.lpips else None

@@ -77,7 +77,7 @@ def init_model(cfg: C.ModelConfig, scale: Scale, seed: int = 0) -> dict:
     return _float32(trainer.fresh_params(row_experiment(cfg, scale, seed), 0))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _row_fns(exp: ExperimentConfig, spike_factor: float | None, n_dev: int):
     """``(init, runner)`` of a row's experiment (``exp.seed`` 0: the same for every seed),
     built once so its seeds share one compilation: a jitted ``init(params, key) -> state``

@@ -13,6 +13,7 @@ import os
 import platform
 import time
 
+
 def environment() -> dict:
     """Device, platform, library versions, matmul precision, ``XLA_FLAGS`` and the 1/5/15-min load average."""
     import jax

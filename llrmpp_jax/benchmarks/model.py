@@ -21,7 +21,13 @@ import os
 import sys
 
 from llrmpp_jax.benchmarks.paper import (
-    bench_scale, check_case, parse_hw, parse_views, profile_markdown, profile_reconstruct_render, run_table1,
+    bench_scale,
+    check_case,
+    parse_hw,
+    parse_views,
+    profile_markdown,
+    profile_reconstruct_render,
+    run_table1,
 )
 
 

@@ -24,7 +24,7 @@ WORLD_UP = np.array([0.0, 0.0, 1.0])
 
 
 def look_at(
-    eye: Float[np.ndarray, "frames 3"], target: Float[np.ndarray, "frames 3"], roll: Float[np.ndarray, "frames"] | None = None
+    eye: Float[np.ndarray, "frames 3"], target: Float[np.ndarray, "frames 3"], roll: Float[np.ndarray, " frames"] | None = None
 ) -> Float[np.ndarray, "frames 4 4"]:
     """OpenCV camera-to-world looking from ``eye`` at ``target`` with world z up (image
     rows point down the world), optionally rolled by ``roll`` radians about the view axis."""
@@ -46,7 +46,7 @@ def look_at(
 
 
 def orbit_path(
-    rng: np.random.Generator, n: int, center: Float[np.ndarray, "3"], min_radius: float, max_radius: float
+    rng: np.random.Generator, n: int, center: Float[np.ndarray, " 3"], min_radius: float, max_radius: float
 ) -> Float[np.ndarray, "frames 4 4"]:
     """Orbit of ``n`` views around ``center`` over a random arc of 120-360 degrees, with
     radius and height drifting smoothly (radius in ``[min_radius, max_radius]``)."""

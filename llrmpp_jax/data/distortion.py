@@ -27,7 +27,7 @@ def _check_coeffs(coeffs: np.ndarray) -> np.ndarray:
     return coeffs
 
 
-def distort_normalized(xy: Float[np.ndarray, "... 2"], coeffs: Float[np.ndarray, "5"]) -> Float[np.ndarray, "... 2"]:
+def distort_normalized(xy: Float[np.ndarray, "... 2"], coeffs: Float[np.ndarray, " 5"]) -> Float[np.ndarray, "... 2"]:
     """Apply the distortion to normalised coordinates ``[..., 2]``."""
     k1, k2, p1, p2, k3 = _check_coeffs(coeffs)
     x, y = xy[..., 0], xy[..., 1]
@@ -39,7 +39,7 @@ def distort_normalized(xy: Float[np.ndarray, "... 2"], coeffs: Float[np.ndarray,
 
 
 def distort_pixels(
-    pixels: Float[np.ndarray, "... 2"], intrinsics: Float[np.ndarray, "4"], coeffs: Float[np.ndarray, "5"]
+    pixels: Float[np.ndarray, "... 2"], intrinsics: Float[np.ndarray, " 4"], coeffs: Float[np.ndarray, " 5"]
 ) -> Float[np.ndarray, "... 2"]:
     """Ideal pinhole pixel coordinates -> where the real (distorted) lens images them."""
     fx, fy, cx, cy = np.asarray(intrinsics, dtype=np.float64)
@@ -49,8 +49,8 @@ def distort_pixels(
 
 def undistort_pixels(
     pixels: Float[np.ndarray, "... 2"],
-    intrinsics: Float[np.ndarray, "4"],
-    coeffs: Float[np.ndarray, "5"],
+    intrinsics: Float[np.ndarray, " 4"],
+    coeffs: Float[np.ndarray, " 5"],
     iterations: int = 20,
 ) -> Float[np.ndarray, "... 2"]:
     """Distorted pixel coordinates (e.g. COLMAP observations) -> ideal pinhole coordinates,
@@ -74,8 +74,8 @@ def _source_grid(intr: tuple[float, ...], coeffs: tuple[float, ...], height: int
 
 def undistort_image(
     image: Float[np.ndarray, "H W ..."],
-    intrinsics: Float[np.ndarray, "4"],
-    coeffs: Float[np.ndarray, "5"],
+    intrinsics: Float[np.ndarray, " 4"],
+    coeffs: Float[np.ndarray, " 5"],
     nearest: bool = False,
 ) -> Float[np.ndarray, "H W ..."]:
     """Resample a distorted image (``[H, W, C]`` colour, bilinear; or ``[H, W]`` depth with

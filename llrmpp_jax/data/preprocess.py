@@ -121,7 +121,7 @@ def zoom_image(image: Float[np.ndarray, "H W C"], r: float, offset: tuple[int, i
 
 def load_views(
     scene: Scene,
-    indices: Int[np.ndarray, "views"],
+    indices: Int[np.ndarray, " views"],
     resized_hw: tuple[int, int],
     box: tuple[int, int, int, int],
     zoom: float | None,
@@ -156,8 +156,8 @@ def load_views(
 
 def make_sample(
     scene: Scene,
-    inputs: Int[np.ndarray, "V"],
-    targets: Int[np.ndarray, "T"],
+    inputs: Int[np.ndarray, " V"],
+    targets: Int[np.ndarray, " T"],
     geom: ViewGeometry,
     rng: np.random.Generator | None = None,
     with_depth: bool = False,

@@ -23,7 +23,7 @@ from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.errors import UserError
 
 
-def every_nth(num_frames: int, every: int = 8) -> Int[np.ndarray, "T"]:
+def every_nth(num_frames: int, every: int = 8) -> Int[np.ndarray, " T"]:
     """Frame indices ``0, every, 2*every, ...`` below ``num_frames``."""
     if every < 1 or num_frames < 1:
         raise UserError(f"every_nth: need num_frames >= 1 and every >= 1, got {num_frames}, {every}")
@@ -31,8 +31,8 @@ def every_nth(num_frames: int, every: int = 8) -> Int[np.ndarray, "T"]:
 
 
 def kmeans_inputs(
-    c2w: Float[np.ndarray, "frames 4 4"], candidates: Int[np.ndarray, "candidates"], num_inputs: int
-) -> Int[np.ndarray, "V"]:
+    c2w: Float[np.ndarray, "frames 4 4"], candidates: Int[np.ndarray, " candidates"], num_inputs: int
+) -> Int[np.ndarray, " V"]:
     """Long-LRM's k-means input selection, exactly as its ``Dataset.__getitem__``: the 6-D
     features ``[c2w[:3, 3], c2w[:3, 2]]`` of the candidates (raw world coordinates),
     ``sklearn.cluster.KMeans(num_inputs, random_state=0, n_init="auto")``, and for each
@@ -57,7 +57,7 @@ def eval_views(
     every: int = 8,
     max_frames: int | None = None,
     inputs: str = "kmeans",
-) -> tuple[Int[np.ndarray, "V"], Int[np.ndarray, "T"]]:
+) -> tuple[Int[np.ndarray, " V"], Int[np.ndarray, " T"]]:
     """Paper evaluation split ``(inputs, targets)`` over the first ``max_frames`` frames
     (None: all): targets every ``every``-th frame, inputs from the rest by
     :func:`kmeans_inputs` (``inputs="kmeans"``, DL3DV) or :func:`uniform_inputs`
@@ -76,7 +76,7 @@ def eval_views(
 
 def checked_inputs(
     indices: Sequence[int], num_frames: int, num_inputs: int, source: str
-) -> Int[np.ndarray, "V"]:
+) -> Int[np.ndarray, " V"]:
     """Precomputed input indices (e.g. Long-LRM's cached k-means ones) as sorted int64;
     ``ValueError`` (one line naming ``source``) unless they are ``num_inputs`` integers in
     ``[0, num_frames)``."""
@@ -89,7 +89,7 @@ def checked_inputs(
     return np.sort(idx.astype(np.int64))
 
 
-def uniform_inputs(num_frames: int, num_inputs: int) -> Int[np.ndarray, "V"]:
+def uniform_inputs(num_frames: int, num_inputs: int) -> Int[np.ndarray, " V"]:
     """``num_inputs`` distinct frames spread evenly over ``num_frames`` (ends included;
     truncated like Long-LRM's ``np.linspace(..., dtype=int)``), as the ScanNet protocol
     takes its 128 inputs."""
@@ -106,7 +106,7 @@ def training_views(
     min_span: int | None = None,
     max_span: int | None = None,
     input_weight: float = 0.1,
-) -> tuple[Int[np.ndarray, "V"], Int[np.ndarray, "T"]]:
+) -> tuple[Int[np.ndarray, " V"], Int[np.ndarray, " T"]]:
     """One training draw ``(inputs, targets)`` of distinct sorted indices each.
 
     A window of ``span + 1`` consecutive frames, ``span`` uniform in ``[min_span,

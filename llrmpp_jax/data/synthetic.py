@@ -47,15 +47,15 @@ class Layout:
     box_rot: Float[np.ndarray, "boxes 3 3"]
     box_half: Float[np.ndarray, "boxes 3"]
     sphere_center: Float[np.ndarray, "spheres 3"]
-    sphere_radius: Float[np.ndarray, "spheres"]
+    sphere_radius: Float[np.ndarray, " spheres"]
     quad_center: Float[np.ndarray, "quads 3"]
     quad_u: Float[np.ndarray, "quads 3"]
     quad_v: Float[np.ndarray, "quads 3"]
     quad_half: Float[np.ndarray, "quads 2"]
-    texture: Int[np.ndarray, "boxes+spheres+quads"]
+    texture: Int[np.ndarray, " boxes+spheres+quads"]
     tint: Float[np.ndarray, "boxes+spheres+quads 3"]
-    texels_per_m: Float[np.ndarray, "boxes+spheres+quads"]
-    light_dir: Float[np.ndarray, "3"] = field(default_factory=lambda: np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9]))
+    texels_per_m: Float[np.ndarray, " boxes+spheres+quads"]
+    light_dir: Float[np.ndarray, " 3"] = field(default_factory=lambda: np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9]))
 
     @property
     def num_primitives(self) -> int:
@@ -384,7 +384,7 @@ def procedural_scene(
     if cameras is not None:
         c2w, intrinsics = (np.asarray(a, dtype=np.float64) for a in cameras)
 
-    @functools.lru_cache(maxsize=None)
+    @functools.cache
     def frame(i: int) -> Rendered:
         return render_views(lay, c2w[i : i + 1], intrinsics[i : i + 1], cfg.height, cfg.width)
 

@@ -114,7 +114,7 @@ def _bilinear_wrap(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def sample_texture(
-    texture: Texture, u: Float[np.ndarray, "pts"], v: Float[np.ndarray, "pts"], lod: Float[np.ndarray, "pts"]
+    texture: Texture, u: Float[np.ndarray, " pts"], v: Float[np.ndarray, " pts"], lod: Float[np.ndarray, " pts"]
 ) -> Float[np.ndarray, "pts 3"]:
     """Bilinear lookup with wrap-around at texture coordinates ``(u, v)`` (1 = one full
     texture; v grows downwards) from mip level ``round(lod)`` (clamped to the pyramid)."""
@@ -126,6 +126,6 @@ def sample_texture(
     return out
 
 
-def texture_ids(names: tuple[str, ...]) -> Int[np.ndarray, "textures"]:
+def texture_ids(names: tuple[str, ...]) -> Int[np.ndarray, " textures"]:
     """Indices of several textures in the bank."""
     return np.array([texture_index(n) for n in names], dtype=np.int64)

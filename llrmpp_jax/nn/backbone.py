@@ -163,7 +163,8 @@ class Backbone(nn.Module):
             kinds, d = layout[start:stop], cfg.dims[stage]
             if cfg.remat and not self.is_initializing():
                 params = [self.variables["params"][f"blocks_{i}"] for i in range(start, stop)]
-                x = remat_blocks(kinds, lambda kind: self._block(kind, d, None, parent=None), params, x)
+                # remat_blocks calls the lambda before the loop moves on.
+                x = remat_blocks(kinds, lambda kind: self._block(kind, d, None, parent=None), params, x)  # noqa: B023
             else:
                 for i, kind in enumerate(kinds, start):
                     x = self._block(kind, d, f"blocks_{i}", remat=cfg.remat)(x)

@@ -105,13 +105,13 @@ def _forward(q, k, v, bias, mask, bq, bk, lk):
         q_i, i = xs
 
         def k_block(carry, ys):
-            m, l, o = carry
+            m, l, o = carry  # noqa: E741  the docstring's row sum l
             k_j, v_j, j = ys
             s, _ = _block_logits(q_i, k_j, i, j, bias, mask, bq, bk, lk, scale, acc)
             m_new = jnp.maximum(m, s.max(axis=-1))
             alpha = jnp.exp(m - m_new)
             p = jnp.exp(s - m_new[..., None])
-            l = alpha * l + p.sum(axis=-1)
+            l = alpha * l + p.sum(axis=-1)  # noqa: E741
             pv = jnp.einsum("bhqk,bhkd->bhqd", p.astype(v.dtype), v_j, preferred_element_type=acc)
             o = alpha[..., None] * o + pv
             return (m_new, l, o), None
@@ -121,7 +121,7 @@ def _forward(q, k, v, bias, mask, bq, bk, lk):
             full_like_varying(q_i, (b, nh, bq), 0.0, acc),
             full_like_varying(q_i, (b, nh, bq, hd), 0.0, acc),
         )
-        (m, l, o), _ = lax.scan(k_block, init, (kb, vb, jnp.arange(kb.shape[0])))
+        (m, l, o), _ = lax.scan(k_block, init, (kb, vb, jnp.arange(kb.shape[0])))  # noqa: E741
         o = o / l[..., None]
         # (m, l) rather than lse = m + log(l): for an all-masked row m = -0.7 * max and
         # m + log(l) would round back to m, losing the 1/l of the uniform softmax.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import flax.linen as nn
 
+
 def linear_init(std: float | None) -> nn.initializers.Initializer:
     """``normal(std)``, or LeCun normal (std = 1/sqrt(fan-in)) for ``None``."""
     return nn.initializers.lecun_normal() if std is None else nn.initializers.normal(stddev=std)

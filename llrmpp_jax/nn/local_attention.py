@@ -30,9 +30,9 @@ import numpy as np
 from jax import lax
 
 from llrmpp_jax.array_typing import Array, ArrayLike, DTypeLike, Float, Int
-from llrmpp_jax.nn.variance import common_variance, full_like_varying
 from llrmpp_jax.nn.attention import _check_width, _num_heads, _out_proj, _qkv_heads
 from llrmpp_jax.nn.initializers import DENSE_INIT
+from llrmpp_jax.nn.variance import common_variance, full_like_varying
 
 
 def _window_radius(h: int, w: int, kn: int) -> int:

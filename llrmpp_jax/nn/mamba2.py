@@ -193,7 +193,7 @@ def mamba2_block(params: Params, x: Float[Array, "... L D"], cfg: Mamba2Config) 
     return x + _dense(y, params["out_proj"]["kernel"])
 
 
-def _torch_default_uniform(key: KeyArray, shape: tuple[int, ...], fan_in: int) -> Float[Array, "..."]:
+def _torch_default_uniform(key: KeyArray, shape: tuple[int, ...], fan_in: int) -> Float[Array, " ..."]:
     """PyTorch's default Linear/Conv init (kaiming-uniform, a=sqrt(5)): U(+-1/sqrt(fan_in))."""
     bound = 1.0 / fan_in**0.5
     return jax.random.uniform(key, shape, jnp.float32, -bound, bound)

@@ -33,6 +33,7 @@ docs/lab-notes.md, "The `demo` recipe's choices".
 """
 
 from dataclasses import replace
+
 from llrmpp_jax import config as C
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig

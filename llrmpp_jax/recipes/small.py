@@ -29,10 +29,11 @@ backbone, LeCun-normal head and decoder init), each with its reason in the ``dem
 docstring.
 """
 
+from dataclasses import replace
+
 from llrmpp_jax import config as C
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
-from dataclasses import replace
 
 
 def get_config() -> ExperimentConfig:

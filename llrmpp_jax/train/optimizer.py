@@ -26,7 +26,6 @@ from llrmpp_jax.array_typing import Array, ArrayLike, Float, Int
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.train.spikes import skip_gradient_spikes
 
-
 # Long-LRM's ``training.train_steps`` in every released config: the horizon of its cosine.
 LONG_LRM_TRAIN_STEPS = 1_000_000
 

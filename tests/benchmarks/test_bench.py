@@ -1,12 +1,12 @@
 """``llrmpp bench``: bad input is one line; the attention benchmark's memory numbers; FLOP
 counts against analytic ones; the Table-1 cases, the stage-4 step and the profile at CPU scale."""
 
-from dataclasses import replace
 import json
 import math
 import os
 import subprocess
 import sys
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +16,11 @@ from llrmpp_jax import config as C
 from llrmpp_jax.benchmarks.attention import attention_benchmark
 from llrmpp_jax.benchmarks.measure import matmul_flops, peak_bf16_flops, throughput, timed, xla_cost
 from llrmpp_jax.benchmarks.paper import (
-    counting_config, paper_comparison, profile_markdown, profile_reconstruct_render, run_table1,
+    counting_config,
+    paper_comparison,
+    profile_markdown,
+    profile_reconstruct_render,
+    run_table1,
 )
 from llrmpp_jax.cli import main
 from llrmpp_jax.model import init_params, reconstruct

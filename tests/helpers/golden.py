@@ -2,6 +2,7 @@
 official Gaussians as a colour-mode scene with their input cameras as render targets."""
 
 from dataclasses import replace
+
 import jax.numpy as jnp
 import numpy as np
 

@@ -3,6 +3,7 @@ single stage of a few steps (checkpoint every step, evaluation every 2), no perc
 Experiment files written by the tests import it from here (``sys.path`` holds the checkout)."""
 
 from dataclasses import replace
+
 from llrmpp_jax import config as C
 from llrmpp_jax.data import ProceduralConfig
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig

@@ -1,8 +1,8 @@
 """Backbone: block-pattern parsing, paper parameter count, and the Long-LRM golden run."""
 
-from dataclasses import replace
 import functools
 import os
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp

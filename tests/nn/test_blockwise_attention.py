@@ -207,7 +207,8 @@ def test_blockwise_inside_shard_map_equals_plain(rng):
     """Under ``shard_map`` over the batch axis (the trainer's data parallelism) the loop
     carries must carry the inputs' device variance; output and gradients vs plain <= 1e-5,
     with a parameter-like (replicated) bias."""
-    from jax.sharding import NamedSharding, PartitionSpec as P
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
 
     mesh = jax.make_mesh((2,), ("batch",))
     args, _ = random_inputs(rng, 2, 45, 45, with_bias=True)

@@ -4,6 +4,7 @@ of the initialised kernels against the stated std (thousands of draws, so +-10% 
 5 sigma; the decoder's merge kernel, 64 weights, is too small to test this way)."""
 
 from dataclasses import replace
+
 import jax
 import numpy as np
 import pytest

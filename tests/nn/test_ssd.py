@@ -145,7 +145,7 @@ def test_ssd_scan_gradients_match_sequential(rng, inter_chunk):
     )
     for chunk_size in (7, 64):
         got = jax.jit(grads, static_argnums=(0, 2))(
-            lambda *a: ssd_scan(*a[:5], chunk_size=chunk_size, D=a[5], inter_chunk=inter_chunk),
+            lambda *a: ssd_scan(*a[:5], chunk_size=chunk_size, D=a[5], inter_chunk=inter_chunk),  # noqa: B023  called here
             tuple(jnp.asarray(a) for a in (x, dt, A, B, C, D)),
             jnp.float32,
         )

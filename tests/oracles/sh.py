@@ -11,7 +11,7 @@ def scipy_real_sh(dirs: np.ndarray, degree: int) -> np.ndarray:
     d = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
     theta, phi = np.arccos(np.clip(d[:, 2], -1, 1)), np.arctan2(d[:, 1], d[:, 0])
     cols = []
-    for l in range(degree + 1):
+    for l in range(degree + 1):  # noqa: E741  the degree l of Y_l^m
         for m in range(-l, l + 1):
             y = sp.sph_harm_y(l, abs(m), theta, phi)
             cols.append(np.sqrt(2) * y.imag if m < 0 else np.sqrt(2) * y.real if m > 0 else y.real)

@@ -15,12 +15,12 @@ import subprocess
 import sys
 import warnings
 
-import tests.conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a module)
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import tests.conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a module)
 from llrmpp_jax.train.checkpoint import (
     MANIFEST,
     CorruptCheckpointError,

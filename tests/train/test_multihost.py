@@ -17,14 +17,14 @@ import subprocess
 import sys
 import time
 
-import pytest
-import tests.conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a module)
 import jax
 import numpy as np
+import pytest
 
+import tests.conftest  # noqa: F401  (strict jax config, 2 CPU devices, also when run as a module)
 from llrmpp_jax.train.checkpoint import restore_checkpoint, save_checkpoint
-from llrmpp_jax.train.peers import jax_heartbeat_timeout, watch_peers
 from llrmpp_jax.train.optimizer import make_optimizer, make_schedule
+from llrmpp_jax.train.peers import jax_heartbeat_timeout, watch_peers
 from llrmpp_jax.train.sharding import make_data_mesh, replicate_on_mesh, shard_for_mesh
 from llrmpp_jax.train.state import init_train_state
 from llrmpp_jax.train.step import make_train_step, sharded_train_step

@@ -17,7 +17,7 @@ def _gradients(rng, steps: int, spikes: dict[int, float], shift_at: int | None =
     for t in range(steps):
         g = {"w": rng.normal(size=(4, 3)) * 0.01, "b": rng.normal(size=(3,)) * 0.01}
         m = spikes.get(t, 1.0) * (shift if shift_at is not None and t >= shift_at else 1.0)
-        out.append(jax.tree.map(lambda x: jnp.asarray(x * m, jnp.float32), g))
+        out.append(jax.tree.map(lambda x: jnp.asarray(x * m, jnp.float32), g))  # noqa: B023  mapped here
     return out
 
 

@@ -11,6 +11,7 @@ from llrmpp_jax.data.formats.long_lrm import (
     write_long_lrm_scene,
 )
 from llrmpp_jax.data.formats.nerfstudio import read_nerfstudio_scene, write_nerfstudio_scene
+from llrmpp_jax.data.formats.re10k import read_re10k_eval_index, read_re10k_scene, write_re10k_scene
 from llrmpp_jax.data.formats.registry import (
     FORMATS,
     READERS,
@@ -20,7 +21,6 @@ from llrmpp_jax.data.formats.registry import (
     listed_scenes,
     read_scene,
 )
-from llrmpp_jax.data.formats.re10k import read_re10k_eval_index, read_re10k_scene, write_re10k_scene
 from llrmpp_jax.data.formats.scannet import read_scannet_scene, write_scannet_scene
 
 __all__ = [

@@ -83,7 +83,7 @@ class ColmapCamera:
     model: str
     width: int
     height: int
-    params: Float[np.ndarray, "params"]
+    params: Float[np.ndarray, " params"]
 
     def pinhole_and_distortion(self) -> tuple[np.ndarray, np.ndarray]:
         """``(fx, fy, cx, cy)`` and OpenCV ``(k1, k2, p1, p2, k3)`` of this camera."""
@@ -107,17 +107,17 @@ class ColmapImage:
     camera_id: int
     name: str
     xys: Float[np.ndarray, "pts 2"]  # observed (distorted) pixel coordinates
-    point3d_ids: Int[np.ndarray, "pts"]  # -1 where the observation has no 3D point
+    point3d_ids: Int[np.ndarray, " pts"]  # -1 where the observation has no 3D point
 
 
 @dataclass(frozen=True)
 class ColmapPoint3D:
     point3d_id: int
-    xyz: Float[np.ndarray, "3"]
-    rgb: Int[np.ndarray, "3"]
+    xyz: Float[np.ndarray, " 3"]
+    rgb: Int[np.ndarray, " 3"]
     error: float
-    image_ids: Int[np.ndarray, "track"]
-    point2d_idxs: Int[np.ndarray, "track"]
+    image_ids: Int[np.ndarray, " track"]
+    point2d_idxs: Int[np.ndarray, " track"]
 
 
 def _message(e: Exception) -> str:
