@@ -49,10 +49,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--budgets", default="200,400,600", help="comma-separated step counts to score")
     parser.add_argument("--seeds", type=int, default=3, help="seeds per row (init and data order)")
-    parser.add_argument("--rows", default="table5/6 LLGGG S=2",
-                        help="comma-separated chosen rows to pilot, of: " + "; ".join(CHOSEN))
-    parser.add_argument("--out", help="JSON file to write (default: experiments/results/ablations/pilot_cpu.json)",
-                        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "ablations", "pilot_cpu.json"))
+    parser.add_argument(
+        "--rows", default="table5/6 LLGGG S=2", help="comma-separated chosen rows to pilot, of: " + "; ".join(CHOSEN)
+    )
+    parser.add_argument(
+        "--out",
+        help="JSON file to write (default: experiments/results/ablations/pilot_cpu.json)",
+        default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "ablations", "pilot_cpu.json"),
+    )
     args = parser.parse_args()
     budgets = sorted(int(b) for b in args.budgets.split(","))
     if args.seeds < 1 or budgets[0] < 1:
@@ -75,11 +79,15 @@ def main() -> None:
             seconds.append(trained.seconds)
             for b in budgets:
                 per_budget[b].append(A.row_scores(trained.snapshots[b], cfg, samples, lp))
-            print(f"{name} seed {seed}: {trained.seconds:.0f} s, PSNR by budget "
-                  + ", ".join(f"{b}: {per_budget[b][-1]['psnr']:.2f}" for b in budgets), flush=True)
+            print(
+                f"{name} seed {seed}: {trained.seconds:.0f} s, PSNR by budget "
+                + ", ".join(f"{b}: {per_budget[b][-1]['psnr']:.2f}" for b in budgets),
+                flush=True,
+            )
         refs = A.references(cfg, scale, samples, lp)
         record["rows"][name] = {
-            "train_s": seconds, "references": refs,
+            "train_s": seconds,
+            "references": refs,
             "budgets": {str(b): A.summarise(per_budget[b]) for b in budgets},
         }
         print(f"\n{name} ({sum(seconds) / len(seconds):.0f} s per seed for {budgets[-1]} steps)")

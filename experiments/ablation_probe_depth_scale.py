@@ -44,8 +44,13 @@ def main() -> None:
     if len(sys.argv) != 3 or sys.argv[1] not in ("base", "metric", "fixed"):
         raise SystemExit("usage: python experiments/ablation_probe_depth_scale.py {base,metric,fixed} OUT_DIR")
     mode, out = sys.argv[1], sys.argv[2]
-    os.environ.update(LLRMPP_NOTEBOOK_SCALE="cpu", LLRMPP_NOTEBOOK_SEEDS="1", LLRMPP_NOTEBOOK_WORKERS="1",
-                      LLRMPP_NOTEBOOK_ROWS="2", LLRMPP_NOTEBOOK_OUT=out)
+    os.environ.update(
+        LLRMPP_NOTEBOOK_SCALE="cpu",
+        LLRMPP_NOTEBOOK_SEEDS="1",
+        LLRMPP_NOTEBOOK_WORKERS="1",
+        LLRMPP_NOTEBOOK_ROWS="2",
+        LLRMPP_NOTEBOOK_OUT=out,
+    )
     import jax.numpy as jnp
     import numpy as np
 
@@ -88,14 +93,22 @@ def main() -> None:
     constants: dict[str, list] = {"head start exp(bias)": [], "window median": [], "image median": []}
     for s in A.held_out_samples(scale.base, scale):
         t = s["target_depth"]
-        preds = {"head start exp(bias)": np.full_like(t, np.exp(bias)),
-                 "window median": np.full_like(t, np.median(t[t > 0])),
-                 "image median": np.stack([np.full_like(ti, np.median(ti[ti > 0])) for ti in t])}
+        preds = {
+            "head start exp(bias)": np.full_like(t, np.exp(bias)),
+            "window median": np.full_like(t, np.median(t[t > 0])),
+            "image median": np.stack([np.full_like(ti, np.median(ti[ti > 0])) for ti in t]),
+        }
         for k, p in preds.items():
             constants[k].append(np.asarray(depth_metrics(jnp.asarray(p), jnp.asarray(t))["delta_1_25"]))
     record = {
-        "probe": "depth_scale", "mode": mode, "commit": revision(), "machine": A.machine(), "scale": str(scale),
-        "row": "Ours w/o aux losses", "seed": 0, "wall_s": time.perf_counter() - t0,
+        "probe": "depth_scale",
+        "mode": mode,
+        "commit": revision(),
+        "machine": A.machine(),
+        "scale": str(scale),
+        "row": "Ours w/o aux losses",
+        "seed": 0,
+        "wall_s": time.perf_counter() - t0,
         "model": {k: row.get(k) for k in ("psnr", "ssim", "lpips", "abs_diff", "delta_1_25", "final_loss")},
         "constant_depth_delta_1_25": {k: float(np.nanmean(np.concatenate(v))) for k, v in constants.items()},
     }

@@ -11,6 +11,7 @@ Run (from the repository root; one core, ~5 min per seed on the 2-core developme
     taskset -c 1 python experiments/ablation_stall_probe.py depth noaux 3,6 OUT.json
                              # Table 7's Long-LRM++ rows (aux: with the auxiliary depth losses)
 """
+
 import dataclasses
 import json
 import os
@@ -47,15 +48,20 @@ if depth:
     cfg = scale.base
     variant = A.Variant({}, lambda b: cfg, {}, **({} if aux == "aux" else dict(grad_weight=0.0, normal_weight=0.0)))
 else:
-    cfg = replace(scale.base, head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
-                  decoder=replace(scale.base.decoder, blocks=blocks, dim=scale.width(256),
-                                  canvas_ratio=round(1 / canvas), partitions=S))
+    cfg = replace(
+        scale.base,
+        head=replace(scale.base.head, gaussians_per_token=k, feature_dim=f),
+        decoder=replace(
+            scale.base.decoder, blocks=blocks, dim=scale.width(256), canvas_ratio=round(1 / canvas), partitions=S
+        ),
+    )
     variant = A.Variant({}, lambda b: cfg, {})
 held_out = A.held_out_samples(cfg, scale)
 samples = held_out[:4]  # the Gaussian statistics use the first four
 snaps = sorted({0, 10, 25, 50, 100, 200, steps // 2, steps})
 
 recon = jax.jit(lambda p, s: reconstruct(p, cfg, s["input_images"], s["input_c2w"], s["input_intrinsics"]))
+
 
 def stats(params):
     rows = []
@@ -66,18 +72,32 @@ def stats(params):
         cam = np.asarray(s["input_c2w"])[:, :3, 3]
         d = np.linalg.norm(np.asarray(g.means)[0][:, None] - cam[None], axis=-1).min(1)
         feat = np.linalg.norm(np.asarray(g.features)[0], axis=-1)
-        rows.append(dict(op_mean=o.mean(), op_lt01=(o < 0.01).mean(), op_gt09=(o > 0.9).mean(),
-                         logscale_mean=sc.mean(), logscale_sd=sc.std(), dist_mean=d.mean(),
-                         dist_gt9=(d > 9.0).mean(), feat_norm=feat.mean()))
+        rows.append(
+            dict(
+                op_mean=o.mean(),
+                op_lt01=(o < 0.01).mean(),
+                op_gt09=(o > 0.9).mean(),
+                logscale_mean=sc.mean(),
+                logscale_sd=sc.std(),
+                dist_mean=d.mean(),
+                dist_gt9=(d > 9.0).mean(),
+                feat_norm=feat.mean(),
+            )
+        )
     return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
 
 res = {}
 for seed in seeds:
     t = A.train(cfg, scale, variant, seed=seed, snapshots=snaps)
     t.snapshots[0] = A.init_model(cfg, scale, seed)
     ev = A.row_scores(t.params, cfg, held_out)
-    res[seed] = dict(losses=t.losses.tolist(), grad_norms=t.grad_norms.tolist(), seconds=t.seconds,
-                     snap={str(k): stats(v) for k, v in sorted(t.snapshots.items())},
-                     eval=ev)
+    res[seed] = dict(
+        losses=t.losses.tolist(),
+        grad_norms=t.grad_norms.tolist(),
+        seconds=t.seconds,
+        snap={str(k): stats(v) for k, v in sorted(t.snapshots.items())},
+        eval=ev,
+    )
     print(seed, f"final loss {np.mean(t.losses[-20:]):.4f}", res[seed]["eval"], flush=True)
     json.dump(res, open(out, "w"))

@@ -51,17 +51,27 @@ SIZE, FRAMES, BATCH = 64, 16, 2
 def model_config(args: argparse.Namespace) -> C.ModelConfig:
     """The demo experiment's model with the command line's changes."""
     m = load_experiment("demo").model
-    head = replace(m.head, mode=args.mode, sh_degree=0, init_std=args.init_std,
-                     scale_bias=args.scale_bias,
-                     anchors=args.anchors,
-                     gaussians_per_token=m.head.gaussians_per_token if args.k is None else args.k,
-                     feature_dim=m.head.feature_dim if args.feature_dim is None else args.feature_dim)
-    return replace(m, backbone=replace(m.backbone, pattern=args.pattern), head=head,
-                     decoder=replace(m.decoder, init_std=args.init_std))
+    head = replace(
+        m.head,
+        mode=args.mode,
+        sh_degree=0,
+        init_std=args.init_std,
+        scale_bias=args.scale_bias,
+        anchors=args.anchors,
+        gaussians_per_token=m.head.gaussians_per_token if args.k is None else args.k,
+        feature_dim=m.head.feature_dim if args.feature_dim is None else args.feature_dim,
+    )
+    return replace(
+        m,
+        backbone=replace(m.backbone, pattern=args.pattern),
+        head=head,
+        decoder=replace(m.decoder, init_std=args.init_std),
+    )
 
 
-def ideal_canvas_render(params: dict, cfg: C.ModelConfig, g: Gaussians, c2w: jax.Array,
-                        intrinsics: jax.Array) -> jax.Array:
+def ideal_canvas_render(
+    params: dict, cfg: C.ModelConfig, g: Gaussians, c2w: jax.Array, intrinsics: jax.Array
+) -> jax.Array:
     """RGB ``[B, 1, H, W, 3]`` of the one input view with the splat replaced by an ideal canvas:
     Gaussian k of each token paints only canvas pixel ``(k // m, k % m)`` of its token's
     ``m x m`` canvas patch (m = q / r, K = m*m), with ``opacity * partition weight * feature``
@@ -72,7 +82,7 @@ def ideal_canvas_render(params: dict, cfg: C.ModelConfig, g: Gaussians, c2w: jax
     s = cfg.decoder.partitions
     h = w = SIZE // cfg.decoder.token_stride
     weights = jax.nn.softmax(partition_logits(params, cfg, g), axis=-1)  # [B, N, S]
-    paint = (g.opacities[..., None, None] * weights[..., None] * g.features[:, :, None, :])  # [B, N, S, F]
+    paint = g.opacities[..., None, None] * weights[..., None] * g.features[:, :, None, :]  # [B, N, S, F]
     canvas = paint.reshape(b, 1, h, w, m, m, s, f).transpose(0, 1, 6, 2, 4, 3, 5, 7).reshape(b, 1, s, h * m, w * m, f)
     canvas = append_target_rays(canvas, c2w, intrinsics, cfg.decoder.canvas_ratio)[:, 0]  # one target: the input view
     out = LongLRMPP(cfg).apply({"params": params}, canvas, method=lambda mod, c: mod.decoder(c, ("rgb",)))
@@ -86,36 +96,61 @@ def main() -> None:
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate")
     p.add_argument("--mode", default="feature", choices=("feature", "color"), help="Gaussian head mode")
     p.add_argument("--pattern", default="{4T}x1", help="backbone block pattern")
-    p.add_argument("--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'")
+    p.add_argument(
+        "--init-std", type=parse_init_std, default=0.02, help="std of the head and decoder linears, or 'lecun'"
+    )
     p.add_argument("--k", type=int, default=None, help="Gaussians per token (default: the demo model's)")
     p.add_argument("--feature-dim", type=int, default=None, help="feature width F (default: the demo model's)")
     # The head's start defaults to the demo's before it moved to the grid, so the runs of the
     # earlier rounds (docs/lab-notes.md, "Learning at small scale") reproduce with their own
     # command lines.
-    p.add_argument("--scale-bias", type=float, default=-2.5,
-                   help="log-scale bias of the Gaussians (default -2.5; the demo now -3.0; Long-LRM -6.9)")
-    p.add_argument("--anchors", default="centre", choices=("centre", "grid"),
-                   help="where a token's Gaussians start: all at the patch centre (default), or on a sub-grid")
-    p.add_argument("--canvas", default="splat", choices=("splat", "ideal"),
-                   help="the decoder's canvas: the splat (default), or an ideal one, each Gaussian on its own "
-                        "canvas pixel (feature mode, K = (q/r)^2; see ideal_canvas_render)")
+    p.add_argument(
+        "--scale-bias",
+        type=float,
+        default=-2.5,
+        help="log-scale bias of the Gaussians (default -2.5; the demo now -3.0; Long-LRM -6.9)",
+    )
+    p.add_argument(
+        "--anchors",
+        default="centre",
+        choices=("centre", "grid"),
+        help="where a token's Gaussians start: all at the patch centre (default), or on a sub-grid",
+    )
+    p.add_argument(
+        "--canvas",
+        default="splat",
+        choices=("splat", "ideal"),
+        help="the decoder's canvas: the splat (default), or an ideal one, each Gaussian on its own "
+        "canvas pixel (feature mode, K = (q/r)^2; see ideal_canvas_render)",
+    )
     p.add_argument("--seed", type=int, default=0, help="data and init seed")
     args = p.parse_args()
-    name = args.name or (f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
-                         + (f"_k{args.k}" if args.k is not None else "")
-                         + (f"_f{args.feature_dim}" if args.feature_dim is not None else "")
-                         + (f"_s{args.scale_bias:g}" if args.scale_bias != -2.5 else "")
-                         + ("_grid" if args.anchors == "grid" else "")
-                         + ("_ideal_canvas" if args.canvas == "ideal" else ""))
+    name = args.name or (
+        f"{args.mode}_{args.init_std or 'lecun'}_{args.pattern.strip('{}x1')}"
+        + (f"_k{args.k}" if args.k is not None else "")
+        + (f"_f{args.feature_dim}" if args.feature_dim is not None else "")
+        + (f"_s{args.scale_bias:g}" if args.scale_bias != -2.5 else "")
+        + ("_grid" if args.anchors == "grid" else "")
+        + ("_ideal_canvas" if args.canvas == "ideal" else "")
+    )
     cfg = model_config(args)
     cells = (cfg.decoder.token_stride // cfg.decoder.canvas_ratio) ** 2
-    if args.canvas == "ideal" and (args.mode != "feature" or cfg.head.gaussians_per_token != cells
-                                   or cfg.token_stride != cfg.decoder.token_stride):
+    if args.canvas == "ideal" and (
+        args.mode != "feature" or cfg.head.gaussians_per_token != cells or cfg.token_stride != cfg.decoder.token_stride
+    ):
         p.error(f"--canvas ideal needs feature mode with --k {cells} (one Gaussian per canvas pixel of a token)")
     pc = ProceduralConfig(height=SIZE, width=SIZE, num_frames=FRAMES)
     geom = ViewGeometry(resize_h=SIZE, multiple=cfg.size_multiple, square_crop=True)
-    stage = StageConfig(name="ae", steps=args.steps, global_batch=BATCH, num_inputs=1, num_targets=1,
-                        resize_h=SIZE, lr=args.lr, warmup_steps=50)
+    stage = StageConfig(
+        name="ae",
+        steps=args.steps,
+        global_batch=BATCH,
+        num_inputs=1,
+        num_targets=1,
+        resize_h=SIZE,
+        lr=args.lr,
+        warmup_steps=50,
+    )
     opt_cfg = optimizer_config(stage)
     optimizer, schedule = T.make_optimizer(opt_cfg), T.make_schedule(opt_cfg)
 
@@ -123,12 +158,17 @@ def main() -> None:
 
     def loss_fn(params, batch, key):
         if args.canvas == "splat":  # the training objective with the input view as the target
-            return objective(params, {**batch, **{f"target_{k}": batch[f"input_{k}"]
-                                                 for k in ("images", "c2w", "intrinsics")}}, key)
+            return objective(
+                params, {**batch, **{f"target_{k}": batch[f"input_{k}"] for k in ("images", "c2w", "intrinsics")}}, key
+            )
         g = reconstruct(params, cfg, batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
         rgb = ideal_canvas_render(params, cfg, g, batch["input_c2w"], batch["input_intrinsics"])
-        return rgb_loss(rgb.reshape(-1, SIZE, SIZE, 3),
-                        batch["input_images"].reshape(-1, SIZE, SIZE, 3), None, perceptual_weight=0.0)
+        return rgb_loss(
+            rgb.reshape(-1, SIZE, SIZE, 3),
+            batch["input_images"].reshape(-1, SIZE, SIZE, 3),
+            None,
+            perceptual_weight=0.0,
+        )
 
     mesh = T.make_data_mesh()
     params = init_params(jax.random.key(args.seed + 1), cfg, 1, SIZE, SIZE)
@@ -148,8 +188,11 @@ def main() -> None:
         psnrs.append(float(metrics["psnr"]))
         if step % 200 == 0 or step == args.steps:
             log.append({"step": step, "psnr_last_100": float(np.mean(psnrs[-100:])), "wall_s": time.time() - t0})
-            print(f"step {step:5d}  mean PSNR of the last 100 steps {log[-1]['psnr_last_100']:.2f} dB  "
-                  f"{log[-1]['wall_s']:.0f} s", flush=True)
+            print(
+                f"step {step:5d}  mean PSNR of the last 100 steps {log[-1]['psnr_last_100']:.2f} dB  "
+                f"{log[-1]['wall_s']:.0f} s",
+                flush=True,
+            )
     os.makedirs(RESULTS, exist_ok=True)
     with open(os.path.join(RESULTS, f"autoencoder_{name}.json"), "w") as f:
         json.dump({"name": name, "args": vars(args), "log": log}, f, indent=1)

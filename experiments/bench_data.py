@@ -62,8 +62,11 @@ def bench_procedural(size: int, views: int, repeats: int) -> dict[str, dict[str,
 
 
 def bench_capture(scene, size: int, frames: int, repeats: int) -> dict[str, float]:
-    geom = ViewGeometry(resize_w=size if scene.hw[0, 0] > scene.hw[0, 1] else None,
-                        resize_h=size if scene.hw[0, 0] <= scene.hw[0, 1] else None, square_crop=True)
+    geom = ViewGeometry(
+        resize_w=size if scene.hw[0, 0] > scene.hw[0, 1] else None,
+        resize_h=size if scene.hw[0, 0] <= scene.hw[0, 1] else None,
+        square_crop=True,
+    )
     hw = tuple(scene.hw[0])
     resized, out_hw = resized_size(hw, geom), output_size(hw, geom)
     box = crop_box(resized, geom)
@@ -95,7 +98,8 @@ def main() -> None:
         captures = {
             "fox_nerfstudio_1080x1920_distorted": read_nerfstudio_scene(os.path.join(SHARED, "fox")),
             "beer_colmap_720x1280_simple_radial": read_colmap_scene(
-                os.path.join(SHARED, "beer", "sparse", "0"), os.path.join(SHARED, "beer", "images")),
+                os.path.join(SHARED, "beer", "sparse", "0"), os.path.join(SHARED, "beer", "images")
+            ),
         }
     for name, scene in captures.items():
         result["capture"][name] = {str(s): bench_capture(scene, s, 4, args.repeats) for s in (128, 256)}

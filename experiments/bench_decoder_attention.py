@@ -68,8 +68,14 @@ print(json.dumps(rows))
 
 def measure(tree: str, repeats: int) -> dict:
     """One fresh process on the package in ``tree``: its rows."""
-    out = subprocess.run([sys.executable, "-c", CHILD, str(repeats)], check=True, capture_output=True, text=True,
-                         env=dict(os.environ, PYTHONPATH=tree), cwd=tree)
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, str(repeats)],
+        check=True,
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PYTHONPATH=tree),
+        cwd=tree,
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -92,8 +98,13 @@ def main() -> None:
             before = min(run[row][key] for run in runs["baseline"])
             after = min(run[row][key] for run in runs["this tree"])
             best[f"{row} {key}"] = {"baseline": before, "this tree": after, "speedup": before / after}
-    result = {"baseline": args.baseline, "commit": rev_parse("HEAD"), "cpu_count": os.cpu_count(), "runs": runs,
-              "best_of_rounds": best}
+    result = {
+        "baseline": args.baseline,
+        "commit": rev_parse("HEAD"),
+        "cpu_count": os.cpu_count(),
+        "runs": runs,
+        "best_of_rounds": best,
+    }
     print(json.dumps(best, indent=1))
     if args.out:
         with open(args.out, "w") as fh:

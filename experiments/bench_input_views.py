@@ -49,9 +49,10 @@ def score(a, b) -> float:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--checkpoint", default="pretrained:small", help="training workdir, params folder or pretrained:NAME")
-    p.add_argument("--config", default="small",
-                   help="experiment file whose held-out scenes and view counts are used")
+    p.add_argument(
+        "--checkpoint", default="pretrained:small", help="training workdir, params folder or pretrained:NAME"
+    )
+    p.add_argument("--config", default="small", help="experiment file whose held-out scenes and view counts are used")
     p.add_argument("--name", default=None, help="result name (default: the checkpoint's last path part)")
     args = p.parse_args()
     exp = load_experiment(args.config)
@@ -71,20 +72,31 @@ def main() -> None:
         own, single = [], []
         for i in range(v):
             mask = (jnp.arange(v * per_view) // per_view == i).astype(g.opacities.dtype)[None]
-            cam = (c2w[:, i:i + 1], k[:, i:i + 1])
+            cam = (c2w[:, i : i + 1], k[:, i : i + 1])
             own.append(score(ren(g._replace(opacities=g.opacities * mask), *cam, h, w)[0, 0], s["input_images"][i]))
-            alone = rec(im[:, i:i + 1], *cam)
+            alone = rec(im[:, i : i + 1], *cam)
             single.append(score(ren(alone, *cam, h, w)[0, 0], s["input_images"][i]))
         blocks = {f"block_mean_{b}": score(block_mean(s["input_images"], b), s["input_images"]) for b in (8, 4, 2)}
-        rows.append({"scene": name, "all_views": score(ren(g, c2w, k, h, w)[0], s["input_images"]),
-                     "own_only": float(np.mean(own)), "single_input": float(np.mean(single)), **blocks})
+        rows.append(
+            {
+                "scene": name,
+                "all_views": score(ren(g, c2w, k, h, w)[0], s["input_images"]),
+                "own_only": float(np.mean(own)),
+                "single_input": float(np.mean(single)),
+                **blocks,
+            }
+        )
         print(" ".join(f"{k_}={v_:.2f}" if isinstance(v_, float) else v_ for k_, v_ in rows[-1].items()), flush=True)
     mean = {k_: float(np.mean([r[k_] for r in rows])) for k_ in rows[0] if k_ != "scene"}
     print("mean over scenes (PSNR dB): " + ", ".join(f"{k_} {v_:.2f}" for k_, v_ in mean.items()))
     name = args.name or os.path.basename(os.path.normpath(args.checkpoint)).replace("pretrained:", "pretrained_")
     os.makedirs(RESULTS, exist_ok=True)
     with open(os.path.join(RESULTS, f"input_views_{name}.json"), "w") as f:
-        json.dump({"checkpoint": args.checkpoint, "config": os.path.relpath(args.config), "mean": mean, "scenes": rows}, f, indent=1)
+        json.dump(
+            {"checkpoint": args.checkpoint, "config": os.path.relpath(args.config), "mean": mean, "scenes": rows},
+            f,
+            indent=1,
+        )
 
 
 if __name__ == "__main__":

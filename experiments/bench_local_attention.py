@@ -44,21 +44,40 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=64, help="neighbours per token")
     ap.add_argument("--heads", type=int, default=4, help="attention heads")
     ap.add_argument("--head-dim", type=int, default=64, help="channels per head")
-    ap.add_argument("--out", default=os.path.join("experiments", "results", "bench_local_attention.json"),
-                    help="JSON output path")
+    ap.add_argument(
+        "--out", default=os.path.join("experiments", "results", "bench_local_attention.json"), help="JSON output path"
+    )
     args = ap.parse_args()
     rows = []
     for h, w in GRIDS:
         t = temp_bytes(h, w, args.k, args.heads, args.head_dim)
         gather = h * w * args.k * args.heads * args.head_dim * 4
-        rows.append({"grid": [h, w], "tokens": h * w, "temp_bytes": t, "one_full_gather_bytes": gather,
-                     "temp_over_full_gather": t / gather})
+        rows.append(
+            {
+                "grid": [h, w],
+                "tokens": h * w,
+                "temp_bytes": t,
+                "one_full_gather_bytes": gather,
+                "temp_over_full_gather": t / gather,
+            }
+        )
         print(f"{h}x{w}: temp {t / 1e6:.1f} MB, one [L, k, E] gather {gather / 1e6:.1f} MB")
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
-        json.dump({"k": args.k, "heads": args.heads, "head_dim": args.head_dim, "dtype": "float32",
-                   "backend": jax.default_backend(), "jax": jax.__version__, "platform": platform.platform(),
-                   "rows": rows}, f, indent=1)
+        json.dump(
+            {
+                "k": args.k,
+                "heads": args.heads,
+                "head_dim": args.head_dim,
+                "dtype": "float32",
+                "backend": jax.default_backend(),
+                "jax": jax.__version__,
+                "platform": platform.platform(),
+                "rows": rows,
+            },
+            f,
+            indent=1,
+        )
 
 
 if __name__ == "__main__":

@@ -41,7 +41,9 @@ def main() -> None:
     from tests.helpers.golden import golden_model_config
 
     cfg = golden_model_config()
-    params = convert_long_lrm(load_torch_state_dict(os.path.join(SHARED, "golden", "long_lrm_tiny", "state_dict.npz")), cfg)
+    params = convert_long_lrm(
+        load_torch_state_dict(os.path.join(SHARED, "golden", "long_lrm_tiny", "state_dict.npz")), cfg
+    )
     rows = []
     for name in ("fox", "beer"):
         with warnings.catch_warnings():
@@ -50,15 +52,26 @@ def main() -> None:
         inputs, targets = select_views(scene, args.inputs)
         for size in args.sizes:
             rec = reconstruct_scene(params, cfg, scene, inputs, targets, (size, None), repeats=args.repeats)
-            row = {"scene": name, "view_hw": list(rec.saved.image_hw), "num_inputs": args.inputs,
-                   "gaussians": int(rec.saved.gaussians.means.shape[0]), "compile_s": rec.compile_s,
-                   "run_s_median": rec.run_s, "runs_s": list(rec.runs_s)}
+            row = {
+                "scene": name,
+                "view_hw": list(rec.saved.image_hw),
+                "num_inputs": args.inputs,
+                "gaussians": int(rec.saved.gaussians.means.shape[0]),
+                "compile_s": rec.compile_s,
+                "run_s_median": rec.run_s,
+                "runs_s": list(rec.runs_s),
+            }
             rows.append(row)
             print(json.dumps(row))
-    out = {"device": str(jax.devices()[0]), "cpu_count": os.cpu_count(), "model": "golden tiny Long-LRM (colour)",
-           "note": "shared 2-core CPU box, other jobs running; run = median of synced runs; "
-                   "beer reuses fox's compiled executables (same shapes), so its compile_s is a cache hit", "rows": rows,
-           "median_run_s_overall": float(np.median([r["run_s_median"] for r in rows]))}
+    out = {
+        "device": str(jax.devices()[0]),
+        "cpu_count": os.cpu_count(),
+        "model": "golden tiny Long-LRM (colour)",
+        "note": "shared 2-core CPU box, other jobs running; run = median of synced runs; "
+        "beer reuses fox's compiled executables (same shapes), so its compile_s is a cache hit",
+        "rows": rows,
+        "median_run_s_overall": float(np.median([r["run_s_median"] for r in rows])),
+    }
     os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
     with open(RESULTS, "w") as f:
         json.dump(out, f, indent=1)

@@ -37,7 +37,11 @@ def golden_config() -> C.ModelConfig:
     """The tiny Long-LRM of ../shared/golden/long_lrm_tiny/config.json (colour mode)."""
     return C.ModelConfig(
         backbone=C.BackboneConfig(
-            dims=(32, 64), pattern="mmt", num_layers=6, merge_layers=(3,), num_global_tokens=2,
+            dims=(32, 64),
+            pattern="mmt",
+            num_layers=6,
+            merge_layers=(3,),
+            num_global_tokens=2,
             mamba=C.Mamba2Config(d_state=16, headdim=16, chunk_size=256),
             transformer=C.TransformerConfig(head_dim=16, qk_norm=False),
         ),
@@ -67,8 +71,9 @@ def main() -> None:
         inputs, targets = eval_views(scene.c2w, a.inputs)
         s = make_sample(scene, inputs, targets, ViewGeometry(resize_h=a.size, multiple=cfg.size_multiple))
         b = {k: v[None] for k, v in s.items()}
-        g = jax.jit(reconstruct, static_argnums=1)(params, cfg, b["input_images"], b["input_c2w"],
-                                                   b["input_intrinsics"])
+        g = jax.jit(reconstruct, static_argnums=1)(
+            params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"]
+        )
         tgt = (b["target_images"], b["target_c2w"], b["target_intrinsics"])
         before = heldout_psnr(params, cfg, g, *tgt)
         views = (b["input_images"], b["input_c2w"], b["input_intrinsics"])
@@ -79,15 +84,23 @@ def main() -> None:
         refined, info = refine(params, cfg, g, *views, steps=a.steps, progress=True)
         seconds = time.time() - t0
         after = heldout_psnr(params, cfg, refined, *tgt)
-        print(f"{name}: {g.means.shape[1]} Gaussians, {len(inputs)} inputs, {len(targets)} targets at "
-              f"{s['input_images'].shape[1:3]}: PSNR before {before:.2f} / after {after:.2f} "
-              f"(input loss {info.losses[0]:.4f} -> {info.losses[-1]:.4f}; compile + 1 step {compile_s:.1f} s, "
-              f"{a.steps} steps {seconds:.1f} s)")
+        print(
+            f"{name}: {g.means.shape[1]} Gaussians, {len(inputs)} inputs, {len(targets)} targets at "
+            f"{s['input_images'].shape[1:3]}: PSNR before {before:.2f} / after {after:.2f} "
+            f"(input loss {info.losses[0]:.4f} -> {info.losses[-1]:.4f}; compile + 1 step {compile_s:.1f} s, "
+            f"{a.steps} steps {seconds:.1f} s)"
+        )
         out["scenes"][name] = {
-            "gaussians": int(g.means.shape[1]), "hw": list(s["input_images"].shape[1:3]),
-            "inputs": inputs.tolist(), "targets": targets.tolist(),
-            "psnr_before": before, "psnr_after": after, "input_loss": info.losses.tolist(),
-            "dropped": info.dropped, "compile_and_one_step_s": compile_s, "refine_s": seconds,
+            "gaussians": int(g.means.shape[1]),
+            "hw": list(s["input_images"].shape[1:3]),
+            "inputs": inputs.tolist(),
+            "targets": targets.tolist(),
+            "psnr_before": before,
+            "psnr_after": after,
+            "input_loss": info.losses.tolist(),
+            "dropped": info.dropped,
+            "compile_and_one_step_s": compile_s,
+            "refine_s": seconds,
         }
     with open(RESULTS, "w") as f:
         json.dump(out, f, indent=1)

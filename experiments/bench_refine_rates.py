@@ -55,7 +55,8 @@ def parse_variant(text: str) -> tuple[float, float, dict[str, float]]:
             fields[field] = float(factor)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"a variant is SCALE:PERCEPTUAL[:FIELD=FACTOR,...] (e.g. 3:0.5 or 10:0:means=3), got {text!r}") from None
+            f"a variant is SCALE:PERCEPTUAL[:FIELD=FACTOR,...] (e.g. 3:0.5 or 10:0:means=3), got {text!r}"
+        ) from None
     unknown = sorted(set(fields) - set(FIELDS))
     if unknown:
         raise argparse.ArgumentTypeError(f"variant {text!r}: unknown field {unknown[0]!r}; expected one of {FIELDS}")
@@ -66,17 +67,27 @@ def parse_variant(text: str) -> tuple[float, float, dict[str, float]]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--config", default="small",
-                   help="recipe or experiment file: its procedural data and last stage's views (default: small)")
-    p.add_argument("--checkpoint", default="pretrained:small",
-                   help="training workdir, params folder or pretrained:NAME")
+    p.add_argument(
+        "--config",
+        default="small",
+        help="recipe or experiment file: its procedural data and last stage's views (default: small)",
+    )
+    p.add_argument(
+        "--checkpoint", default="pretrained:small", help="training workdir, params folder or pretrained:NAME"
+    )
     p.add_argument("--scenes", type=int, default=8, help="validation scenes")
-    p.add_argument("--seed-offset", type=int, default=1_000,
-                   help="validation seeds start this far above the held-out evaluation's")
+    p.add_argument(
+        "--seed-offset", type=int, default=1_000, help="validation seeds start this far above the held-out evaluation's"
+    )
     p.add_argument("--steps", type=int, default=10, help="refinement steps (the paper's Table 1: 10)")
-    p.add_argument("--variants", type=parse_variant, nargs="+", default=[(1.0, 0.0, {}), (3.0, 0.0, {}), (10.0, 0.0, {})],
-                   help="SCALE:PERCEPTUAL[:FIELD=FACTOR,...]: all learning rates times SCALE, perceptual weight, "
-                        "single fields' rates times FACTOR on top")
+    p.add_argument(
+        "--variants",
+        type=parse_variant,
+        nargs="+",
+        default=[(1.0, 0.0, {}), (3.0, 0.0, {}), (10.0, 0.0, {})],
+        help="SCALE:PERCEPTUAL[:FIELD=FACTOR,...]: all learning rates times SCALE, perceptual weight, "
+        "single fields' rates times FACTOR on top",
+    )
     p.add_argument("--name", default="small_10", help="results file name (experiments/results/refine_rates/NAME.json)")
     args = p.parse_args()
 
@@ -91,23 +102,38 @@ def main() -> None:
     path = os.path.join(ROOT, "experiments", "results", "refine_rates", f"{args.name}.json")
     os.makedirs(os.path.dirname(path), exist_ok=True)
     defaults = RefineConfig()
-    out = {"checkpoint": args.checkpoint, "config": os.path.relpath(args.config, ROOT), "scenes": names,
-           "steps": args.steps, "defaults": dataclasses.asdict(defaults), "variants": []}
+    out = {
+        "checkpoint": args.checkpoint,
+        "config": os.path.relpath(args.config, ROOT),
+        "scenes": names,
+        "steps": args.steps,
+        "defaults": dataclasses.asdict(defaults),
+        "variants": [],
+    }
     for scale, perceptual, fields in args.variants:
-        rc = dataclasses.replace(defaults, rate_scale=scale, perceptual_weight=perceptual,
-                                 **{f"lr_{k}": getattr(defaults, f"lr_{k}") * v for k, v in fields.items()})
+        rc = dataclasses.replace(
+            defaults,
+            rate_scale=scale,
+            perceptual_weight=perceptual,
+            **{f"lr_{k}": getattr(defaults, f"lr_{k}") * v for k, v in fields.items()},
+        )
         t0 = time.perf_counter()
-        _, summary, _ = evaluate(params, cfg, samples, lpips_params, names, refine_steps=args.steps,
-                                 refine_config=rc, progress=True)
+        _, summary, _ = evaluate(
+            params, cfg, samples, lpips_params, names, refine_steps=args.steps, refine_config=rc, progress=True
+        )
         seconds = time.perf_counter() - t0
         out["model"] = summary["model"]
         row = summary[f"refined_{args.steps}"]
-        out["variants"].append({"rate_scale": scale, "perceptual_weight": perceptual, "field_factors": fields,
-                                "seconds": seconds, **row})
+        out["variants"].append(
+            {"rate_scale": scale, "perceptual_weight": perceptual, "field_factors": fields, "seconds": seconds, **row}
+        )
         field_text = "".join(f", {k} x{v:g}" for k, v in fields.items())
-        print(f"rates x{scale:g}{field_text}, perceptual {perceptual:g}: PSNR {row['psnr']:.2f} SSIM {row['ssim']:.3f} "
-              f"LPIPS {row['lpips']:.3f} inputs {row['input_psnr']:.2f} ({seconds:.0f} s; model "
-              f"{summary['model']['psnr']:.2f} / {summary['model']['lpips']:.3f})", flush=True)
+        print(
+            f"rates x{scale:g}{field_text}, perceptual {perceptual:g}: PSNR {row['psnr']:.2f} SSIM {row['ssim']:.3f} "
+            f"LPIPS {row['lpips']:.3f} inputs {row['input_psnr']:.2f} ({seconds:.0f} s; model "
+            f"{summary['model']['psnr']:.2f} / {summary['model']['lpips']:.3f})",
+            flush=True,
+        )
         with open(path, "w") as f:
             json.dump(out, f, indent=1)
     print(f"wrote {path}")

@@ -38,8 +38,9 @@ def run_sweep(tree: str, argv: list[str], out: str) -> dict:
     """One run of the splat benchmark of the checkout at ``tree`` in a fresh process; its JSON."""
     moved = os.path.exists(os.path.join(tree, "llrmpp_jax", "benchmarks", "splat.py"))
     entry = ["-m", "llrmpp_jax.benchmarks.splat"] if moved else [os.path.join(tree, OLD_SCRIPT)]
-    subprocess.run([sys.executable, *entry, *argv, "--out", out], check=True, cwd=tree,
-                   env=dict(os.environ, PYTHONPATH=tree))
+    subprocess.run(
+        [sys.executable, *entry, *argv, "--out", out], check=True, cwd=tree, env=dict(os.environ, PYTHONPATH=tree)
+    )
     with open(out) as fh:
         return json.load(fh)
 
@@ -62,10 +63,19 @@ def speedups(base_rows: list[dict], rows: list[dict]) -> list[dict]:
     for r in rows:
         b = base.get((r["n"], r["width"], r["height"]))
         if b is not None:
-            out.append({"n": r["n"], "canvas": f"{r['width']}x{r['height']}", "capacity_rule": r["capacity_rule"],
-                        "baseline_fwd_s": b["fwd_s"], "fwd_s": r["fwd_s"], "fwd_speedup": b["fwd_s"] / r["fwd_s"],
-                        "baseline_fwd_bwd_s": b["fwd_bwd_s"], "fwd_bwd_s": r["fwd_bwd_s"],
-                        "fwd_bwd_speedup": b["fwd_bwd_s"] / r["fwd_bwd_s"]})
+            out.append(
+                {
+                    "n": r["n"],
+                    "canvas": f"{r['width']}x{r['height']}",
+                    "capacity_rule": r["capacity_rule"],
+                    "baseline_fwd_s": b["fwd_s"],
+                    "fwd_s": r["fwd_s"],
+                    "fwd_speedup": b["fwd_s"] / r["fwd_s"],
+                    "baseline_fwd_bwd_s": b["fwd_bwd_s"],
+                    "fwd_bwd_s": r["fwd_bwd_s"],
+                    "fwd_bwd_speedup": b["fwd_bwd_s"] / r["fwd_bwd_s"],
+                }
+            )
     return out
 
 
@@ -88,7 +98,8 @@ def main() -> None:
     rows = median_rows([run["rows"] for run in runs["this tree"]])
     base_rows = median_rows([run["rows"] for run in runs["baseline"]])
     result = runs["this tree"][0] | {
-        "rows": rows, "rounds": args.rounds,
+        "rows": rows,
+        "rounds": args.rounds,
         "exponents": {"fwd_s": fit_exponents(rows, "fwd_s"), "fwd_bwd_s": fit_exponents(rows, "fwd_bwd_s")},
         "baseline": runs["baseline"][0] | {"rows": base_rows, "ref": rev_parse(args.baseline)},
         "speedup": speedups(base_rows, rows),

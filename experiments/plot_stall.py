@@ -14,6 +14,7 @@ Run (from the repository root; the figures of notebooks/README.md, "Stalled seed
 File names are relative to the figure's folder. Loss curves are drawn as they are (no
 smoothing); a legend gives each run's held-out PSNR.
 """
+
 import argparse
 import json
 import os
@@ -23,8 +24,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-SNAP_LABELS = {"dist_gt9": "Gaussians > 9 units from the inputs", "op_mean": "mean opacity",
-               "logscale_mean": "mean log-scale", "op_lt01": "opacity < 0.01"}
+SNAP_LABELS = {
+    "dist_gt9": "Gaussians > 9 units from the inputs",
+    "op_mean": "mean opacity",
+    "logscale_mean": "mean log-scale",
+    "op_lt01": "opacity < 0.01",
+}
 
 
 def parse_run(spec: str) -> tuple[str, str, str]:
@@ -69,8 +74,14 @@ def main(out: str, columns: list[tuple[str, list[str]]], snap: str | None) -> st
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out", help="the figure (PNG); run files are read from its folder")
-    parser.add_argument("--column", nargs="+", action="append", required=True, metavar="TITLE RUN",
-                        help="a column: its title, then FILE:SEED:LABEL for each run")
+    parser.add_argument(
+        "--column",
+        nargs="+",
+        action="append",
+        required=True,
+        metavar="TITLE RUN",
+        help="a column: its title, then FILE:SEED:LABEL for each run",
+    )
     parser.add_argument("--snap", help="also plot this snapshot statistic (e.g. dist_gt9)")
     args = parser.parse_args()
     cols = []

@@ -60,7 +60,7 @@ def nearest_later(poses, name: str, min_gap: int) -> str:
         angle = np.arccos(np.clip(r0[:, 2] @ r[:, 2], -1.0, 1.0))
         return np.linalg.norm(c - c0) / extent + angle
 
-    return min(names[i + min_gap:], key=cost)
+    return min(names[i + min_gap :], key=cost)
 
 
 def main(argv=None) -> int:
@@ -75,13 +75,21 @@ def main(argv=None) -> int:
         models = {}
         for matcher in ("auto", "exhaustive"):
             out = os.path.join(tmp, matcher)
-            report = estimate_poses(os.path.join(args.capture, "images"), out, PosesConfig(matcher=matcher),
-                                    progress=lambda s: print(s, file=sys.stderr))
+            report = estimate_poses(
+                os.path.join(args.capture, "images"),
+                out,
+                PosesConfig(matcher=matcher),
+                progress=lambda s: print(s, file=sys.stderr),
+            )
             model = pycolmap.Reconstruction(os.path.join(out, "sparse", "0"))
             poses = camera_poses(model)
             entry = {
-                "registered": report.registered, "given": report.given, "matchers_tried": report.matchers_tried,
-                "kept": report.matcher, "breaks": list(report.breaks), "seconds": report.seconds,
+                "registered": report.registered,
+                "given": report.given,
+                "matchers_tried": report.matchers_tried,
+                "kept": report.matcher,
+                "breaks": list(report.breaks),
+                "seconds": report.seconds,
                 "mean_reprojection_error_px": report.mean_reprojection_error_px,
                 "vs_shipped": compare_poses(poses, shipped).summary(),
             }
@@ -100,8 +108,9 @@ def main(argv=None) -> int:
         result["vs_shipped_per_run"] = per_run
         for matcher in models:
             rows = [r for r in per_run if r["matcher"] == matcher]
-            result[matcher]["vs_shipped_runs_fraction_within"] = (
-                sum(r["within"] for r in rows) / sum(r["frames"] for r in rows))
+            result[matcher]["vs_shipped_runs_fraction_within"] = sum(r["within"] for r in rows) / sum(
+                r["frames"] for r in rows
+            )
 
         firsts = ["0004.jpg", "0012.jpg", "0014.jpg", "0020.jpg"]
         rows = []
@@ -123,9 +132,11 @@ def main(argv=None) -> int:
     print(json.dumps({k: result[k] for k in ("shipped_breaks",)}, indent=1))
     for matcher in models:
         r = result[matcher]
-        print(f"{matcher}: kept {r['kept']}, breaks {len(r['breaks'])}, within (all) "
-              f"{r['vs_shipped']['fraction_within']:.2f}, within (per shipped run) "
-              f"{r['vs_shipped_runs_fraction_within']:.2f}, seconds {r['seconds']}")
+        print(
+            f"{matcher}: kept {r['kept']}, breaks {len(r['breaks'])}, within (all) "
+            f"{r['vs_shipped']['fraction_within']:.2f}, within (per shipped run) "
+            f"{r['vs_shipped_runs_fraction_within']:.2f}, seconds {r['seconds']}"
+        )
     return 0
 
 

@@ -52,11 +52,16 @@ def refine_step_profile(args) -> dict:
     cfg = fit_capacity(params, saved.model, g, c2w, intr, h, w, headroom=rc.capacity_headroom)
     fn = objective(cfg, rc)
     grad = jax.value_and_grad(fn, has_aux=True)
-    prof = profile_program(lambda y, a: grad(y, a), (to_unconstrained(g, cfg), (params, images, c2w, intr, None)),
-                           repeats=args.repeats)
-    return {"program": "refine objective value+grad", "gaussians": int(g.means.shape[1]),
-            "views": args.views_per_step, "view_hw": [int(h), int(w)],
-            "capacity": int(cfg.splat.max_intersections)} | prof.to_json()
+    prof = profile_program(
+        lambda y, a: grad(y, a), (to_unconstrained(g, cfg), (params, images, c2w, intr, None)), repeats=args.repeats
+    )
+    return {
+        "program": "refine objective value+grad",
+        "gaussians": int(g.means.shape[1]),
+        "views": args.views_per_step,
+        "view_hw": [int(h), int(w)],
+        "capacity": int(cfg.splat.max_intersections),
+    } | prof.to_json()
 
 
 def splat_profiles(args) -> list[dict]:
@@ -77,8 +82,10 @@ def splat_profiles(args) -> list[dict]:
 
     arrays = (means, quats, scales, opac, feats)
     out = []
-    for name, fn in (("render_features forward", forward),
-                     ("render_features forward+backward", jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4)))):
+    for name, fn in (
+        ("render_features forward", forward),
+        ("render_features forward+backward", jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4))),
+    ):
         prof = profile_program(fn, arrays, repeats=args.repeats)
         out.append({"program": name, "gaussians": n, "canvas": f"{wd}x{ht}", "features": 32} | prof.to_json())
     return out
@@ -87,8 +94,10 @@ def splat_profiles(args) -> list[dict]:
 def markdown(programs: list[dict]) -> str:
     lines = []
     for p in programs:
-        lines.append(f"**{p['program']}** ({p.get('gaussians')} Gaussians): compile {p['compile_s']:.1f} s, "
-                     f"run {p['wall_ms']:.0f} ms")
+        lines.append(
+            f"**{p['program']}** ({p.get('gaussians')} Gaussians): compile {p['compile_s']:.1f} s, "
+            f"run {p['wall_ms']:.0f} ms"
+        )
         lines.append("")
         lines.append("| phase | ms per call |")
         lines.append("|---|---|")
@@ -107,9 +116,15 @@ def main() -> None:
     parser.add_argument("--out", default="experiments/results/profile_refine.json", help="JSON file to write")
     args = parser.parse_args()
     programs = ([refine_step_profile(args)] if args.gaussians else []) + splat_profiles(args)
-    result = {"device": str(jax.devices()[0]), "backend": jax.default_backend(), "jax": jax.__version__,
-              "host": platform.node(), "cpu_count": os.cpu_count(),
-              "config": {k: v for k, v in vars(args).items()}, "programs": programs}
+    result = {
+        "device": str(jax.devices()[0]),
+        "backend": jax.default_backend(),
+        "jax": jax.__version__,
+        "host": platform.node(),
+        "cpu_count": os.cpu_count(),
+        "config": {k: v for k, v in vars(args).items()},
+        "programs": programs,
+    }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
         json.dump(result, fh, indent=1)

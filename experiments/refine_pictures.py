@@ -45,15 +45,18 @@ def main() -> None:
     params, cfg = load_pretrained("small", exp.model)
     samples, names = eval_samples(exp, exp.stages[-1])
     rows = []
-    for s, name in zip(samples[:args.scenes], names, strict=False):
+    for s, name in zip(samples[: args.scenes], names, strict=False):
         batch = {k: v[None] for k, v in s.items()}
         model = np.asarray(predict(params, cfg, batch)["rgb"][0])
         refined = np.asarray(predict_refined(params, cfg, batch, args.steps)["rgb"][0])
         nearest = baseline_predictions(s)["nearest_view"]
         for t in range(s["target_images"].shape[0]):
             views = [s["target_images"][t], model[t], refined[t], nearest[t]]
-            rows.append(np.concatenate([np.pad(np.clip(v, 0, 1), ((1, 1), (1, 1), (0, 0)), constant_values=1.0)
-                                        for v in views], axis=1))
+            rows.append(
+                np.concatenate(
+                    [np.pad(np.clip(v, 0, 1), ((1, 1), (1, 1), (0, 0)), constant_values=1.0) for v in views], axis=1
+                )
+            )
         print(f"{name}: done")
     picture = np.concatenate(rows, axis=0).repeat(args.zoom, axis=0).repeat(args.zoom, axis=1)
     write_image(args.out, picture)

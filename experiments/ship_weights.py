@@ -39,7 +39,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--workdir", required=True, help="the training workdir (its newest checkpoint is shipped)")
     p.add_argument("--config", required=True, help="the experiment file it was trained with")
-    p.add_argument("--name", required=True, help="shipped name: llrmpp_jax/weights/<name>.*, --checkpoint pretrained:<name>")
+    p.add_argument(
+        "--name", required=True, help="shipped name: llrmpp_jax/weights/<name>.*, --checkpoint pretrained:<name>"
+    )
     p.add_argument("--pictures", type=int, default=6, help="picture grids to write (first held-out scenes)")
     args = p.parse_args()
 
@@ -61,14 +63,21 @@ def main() -> None:
             init = json.load(f).get("init")
     # Training steps behind the shipped params: the newest checkpoint of every stage (load_params
     # took the last stage's), summed over the curriculum, plus those of shipped start weights.
-    steps = sum(max(int(d) for d in os.listdir(os.path.join(args.workdir, "checkpoints", s.name)) if d.isdigit())
-                for s in exp.stages)
+    steps = sum(
+        max(int(d) for d in os.listdir(os.path.join(args.workdir, "checkpoints", s.name)) if d.isdigit())
+        for s in exp.stages
+    )
     started_from = None
     if init is not None and init.startswith(PREFIX):
-        before = read_meta(init[len(PREFIX):])
+        before = read_meta(init[len(PREFIX) :])
         steps += before["steps"]
-        started_from = {"init": init, "sha256": before["sha256"], "steps": before["steps"],
-                        "experiment": before["experiment"], "trained_at_commit": before["trained_at_commit"]}
+        started_from = {
+            "init": init,
+            "sha256": before["sha256"],
+            "steps": before["steps"],
+            "experiment": before["experiment"],
+            "trained_at_commit": before["trained_at_commit"],
+        }
     elif init is not None:
         started_from = {"init": init}
     if os.path.isfile(os.path.join(args.workdir, "train.log")):
@@ -78,17 +87,29 @@ def main() -> None:
             f.write("\n".join(lines) + "\n")
     commit_file = os.path.join(args.workdir, "COMMIT")
     commit = open(commit_file).read().strip() if os.path.isfile(commit_file) else "unknown"
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    head = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
 
     first = samples[0]
     num_frames = exp.data.procedural.num_frames
-    reference = {"seed": int(exp.data.eval_seed_offset), "height": int(first["target_images"].shape[1]),
-                 "width": int(first["target_images"].shape[2]), "num_frames": num_frames,
-                 "inputs": [int(i) for i in np.linspace(0, num_frames - 2, stage.num_inputs).round()],
-                 "target": num_frames - 1}
-    record = {"experiment": os.path.relpath(os.path.abspath(args.config), ROOT), "trained_at_commit": commit,
-              "shipped_at_commit": head, "steps": steps, "held_out": summary,
-              "held_out_scenes": len(samples), "results": os.path.relpath(out, ROOT)}
+    reference = {
+        "seed": int(exp.data.eval_seed_offset),
+        "height": int(first["target_images"].shape[1]),
+        "width": int(first["target_images"].shape[2]),
+        "num_frames": num_frames,
+        "inputs": [int(i) for i in np.linspace(0, num_frames - 2, stage.num_inputs).round()],
+        "target": num_frames - 1,
+    }
+    record = {
+        "experiment": os.path.relpath(os.path.abspath(args.config), ROOT),
+        "trained_at_commit": commit,
+        "shipped_at_commit": head,
+        "steps": steps,
+        "held_out": summary,
+        "held_out_scenes": len(samples),
+        "results": os.path.relpath(out, ROOT),
+    }
     if started_from is not None:
         record["started_from"] = started_from
     meta = export_pretrained(params, cfg, args.name, record, reference)
@@ -96,8 +117,10 @@ def main() -> None:
         json.dump({"summary": summary, "per_scene": rows, "steps": steps, "commit": commit}, f, indent=1)
     print(summary_table(summary))
     size = os.path.getsize(os.path.join(WEIGHTS_DIR, f"{args.name}.npz"))
-    print(f"shipped {args.name}: {meta['num_params']:,} params, {size / 1e6:.2f} MB, sha256 {meta['sha256'][:16]}...; "
-          f"pictures and metrics in {os.path.relpath(out, ROOT)}")
+    print(
+        f"shipped {args.name}: {meta['num_params']:,} params, {size / 1e6:.2f} MB, sha256 {meta['sha256'][:16]}...; "
+        f"pictures and metrics in {os.path.relpath(out, ROOT)}"
+    )
 
 
 if __name__ == "__main__":

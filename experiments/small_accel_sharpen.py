@@ -38,5 +38,12 @@ def get_config():
     """``small.py``'s ``sharpen`` at batch 16 for 2,500 steps (start: ``--init pretrained:small``), 7 minutes per run."""
     small = load_experiment("small")
     stage = replace(small.stages[-1], name="accel_sharpen", steps=2_500, global_batch=16)
-    return replace(small, name="small_accel_sharpen", stages=(stage,), max_minutes=7.0, eval_every=500,
-                   checkpoint_every=500, keep_checkpoints=1)
+    return replace(
+        small,
+        name="small_accel_sharpen",
+        stages=(stage,),
+        max_minutes=7.0,
+        eval_every=500,
+        checkpoint_every=500,
+        keep_checkpoints=1,
+    )

@@ -82,8 +82,7 @@ class Mamba2Config:
         d_inner = self.d_inner(d_model)
         if d_inner % self.headdim:
             raise UserError(
-                f"Mamba2Config: d_inner={d_inner} (expand*d_model) is not a multiple of "
-                f"headdim={self.headdim}"
+                f"Mamba2Config: d_inner={d_inner} (expand*d_model) is not a multiple of headdim={self.headdim}"
             )
         return d_inner // self.headdim
 
@@ -107,8 +106,7 @@ class TransformerConfig:
     def __post_init__(self) -> None:
         if self.attention_impl not in typing.get_args(AttentionImpl):
             raise UserError(
-                f"TransformerConfig.attention_impl must be 'xla', 'cudnn' or 'blockwise', "
-                f"got {self.attention_impl!r}"
+                f"TransformerConfig.attention_impl must be 'xla', 'cudnn' or 'blockwise', got {self.attention_impl!r}"
             )
         if self.attention_block_q < 1 or self.attention_block_k < 1:
             raise UserError(
@@ -217,16 +215,19 @@ class GaussianHeadConfig:
         if self.anchors not in typing.get_args(Anchors):
             raise UserError(f"GaussianHeadConfig.anchors must be 'centre' or 'grid', got {self.anchors!r}")
         if self.anchors == "grid" and math.isqrt(self.gaussians_per_token) ** 2 != self.gaussians_per_token:
-            raise UserError("GaussianHeadConfig: anchors='grid' needs a square gaussians_per_token (4, 9, 16, ...), "
-                             f"got {self.gaussians_per_token}")
+            raise UserError(
+                "GaussianHeadConfig: anchors='grid' needs a square gaussians_per_token (4, 9, 16, ...), "
+                f"got {self.gaussians_per_token}"
+            )
         if not 0 <= self.prune_ratio < 1 or not 0 <= self.prune_random_ratio <= 1:
             raise UserError(
                 f"GaussianHeadConfig: need 0 <= prune_ratio < 1 and 0 <= prune_random_ratio <= 1, got "
                 f"{self.prune_ratio} and {self.prune_random_ratio}"
             )
         if self.prune_ratio and self.mode != "color":
-            raise UserError("GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; "
-                             f"mode={self.mode!r} needs prune_ratio=0")
+            raise UserError(
+                f"GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; mode={self.mode!r} needs prune_ratio=0"
+            )
 
 
 @dataclass(frozen=True)
@@ -280,8 +281,11 @@ class ModelConfig:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)  # colour mode only (Long-LRM: white)
 
     def __post_init__(self) -> None:
-        if self.head.mode == "feature" and self.decoder.token_stride % self.patch_size and \
-                self.patch_size % self.decoder.token_stride:
+        if (
+            self.head.mode == "feature"
+            and self.decoder.token_stride % self.patch_size
+            and self.patch_size % self.decoder.token_stride
+        ):
             raise UserError(
                 f"ModelConfig: decoder token_stride {self.decoder.token_stride} and patch_size "
                 f"{self.patch_size} must divide one another"
@@ -319,8 +323,10 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
     return dataclasses.replace(
         model,
         backbone=dataclasses.replace(
-            model.backbone, remat=True,
-            mamba=dataclasses.replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True)),
+            model.backbone,
+            remat=True,
+            mamba=dataclasses.replace(model.backbone.mamba, inter_chunk="sequential", remat_directions=True),
+        ),
         decoder=dataclasses.replace(model.decoder, remat=True),
     )
 
@@ -328,13 +334,16 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
 def with_attention(model: ModelConfig, impl: str, block: tuple[int, int] | None = None) -> ModelConfig:
     """``model`` with ``impl`` as the global-attention kernel of the backbone's and the
     decoder's transformers and, given ``block`` (queries, keys), the blockwise kernel's blocks."""
+
     def kernel(t: TransformerConfig) -> TransformerConfig:
         t = dataclasses.replace(t, attention_impl=impl)
         return dataclasses.replace(t, attention_block_q=block[0], attention_block_k=block[1]) if block else t
 
     return dataclasses.replace(
-        model, backbone=dataclasses.replace(model.backbone, transformer=kernel(model.backbone.transformer)),
-        decoder=dataclasses.replace(model.decoder, transformer=kernel(model.decoder.transformer)))
+        model,
+        backbone=dataclasses.replace(model.backbone, transformer=kernel(model.backbone.transformer)),
+        decoder=dataclasses.replace(model.decoder, transformer=kernel(model.decoder.transformer)),
+    )
 
 
 def paper_dl3dv() -> ModelConfig:
@@ -366,7 +375,10 @@ def long_lrm() -> ModelConfig:
     """Long-LRM (the predecessor, facts §1.1): colour Gaussians, dims [256, 1024], merge at 8."""
     return ModelConfig(
         backbone=BackboneConfig(
-            dims=(256, 1024), pattern="mmmmmmmt", num_layers=24, merge_layers=(8,),
+            dims=(256, 1024),
+            pattern="mmmmmmmt",
+            num_layers=24,
+            merge_layers=(8,),
             transformer=TransformerConfig(qk_norm=False),
         ),
         head=GaussianHeadConfig(mode="color"),
@@ -384,11 +396,12 @@ def tiny() -> ModelConfig:
     """A feature-Gaussian model small enough for CPU tests and the demo (~0.3M params)."""
     return ModelConfig(
         backbone=BackboneConfig(
-            dims=(64,), pattern="{1T3M}x1", num_layers=4,
+            dims=(64,),
+            pattern="{1T3M}x1",
+            num_layers=4,
             mamba=Mamba2Config(d_state=16, headdim=16, chunk_size=64),
             transformer=TransformerConfig(head_dim=16),
         ),
         head=GaussianHeadConfig(gaussians_per_token=4, feature_dim=16),
-        decoder=DecoderConfig(dim=64, blocks="LG", num_neighbours=16,
-                              transformer=TransformerConfig(head_dim=16)),
+        decoder=DecoderConfig(dim=64, blocks="LG", num_neighbours=16, transformer=TransformerConfig(head_dim=16)),
     )

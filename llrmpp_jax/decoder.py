@@ -39,9 +39,7 @@ from llrmpp_jax.nn.transformer import TransformerBlock
 OUTPUT_CHANNELS = {"rgb": 3, "depth": 1}
 
 
-def partition_opacities(
-    opacities: Float[Array, " N"], logits: Float[Array, "N S"]
-) -> Float[Array, "S N"]:
+def partition_opacities(opacities: Float[Array, " N"], logits: Float[Array, "N S"]) -> Float[Array, "S N"]:
     """Opacity of each of the S copies: ``o * softmax(logits)_s``."""
     return jax.nn.softmax(logits, axis=-1).T * opacities[None, :]
 
@@ -71,14 +69,21 @@ class TargetDecoder(nn.Module):
             raise ValueError(f"TargetDecoder: canvas {hc}x{wc} is not a multiple of the token patch {cp}")
         grid = (hc // cp, wc // cp)
         x = patchify(canvas.reshape(m * s, 1, hc, wc, -1), cp)  # [M*S, L, cp*cp*C]
-        x = nn.Dense(cfg.dim, use_bias=False, name="tokenizer",
-                     kernel_init=linear_init(cfg.init_std))(x)
+        x = nn.Dense(cfg.dim, use_bias=False, name="tokenizer", kernel_init=linear_init(cfg.init_std))(x)
         if cfg.absolute_positions:
             x = x + jnp.asarray(sincos_2d(*grid, cfg.dim), x.dtype)[None]
+
         def block(kind: str, name: str | None, remat: bool = False, **kw) -> nn.Module:
             cls = nn.remat(TransformerBlock) if remat else TransformerBlock
-            return cls(dim=cfg.dim, cfg=cfg.transformer, attention="local" if kind == "L" else "global",
-                       grid=grid, num_neighbours=cfg.num_neighbours, name=name, **kw)
+            return cls(
+                dim=cfg.dim,
+                cfg=cfg.transformer,
+                attention="local" if kind == "L" else "global",
+                grid=grid,
+                num_neighbours=cfg.num_neighbours,
+                name=name,
+                **kw,
+            )
 
         kinds = parse_block_pattern(cfg.blocks, "LG")
         if cfg.remat and not self.is_initializing():  # loops whose backward holds one block
@@ -94,8 +99,12 @@ class TargetDecoder(nn.Module):
         q = cfg.token_stride
         images = {}
         for output in outputs:
-            out = nn.Dense(q * q * OUTPUT_CHANNELS[output], use_bias=False, name=f"head_{output}",
-                           kernel_init=linear_init(cfg.init_std))(x)
+            out = nn.Dense(
+                q * q * OUTPUT_CHANNELS[output],
+                use_bias=False,
+                name=f"head_{output}",
+                kernel_init=linear_init(cfg.init_std),
+            )(x)
             img = unpatchify(out, q, 1, grid[0], grid[1])[:, 0]  # [M, H, W, C]
             images[output] = jax.nn.sigmoid(img) if output == "rgb" else jnp.exp(img + cfg.depth_bias)
         return images

@@ -44,7 +44,9 @@ class CheckResult:
 
     def line(self) -> str:
         verdict = "ok  " if self.ok else "FAIL"
-        return f"{verdict} {self.name:<10} error {self.error:.2e} (tolerance {self.tolerance:.0e}) {self.seconds:5.1f} s"
+        return (
+            f"{verdict} {self.name:<10} error {self.error:.2e} (tolerance {self.tolerance:.0e}) {self.seconds:5.1f} s"
+        )
 
 
 def _rel(got, want) -> float:
@@ -80,10 +82,18 @@ def check_splat() -> float:
     n, h, w = 300, 40, 48
     z = r.uniform(1.5, 5.0, n)
     means = np.stack([r.uniform(-0.5, 0.5, n) * z, r.uniform(-0.4, 0.4, n) * z, z], -1)
-    args = [jnp.asarray(a, jnp.float32) for a in (
-        means, r.normal(size=(n, 4)), np.exp(r.uniform(-4.5, -2.5, (n, 3))) * z[:, None],
-        r.uniform(0.1, 0.9, n), r.normal(size=(n, 3)), np.eye(4), [w, w, w / 2, h / 2],
-    )]
+    args = [
+        jnp.asarray(a, jnp.float32)
+        for a in (
+            means,
+            r.normal(size=(n, 4)),
+            np.exp(r.uniform(-4.5, -2.5, (n, 3))) * z[:, None],
+            r.uniform(0.1, 0.9, n),
+            r.normal(size=(n, 3)),
+            np.eye(4),
+            [w, w, w / 2, h / 2],
+        )
+    ]
     got = rasterize(*args, h, w)
     want = jax.jit(render_features_reference, static_argnums=(7, 8))(*args, h, w)
     return max(_rel(got.features, want[0]), _rel(got.transmittance, want[1]))
@@ -164,9 +174,11 @@ def precision_diagnosis(name: str, fn: Callable[[], float], tol: float) -> str:
     with jax.default_matmul_precision("highest"):
         err = float(fn())
     if np.isfinite(err) and err <= tol:
-        return (f"{name}: error {err:.2e} at matmul precision 'highest': the kernel is right; this device's "
-                "default matmul precision loses float32 accuracy (set JAX_DEFAULT_MATMUL_PRECISION=highest "
-                "for float32 work)")
+        return (
+            f"{name}: error {err:.2e} at matmul precision 'highest': the kernel is right; this device's "
+            "default matmul precision loses float32 accuracy (set JAX_DEFAULT_MATMUL_PRECISION=highest "
+            "for float32 work)"
+        )
     return f"{name}: error {err:.2e} at matmul precision 'highest' too: the kernel is wrong on this device"
 
 

@@ -107,7 +107,9 @@ class DataConfig:
         """True when the held-out evaluation reads the training scenes (real data with no
         ``eval_path`` of its own, as ``llrmpp train --data`` sets up); training then leaves the
         evaluation's target frames out (``experiment_data.scene_source``)."""
-        return self.kind != "procedural" and os.path.abspath(self.held_out_path or "") == os.path.abspath(self.path or "")
+        return self.kind != "procedural" and os.path.abspath(self.held_out_path or "") == os.path.abspath(
+            self.path or ""
+        )
 
     def __post_init__(self) -> None:
         if self.kind not in DATA_KINDS:
@@ -118,8 +120,10 @@ class DataConfig:
         if self.eval_split is None and named:
             raise UserError(f"DataConfig: {named[0]!r} names a {{split}} but eval_split is None")
         if self.eval_split is not None and not named:
-            raise UserError(f"DataConfig: eval_split={self.eval_split!r} selects nothing: name it as {{split}} "
-                            f"in eval_path ({self.eval_path!r}) or scene_list ({self.scene_list!r})")
+            raise UserError(
+                f"DataConfig: eval_split={self.eval_split!r} selects nothing: name it as {{split}} "
+                f"in eval_path ({self.eval_path!r}) or scene_list ({self.scene_list!r})"
+            )
         if self.procedural_eval not in typing.get_args(ProceduralEval):
             raise UserError(f"DataConfig.procedural_eval must be 'window' or 'split', got {self.procedural_eval!r}")
         if self.eval_inputs not in typing.get_args(EvalInputs):
@@ -226,8 +230,9 @@ class ExperimentConfig:
         if len(set(names)) != len(names):
             raise UserError(f"experiment {self.name!r}: stage names must be unique, got {names}")
         if self.perceptual_net not in typing.get_args(PerceptualNet):
-            raise UserError(f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', "
-                             f"got {self.perceptual_net!r}")
+            raise UserError(
+                f"experiment {self.name!r}: perceptual_net must be 'vgg16' or 'vgg19', got {self.perceptual_net!r}"
+            )
         if self.opacity_weight < 0:
             raise UserError(f"experiment {self.name!r}: opacity_weight must be >= 0, got {self.opacity_weight}")
         for stage in self.stages:
@@ -248,8 +253,9 @@ class ExperimentConfig:
         random_ratio = head.prune_random_ratio if stage.prune_random_ratio is None else stage.prune_random_ratio
         if (ratio, random_ratio) == (head.prune_ratio, head.prune_random_ratio):
             return self.model
-        return dataclasses.replace(self.model, head=dataclasses.replace(head, prune_ratio=ratio,
-                                                                        prune_random_ratio=random_ratio))
+        return dataclasses.replace(
+            self.model, head=dataclasses.replace(head, prune_ratio=ratio, prune_random_ratio=random_ratio)
+        )
 
     def check_devices(self, num_devices: int) -> None:
         """Every stage's global batch must split evenly over the devices (checked before
@@ -269,8 +275,9 @@ def load_experiment(name_or_path: str) -> ExperimentConfig:
 
     path = recipe_path(name_or_path) or name_or_path
     if not os.path.isfile(path):
-        raise MissingInputError(f"config file not found: {name_or_path} (a file, or a recipe: "
-                                f"{', '.join(recipe_names())})")
+        raise MissingInputError(
+            f"config file not found: {name_or_path} (a file, or a recipe: {', '.join(recipe_names())})"
+        )
     spec = importlib.util.spec_from_file_location(f"llrmpp_experiment_{abs(hash(path))}", path)
     module = importlib.util.module_from_spec(spec)
     try:

@@ -52,8 +52,13 @@ def held_out_description(data: DataConfig) -> str:
 def view_geometry(stage: StageConfig, multiple: int, train: bool = True) -> ViewGeometry:
     """``stage``'s image geometry, sides rounded to ``multiple``; ``train`` False (held-out
     views): no random zoom."""
-    return ViewGeometry(resize_h=stage.resize_h, resize_w=stage.resize_w, multiple=multiple,
-                        square_crop=stage.square_crop, zoom_min=stage.zoom_min if train else 1.0)
+    return ViewGeometry(
+        resize_h=stage.resize_h,
+        resize_w=stage.resize_w,
+        multiple=multiple,
+        square_crop=stage.square_crop,
+        zoom_min=stage.zoom_min if train else 1.0,
+    )
 
 
 def needs_depth(exp: ExperimentConfig) -> bool:
@@ -64,22 +69,41 @@ def needs_depth(exp: ExperimentConfig) -> bool:
 def batch_config(exp: ExperimentConfig, stage: StageConfig) -> BatchConfig:
     """The training batches of ``stage`` of ``exp``."""
     return BatchConfig(
-        global_batch=stage.global_batch, num_inputs=stage.num_inputs, num_targets=stage.num_targets,
-        geometry=view_geometry(stage, exp.model.size_multiple), min_span=stage.min_span,
-        max_span=stage.max_span, input_weight=stage.input_weight,
-        reverse_prob=stage.reverse_prob, shuffle_prob=stage.shuffle_prob,
-        with_depth=needs_depth(exp), rescale=exp.data.rescale,
+        global_batch=stage.global_batch,
+        num_inputs=stage.num_inputs,
+        num_targets=stage.num_targets,
+        geometry=view_geometry(stage, exp.model.size_multiple),
+        min_span=stage.min_span,
+        max_span=stage.max_span,
+        input_weight=stage.input_weight,
+        reverse_prob=stage.reverse_prob,
+        shuffle_prob=stage.shuffle_prob,
+        with_depth=needs_depth(exp),
+        rescale=exp.data.rescale,
     )
 
 
-def held_out_split(data: DataConfig, num_inputs: int, scene: Scene, path: str | None = None,
-                    index: dict[str, dict] | None = None, every: int = EVAL_EVERY) -> tuple[np.ndarray, np.ndarray, str]:
+def held_out_split(
+    data: DataConfig,
+    num_inputs: int,
+    scene: Scene,
+    path: str | None = None,
+    index: dict[str, dict] | None = None,
+    every: int = EVAL_EVERY,
+) -> tuple[np.ndarray, np.ndarray, str]:
     """:func:`~llrmpp_jax.data.held_out.eval_split` of one held-out ``scene`` (read from
     ``path``) as ``data`` asks: its ``eval_inputs`` and ``eval_max_frames``, the k-means
     inputs cached in a Long-LRM scene's JSON or in ``index`` (read from ``data.eval_index``)."""
-    return eval_split(scene, num_inputs, data.eval_inputs, data.eval_max_frames,
-                      json_path=path if data.kind == "long_lrm" else None, index=index,
-                      index_name=data.eval_index or "the index", every=every)
+    return eval_split(
+        scene,
+        num_inputs,
+        data.eval_inputs,
+        data.eval_max_frames,
+        json_path=path if data.kind == "long_lrm" else None,
+        index=index,
+        index_name=data.eval_index or "the index",
+        every=every,
+    )
 
 
 def _procedural_views(exp: ExperimentConfig, stage: StageConfig, i: int, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -93,8 +117,9 @@ def _procedural_views(exp: ExperimentConfig, stage: StageConfig, i: int, scene: 
         inputs, targets, _ = held_out_split(data, stage.num_inputs, scene)
         return inputs, targets
     rng = np.random.default_rng([exp.seed, 7, i] if data.eval_views_follow_seed else [7, i])
-    return training_views(rng, len(scene), stage.num_inputs, stage.num_targets, data.eval_span, data.eval_span,
-                          input_weight=0.0)
+    return training_views(
+        rng, len(scene), stage.num_inputs, stage.num_targets, data.eval_span, data.eval_span, input_weight=0.0
+    )
 
 
 def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict[str, np.ndarray]], list[str]]:
@@ -115,8 +140,7 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict[s
             inputs, targets = _procedural_views(exp, stage, i, scene)
         else:
             inputs, targets, how = held_out_split(data, stage.num_inputs, scene, source.paths[i], index)
-        samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth,
-                                   rescale=data.rescale))
+        samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth, rescale=data.rescale))
         if data.kind != "procedural":
             h, w = samples[-1]["input_images"].shape[-3:-1]
             print(f"eval scene {scene.name}: {len(inputs)} inputs, {len(targets)} targets, views {h}x{w} (HxW); {how}")

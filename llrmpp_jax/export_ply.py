@@ -72,14 +72,17 @@ class PlyGaussians(NamedTuple):
 def standard_fields(sh_degree: int) -> list[str]:
     """The 3DGS vertex properties, in file order, for SH of degree ``sh_degree``."""
     rest = 3 * (num_sh_bases(sh_degree) - 1)
-    return (_GEOMETRY + [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(rest)]
-            + _tail_fields())
+    return _GEOMETRY + [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(rest)] + _tail_fields()
 
 
 def feature_fields(feature_dim: int, partitions: int) -> list[str]:
     """Our feature-mode vertex properties, in file order."""
-    return (_GEOMETRY + [f"f_feat_{i}" for i in range(feature_dim)]
-            + [f"partition_{i}" for i in range(partitions)] + _tail_fields())
+    return (
+        _GEOMETRY
+        + [f"f_feat_{i}" for i in range(feature_dim)]
+        + [f"partition_{i}" for i in range(partitions)]
+        + _tail_fields()
+    )
 
 
 def _tail_fields() -> list[str]:
@@ -95,8 +98,10 @@ def split_similarity(world_from_scene: Float[np.ndarray, "4 4"]) -> tuple[float,
         raise UserError(f"world_from_scene: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
     det = np.linalg.det(m[:3, :3])
     if det <= 0:
-        raise UserError(f"world_from_scene: the 3x3 part has determinant {det:.3g}; need a rotation "
-                         "times a positive scale (reflections cannot be expressed by quaternions)")
+        raise UserError(
+            f"world_from_scene: the 3x3 part has determinant {det:.3g}; need a rotation "
+            "times a positive scale (reflections cannot be expressed by quaternions)"
+        )
     s = float(np.cbrt(det))
     rot = m[:3, :3] / s
     err = float(np.max(np.abs(rot.T @ rot - np.eye(3))))
@@ -109,26 +114,38 @@ def rotmat_to_qvec(rot: Float[np.ndarray, "3 3"]) -> Float[np.ndarray, " 4"]:
     """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix (the dominant
     eigenvector of Bar-Itzhack's symmetric 4x4 matrix, as COLMAP's scripts compute it)."""
     r = np.asarray(rot, dtype=np.float64)
-    k = np.array([
-        [r[0, 0] - r[1, 1] - r[2, 2], 0, 0, 0],
-        [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], 0, 0],
-        [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], 0],
-        [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], r[0, 0] + r[1, 1] + r[2, 2]],
-    ]) / 3.0
+    k = (
+        np.array(
+            [
+                [r[0, 0] - r[1, 1] - r[2, 2], 0, 0, 0],
+                [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], 0, 0],
+                [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], 0],
+                [r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1], r[0, 0] + r[1, 1] + r[2, 2]],
+            ]
+        )
+        / 3.0
+    )
     vals, vecs = np.linalg.eigh(k)
     q = vecs[[3, 0, 1, 2], np.argmax(vals)]
     return q if q[0] >= 0 else -q
 
 
-def quat_multiply(a: Float[np.ndarray, "*#batch 4"], b: Float[np.ndarray, "*#batch 4"]) -> Float[np.ndarray, "*batch 4"]:
+def quat_multiply(
+    a: Float[np.ndarray, "*#batch 4"], b: Float[np.ndarray, "*#batch 4"]
+) -> Float[np.ndarray, "*batch 4"]:
     """Hamilton product ``a * b`` of ``(w, x, y, z)`` quaternions (rotation ``a`` after ``b``;
     the leading axes broadcast)."""
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
-                     aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
 
 
 def sh_rotation(rot: Float[np.ndarray, "3 3"], degree: int) -> Float[np.ndarray, "bases bases"]:
@@ -159,8 +176,9 @@ def _unbatched(gaussians: Gaussians) -> Gaussians:
     want = {"means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,)}
     for name, shape in want.items():
         if getattr(g, name).shape != shape:
-            raise UserError(f"Gaussians.{name}: expected shape {shape} (or with a batch of 1), got "
-                             f"{getattr(g, name).shape}")
+            raise UserError(
+                f"Gaussians.{name}: expected shape {shape} (or with a batch of 1), got {getattr(g, name).shape}"
+            )
     if g.features.ndim != 2 or g.features.shape[0] != n:
         raise UserError(f"Gaussians.features: expected shape ({n}, F), got {g.features.shape}")
     for name, a in zip(Gaussians._fields, g, strict=True):
@@ -193,25 +211,35 @@ def ply_fields(
     quats = quat_multiply(rotmat_to_qvec(rot)[None], f64(g.quats))
     quats = quats / np.linalg.norm(quats, axis=-1, keepdims=True)
     opac = np.clip(f64(g.opacities), OPACITY_LOGIT_EPS, 1.0 - OPACITY_LOGIT_EPS)
-    cols = {"x": means[:, 0], "y": means[:, 1], "z": means[:, 2],
-            "nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n)}
+    cols = {
+        "x": means[:, 0],
+        "y": means[:, 1],
+        "z": means[:, 2],
+        "nx": np.zeros(n),
+        "ny": np.zeros(n),
+        "nz": np.zeros(n),
+    }
     if cfg.head.mode == "color":
         m = num_sh_bases(cfg.head.sh_degree)
         if g.features.shape[1] != 3 * m:
-            raise UserError(f"Gaussians.features: colour mode with sh_degree {cfg.head.sh_degree} needs "
-                             f"{3 * m} SH values per Gaussian, got {g.features.shape[1]}")
+            raise UserError(
+                f"Gaussians.features: colour mode with sh_degree {cfg.head.sh_degree} needs "
+                f"{3 * m} SH values per Gaussian, got {g.features.shape[1]}"
+            )
         sh = np.einsum("km,nmc->nkc", sh_rotation(rot, cfg.head.sh_degree), f64(g.features).reshape(n, m, 3))
         cols.update({f"f_dc_{c}": sh[:, 0, c] for c in range(3)})
         rest = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)  # channel-major
         cols.update({f"f_rest_{i}": rest[:, i] for i in range(rest.shape[1])})
     else:
         if partition_logits is None:
-            raise UserError("export_ply: feature mode needs partition_logits "
-                             "(model.partition_logits(params, cfg, gaussians))")
+            raise UserError(
+                "export_ply: feature mode needs partition_logits (model.partition_logits(params, cfg, gaussians))"
+            )
         logits = np.asarray(partition_logits).reshape(-1, np.shape(partition_logits)[-1])
         if logits.shape != (n, cfg.decoder.partitions):
-            raise UserError(f"partition_logits: expected shape ({n}, {cfg.decoder.partitions}), got "
-                             f"{np.shape(partition_logits)}")
+            raise UserError(
+                f"partition_logits: expected shape ({n}, {cfg.decoder.partitions}), got {np.shape(partition_logits)}"
+            )
         cols.update({f"f_feat_{i}": g.features[:, i] for i in range(g.features.shape[1])})
         cols.update({f"partition_{i}": logits[:, i] for i in range(logits.shape[1])})
     cols["opacity"] = np.log(opac) - np.log1p(-opac)
@@ -239,8 +267,7 @@ def export_ply(
         vertex[k] = v
     wfs = " ".join(repr(float(x)) for x in np.asarray(world_from_scene, np.float64).reshape(-1))
     comments = [f"{_TAG} mode={cfg.head.mode}", f"{_TAG} world_from_scene {wfs}"]
-    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], byte_order="<",
-                    comments=comments).write(path)
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], byte_order="<", comments=comments).write(path)
     return n
 
 
@@ -249,7 +276,7 @@ def _header(comments: list[str]) -> tuple[str | None, np.ndarray | None]:
     for c in comments:
         parts = c.split()
         if len(parts) == 2 and parts[0] == _TAG and parts[1].startswith("mode="):
-            mode = parts[1][len("mode="):]
+            mode = parts[1][len("mode=") :]
         elif len(parts) == 18 and parts[:2] == [_TAG, "world_from_scene"]:
             wfs = np.array([float(x) for x in parts[2:]]).reshape(4, 4)
     return mode, wfs

@@ -34,6 +34,7 @@ def splatted_depth(
 ) -> tuple[Float[Array, "B T H W"], Float[Array, "B T H W"]]:
     """Expected camera z (scene units) and accumulated alpha of the Gaussians at each target
     camera, ``height x width`` pixels (``intrinsics`` given at that size)."""
+
     def one(means, quats, scales, opac, cam, k):
         out = rasterize(means, quats, scales, opac, None, cam, k, height, width, cfg.splat, render_mode="ED")
         return out.depth, 1.0 - out.transmittance

@@ -190,8 +190,9 @@ class GaussianHead(nn.Module):
             raise ValueError(f"GaussianHead: {length} tokens != V*h*w = {v}*{h}*{w} from cameras and grid")
         k = gaussians_per_token(self.cfg, self.token_stride)
         x = LayerNorm(name="norm")(tokens)
-        raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj",
-                       kernel_init=head_kernel_init(self.cfg, k))(x)
+        raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj", kernel_init=head_kernel_init(self.cfg, k))(
+            x
+        )
         # Geometry in float32 at least: bf16 tokens (bf16 compute) would put pixel
         # coordinates on a grid of 4 above 512 and ray depths to 3 digits.
         raw = raw.astype(jnp.float64 if raw.dtype == jnp.float64 else jnp.float32)

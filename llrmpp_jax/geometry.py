@@ -109,16 +109,13 @@ def rays_through_pixels(
     return origins, directions
 
 
-def plucker(
-    origins: Float[ArrayLike, "... 3"], directions: Float[ArrayLike, "... 3"]
-) -> Float[ArrayLike, "... 6"]:
+def plucker(origins: Float[ArrayLike, "... 3"], directions: Float[ArrayLike, "... 3"]) -> Float[ArrayLike, "... 6"]:
     """Plücker ray embedding ``[o x d, d]`` (Long-LRM / LVSM channel order), ``[..., 6]``."""
     xp = _xp(origins, directions)
     _check_trailing(origins, (3,), "origins", "3")
     if tuple(directions.shape) != tuple(origins.shape):
         raise ValueError(
-            f"directions: expected shape {tuple(origins.shape)} (same as origins), "
-            f"got {tuple(directions.shape)}"
+            f"directions: expected shape {tuple(origins.shape)} (same as origins), got {tuple(directions.shape)}"
         )
     return xp.concatenate([xp.cross(origins, directions), directions], axis=-1)
 
@@ -213,7 +210,9 @@ def opencv_to_opengl(c2w: Float[ArrayLike, "... 4 4"]) -> Float[ArrayLike, "... 
 
 
 def normalize_scene(
-    input_c2w: Float[ArrayLike, "V 4 4"], *others: Float[ArrayLike, "T 4 4"], scene_scale: float = 1.0,
+    input_c2w: Float[ArrayLike, "V 4 4"],
+    *others: Float[ArrayLike, "T 4 4"],
+    scene_scale: float = 1.0,
     rescale: bool = True,
 ) -> tuple[ArrayLike, ...]:
     """Long-LRM §3.4 pose normalisation, computed from the input views only.

@@ -62,9 +62,7 @@ LOG_DEPTH_EPS = 1e-6
 
 def _check_images(name: str, pred: ArrayLike, target: ArrayLike) -> None:
     if pred.shape != target.shape or pred.ndim < 3 or pred.shape[-1] != 3:
-        raise ValueError(
-            f"{name}: pred {pred.shape} and target {target.shape} must both be [..., H, W, 3]"
-        )
+        raise ValueError(f"{name}: pred {pred.shape} and target {target.shape} must both be [..., H, W, 3]")
 
 
 def _masked_mean(x: ArrayLike, mask: ArrayLike) -> Float[Array, ""]:
@@ -160,7 +158,9 @@ def _check_intrinsics(name: str, depth: ArrayLike, intrinsics: ArrayLike) -> Non
         )
 
 
-def _unproject(depth: Float[ArrayLike, "*batch H W"], intrinsics: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch H W 3"]:
+def _unproject(
+    depth: Float[ArrayLike, "*batch H W"], intrinsics: Float[ArrayLike, "*batch 4"]
+) -> Float[Array, "*batch H W 3"]:
     """Camera-frame points ``z * ((u + 0.5 - cx) / fx, (v + 0.5 - cy) / fy, 1)``."""
     h, w = depth.shape[-2:]
     k = intrinsics.astype(jnp.float32)
@@ -199,7 +199,10 @@ def depth_to_normals(
 
 
 def _area_downsample(
-    pred: Float[ArrayLike, "*batch H W"], target: Float[ArrayLike, "*batch H W"], valid: Bool[ArrayLike, "*batch H W"], s: int
+    pred: Float[ArrayLike, "*batch H W"],
+    target: Float[ArrayLike, "*batch H W"],
+    valid: Bool[ArrayLike, "*batch H W"],
+    s: int,
 ) -> tuple[Array, Array, Array]:
     """Mean of valid target pixels (and of pred over the same pixels) per s x s block."""
     h, w = target.shape[-2] // s, target.shape[-1] // s
@@ -221,9 +224,7 @@ def _erode3x3(valid: Bool[ArrayLike, "*batch H W"]) -> Bool[Array, "*batch H W"]
     """True where the 3x3 neighbourhood (replicated border) is all valid."""
     nd = valid.ndim
     vp = jnp.pad(valid, [(0, 0)] * (nd - 2) + [(1, 1), (1, 1)], mode="edge")
-    return jax.lax.reduce_window(
-        vp, np.bool_(True), jax.lax.bitwise_and, (1,) * (nd - 2) + (3, 3), (1,) * nd, "VALID"
-    )
+    return jax.lax.reduce_window(vp, np.bool_(True), jax.lax.bitwise_and, (1,) * (nd - 2) + (3, 3), (1,) * nd, "VALID")
 
 
 def depth_loss(
@@ -249,8 +250,7 @@ def depth_loss(
     """
     if pred_depth.shape != target_depth.shape or pred_depth.ndim < 2:
         raise ValueError(
-            f"depth_loss: pred_depth {pred_depth.shape} and target_depth {target_depth.shape} "
-            "must both be [..., H, W]"
+            f"depth_loss: pred_depth {pred_depth.shape} and target_depth {target_depth.shape} must both be [..., H, W]"
         )
     _check_intrinsics("depth_loss", target_depth, intrinsics)
     coarsest = max(GRAD_SCALES)
@@ -290,4 +290,3 @@ def depth_loss(
         "num_invalid": jnp.sum(~valid).astype(jnp.float32),
     }
     return loss, aux
-

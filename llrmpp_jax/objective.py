@@ -60,8 +60,14 @@ class LossWeights:
     opacity: float = 0.0
 
 
-def objective(params: dict, cfg: C.ModelConfig, batch: dict[str, Any], key: Any,
-              weights: LossWeights = LossWeights(), vgg_params: dict | None = None) -> tuple[Any, dict]:
+def objective(
+    params: dict,
+    cfg: C.ModelConfig,
+    batch: dict[str, Any],
+    key: Any,
+    weights: LossWeights = LossWeights(),
+    vgg_params: dict | None = None,
+) -> tuple[Any, dict]:
     """``(loss [], metrics)`` of ``batch`` (``input_*`` ``[B, V, ...]``, ``target_*``
     ``[B, T, ...]``, ``target_depth`` when a depth term is on); ``vgg_params`` may be None only
     when ``weights.perceptual`` is 0. The module docstring lists the terms and metrics."""
@@ -70,12 +76,20 @@ def objective(params: dict, cfg: C.ModelConfig, batch: dict[str, Any], key: Any,
     g = prune_gaussians(g, cfg.head.prune_ratio, cfg.head.prune_random_ratio, key)
     h, w = batch["target_images"].shape[2:4]
     out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, cfg.outputs)
-    loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3), batch["target_images"].reshape(-1, h, w, 3),
-                         vgg_params, perceptual_weight=weights.perceptual)
+    loss, aux = rgb_loss(
+        out.images["rgb"].reshape(-1, h, w, 3),
+        batch["target_images"].reshape(-1, h, w, 3),
+        vgg_params,
+        perceptual_weight=weights.perceptual,
+    )
     if "depth" in cfg.outputs and weights.depth:
-        d, daux = depth_loss(out.images["depth"][..., 0].reshape(-1, h, w), batch["target_depth"].reshape(-1, h, w),
-                             batch["target_intrinsics"].reshape(-1, 4),
-                             grad_weight=weights.depth_grad, normal_weight=weights.depth_normal)
+        d, daux = depth_loss(
+            out.images["depth"][..., 0].reshape(-1, h, w),
+            batch["target_depth"].reshape(-1, h, w),
+            batch["target_intrinsics"].reshape(-1, 4),
+            grad_weight=weights.depth_grad,
+            normal_weight=weights.depth_normal,
+        )
         loss = loss + (d if weights.depth == 1 else weights.depth * d)
         aux.update({f"depth_{k}": v for k, v in daux.items()})
     if weights.gaussian_depth:
@@ -90,8 +104,7 @@ def objective(params: dict, cfg: C.ModelConfig, batch: dict[str, Any], key: Any,
     return loss, aux
 
 
-def make_objective(cfg: C.ModelConfig, weights: LossWeights = LossWeights(),
-                   vgg_params: dict | None = None) -> LossFn:
+def make_objective(cfg: C.ModelConfig, weights: LossWeights = LossWeights(), vgg_params: dict | None = None) -> LossFn:
     """:func:`objective` as ``loss_fn(params, batch, key)`` for :func:`~llrmpp_jax.train.make_train_step`."""
 
     def loss_fn(params, batch, key):
@@ -104,9 +117,13 @@ def loss_weights(exp: ExperimentConfig, stage: StageConfig | None = None) -> Los
     """The weights of ``exp``: ``stage``'s perceptual weight
     (:meth:`~llrmpp_jax.experiment.ExperimentConfig.perceptual_weight_of`; the experiment's
     when ``stage`` is None), its depth terms, its Gaussian depth and opacity weights."""
-    return LossWeights(perceptual=exp.perceptual_weight if stage is None else exp.perceptual_weight_of(stage),
-                       depth_grad=exp.depth_grad_weight, depth_normal=exp.depth_normal_weight,
-                       gaussian_depth=exp.gaussian_depth_weight, opacity=exp.opacity_weight)
+    return LossWeights(
+        perceptual=exp.perceptual_weight if stage is None else exp.perceptual_weight_of(stage),
+        depth_grad=exp.depth_grad_weight,
+        depth_normal=exp.depth_normal_weight,
+        gaussian_depth=exp.gaussian_depth_weight,
+        opacity=exp.opacity_weight,
+    )
 
 
 def make_loss_fn(exp: ExperimentConfig, vgg_params: dict | None, stage: StageConfig | None = None) -> LossFn:

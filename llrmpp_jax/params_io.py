@@ -111,7 +111,7 @@ def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelC
     first mismatching parameter path and both shapes), else its own config is used as is.
     """
     if path.startswith(PREFIX):
-        return load_pretrained(path[len(PREFIX):], cfg)
+        return load_pretrained(path[len(PREFIX) :], cfg)
     if not os.path.isdir(path):
         raise MissingInputError(f"checkpoint folder not found: {path}")
     if is_params_folder(path):

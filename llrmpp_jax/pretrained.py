@@ -79,13 +79,16 @@ def read_meta(name: str, weights_dir: str = WEIGHTS_DIR) -> dict:
     """The ``NAME.json`` record. ``FileNotFoundError`` listing the shipped names."""
     _, meta_path, _ = _paths(name, weights_dir)
     if not os.path.isfile(meta_path):
-        raise MissingInputError(f"no shipped model {name!r} in {weights_dir} (shipped: {', '.join(available(weights_dir)) or 'none'})")
+        raise MissingInputError(
+            f"no shipped model {name!r} in {weights_dir} (shipped: {', '.join(available(weights_dir)) or 'none'})"
+        )
     with open(meta_path) as f:
         return json.load(f)
 
 
-def load_pretrained(name: str, cfg: ModelConfig | None = None,
-                    weights_dir: str = WEIGHTS_DIR) -> tuple[dict, ModelConfig]:
+def load_pretrained(
+    name: str, cfg: ModelConfig | None = None, weights_dir: str = WEIGHTS_DIR
+) -> tuple[dict, ModelConfig]:
     """``(float32 params, model config)`` of the shipped model ``name``.
 
     ``ValueError`` in one line naming the file if its SHA-256 differs from the record, or if
@@ -95,8 +98,10 @@ def load_pretrained(name: str, cfg: ModelConfig | None = None,
     meta = read_meta(name, weights_dir)
     got = sha256(npz_path)
     if got != meta["sha256"]:
-        raise UserError(f"{npz_path}: checksum mismatch: sha256 {got[:16]}..., {os.path.basename(meta_path)} "
-                         f"records {meta['sha256'][:16]}... (a corrupt or replaced weights file)")
+        raise UserError(
+            f"{npz_path}: checksum mismatch: sha256 {got[:16]}..., {os.path.basename(meta_path)} "
+            f"records {meta['sha256'][:16]}... (a corrupt or replaced weights file)"
+        )
     # A field the record lacks (added to ModelConfig after shipping) takes its default,
     # which keeps the behaviour the weights were trained with.
     try:
@@ -129,8 +134,9 @@ def reference_forward(params: dict, cfg: ModelConfig, ref: dict) -> np.ndarray:
     return np.asarray(run(params, {k: v for k, v in s.items() if k != "scene_scale"}))
 
 
-def export_pretrained(params: dict, cfg: ModelConfig, name: str, record: dict, reference: dict,
-                      weights_dir: str = WEIGHTS_DIR) -> dict:
+def export_pretrained(
+    params: dict, cfg: ModelConfig, name: str, record: dict, reference: dict, weights_dir: str = WEIGHTS_DIR
+) -> dict:
     """Write the shipped model ``name`` (the three files of the module docstring) and return
     its ``NAME.json`` record. ``record`` adds provenance (experiment, commit, steps,
     metrics); ``reference`` is the forward pass to record (see :func:`reference_forward`).
@@ -144,9 +150,16 @@ def export_pretrained(params: dict, cfg: ModelConfig, name: str, record: dict, r
     np.savez(npz_path, **half)
     loaded = unflatten_dict({k: v.astype(np.float32) for k, v in half.items()}, sep="/")
     np.savez(ref_path, rgb=reference_forward(loaded, cfg, reference))
-    meta = dict(record, format=_FORMAT, name=name, sha256=sha256(npz_path),
-                num_params=int(sum(v.size for v in half.values())), dtype="float16",
-                model=_config_json(cfg), reference=reference)
+    meta = dict(
+        record,
+        format=_FORMAT,
+        name=name,
+        sha256=sha256(npz_path),
+        num_params=int(sum(v.size for v in half.values())),
+        dtype="float16",
+        model=_config_json(cfg),
+        reference=reference,
+    )
     with open(meta_path, "w") as f:
         json.dump(meta, f, indent=1)
     return meta

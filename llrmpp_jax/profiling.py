@@ -63,8 +63,12 @@ class ProgramProfile:
     ops: list[OpRow]  # the top ops by time
 
     def to_json(self) -> dict:
-        return {"compile_s": self.compile_s, "wall_ms": self.wall_ms, "phases_ms": self.phases_ms,
-                "ops": [asdict(o) for o in self.ops]}
+        return {
+            "compile_s": self.compile_s,
+            "wall_ms": self.wall_ms,
+            "phases_ms": self.phases_ms,
+            "ops": [asdict(o) for o in self.ops],
+        }
 
 
 def phase_of(op_name: str) -> str:
@@ -128,5 +132,6 @@ def profile_program(fn: Callable, args: tuple, repeats: int = 3, top: int = 30) 
         per_phase[phases[name]] += ns / 1e6 / repeats
     ops = [OpRow(name, phases[name], ns / 1e6 / repeats, count[name] / repeats) for name, ns in total.most_common(top)]
     walls.sort()
-    return ProgramProfile(compile_s, 1e3 * walls[len(walls) // 2],
-                          {k: round(v, 3) for k, v in per_phase.most_common()}, ops)
+    return ProgramProfile(
+        compile_s, 1e3 * walls[len(walls) // 2], {k: round(v, 3) for k, v in per_phase.most_common()}, ops
+    )

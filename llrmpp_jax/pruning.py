@@ -46,9 +46,7 @@ def pruned_counts(n: int, prune_ratio: float, random_ratio: float) -> tuple[int,
     return int(n * keep), int(n * rand)
 
 
-def prune_gaussians(
-    gaussians: Gaussians, prune_ratio: float, random_ratio: float, key: KeyArray
-) -> Gaussians:
+def prune_gaussians(gaussians: Gaussians, prune_ratio: float, random_ratio: float, key: KeyArray) -> Gaussians:
     """Keep the most opaque Gaussians plus a random share of the rest (module docstring).
 
     ``gaussians`` has ``[B, N, ...]`` fields; the result has ``[B, num_top + num_random,

@@ -53,9 +53,13 @@ def optimizer_config(stage: StageConfig, spike_factor: float | None = None) -> T
     Long-LRM's ``_no_weight_decay``) are never decayed. ``spike_factor``: the spike guard
     (``OptimizerConfig.spike_factor``; None, ``llrmpp train``'s: off)."""
     horizon = T.LONG_LRM_TRAIN_STEPS if stage.lr_schedule == "long_lrm" else stage.steps
-    return T.OptimizerConfig(lr=stage.lr, warmup_steps=min(stage.warmup_steps, stage.steps),
-                             total_steps=horizon, no_decay_names=("A_log", "dt_bias", "D"),
-                             spike_factor=spike_factor)
+    return T.OptimizerConfig(
+        lr=stage.lr,
+        warmup_steps=min(stage.warmup_steps, stage.steps),
+        total_steps=horizon,
+        no_decay_names=("A_log", "dt_bias", "D"),
+        spike_factor=spike_factor,
+    )
 
 
 def stage_key(exp: ExperimentConfig, si: int) -> KeyArray:
@@ -71,28 +75,55 @@ def fresh_params(exp: ExperimentConfig, si: int) -> dict:
     return init_params(jax.random.fold_in(stage_key(exp, si), 1), exp.model, stage.num_inputs, h, w)
 
 
-def stage_runner(exp: ExperimentConfig, stage: StageConfig, vgg: dict | None, optimizer: optax.GradientTransformation,
-                 schedule: optax.Schedule, mesh: Mesh | None = None, *, donate: bool = True) -> T.Runner:
+def stage_runner(
+    exp: ExperimentConfig,
+    stage: StageConfig,
+    vgg: dict | None,
+    optimizer: optax.GradientTransformation,
+    schedule: optax.Schedule,
+    mesh: Mesh | None = None,
+    *,
+    donate: bool = True,
+) -> T.Runner:
     """The runner of ``stage`` of ``exp`` (:func:`~llrmpp_jax.train.make_runner` over ``mesh``,
     default every device; ``donate``: reuse the state's buffers): its objective
     (:func:`~llrmpp_jax.objective.make_loss_fn` with the perceptual network ``vgg``),
     ``optimizer`` and ``schedule``, bf16 compute and the large-gradient guard as ``exp`` sets them."""
-    step_fn = T.make_train_step(make_loss_fn(exp, vgg, stage), optimizer, schedule,
-                                compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
-                                skip_grad_norm_above=exp.skip_grad_norm_above)
+    step_fn = T.make_train_step(
+        make_loss_fn(exp, vgg, stage),
+        optimizer,
+        schedule,
+        compute_dtype=jnp.bfloat16 if exp.bf16 else jnp.float32,
+        skip_grad_norm_above=exp.skip_grad_norm_above,
+    )
     return T.make_runner(step_fn, mesh, donate=donate)
 
 
 def stage_batches(exp: ExperimentConfig, si: int, start: int = 0, *, num_devices: int) -> BatchIterator:
     """Stage ``si``'s training batches from step ``start`` (this process's rows, split over
     its ``num_devices``), data seed ``exp.seed + si``."""
-    return BatchIterator(scene_source(exp.data), batch_config(exp, exp.stages[si]), seed=exp.seed + si, start_step=start, num_devices=num_devices,
-                         process_index=jax.process_index(), process_count=jax.process_count(),
-                         num_workers=exp.data.workers, worker_processes=exp.data.worker_processes)
+    return BatchIterator(
+        scene_source(exp.data),
+        batch_config(exp, exp.stages[si]),
+        seed=exp.seed + si,
+        start_step=start,
+        num_devices=num_devices,
+        process_index=jax.process_index(),
+        process_count=jax.process_count(),
+        num_workers=exp.data.workers,
+        worker_processes=exp.data.worker_processes,
+    )
 
 
-def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = None,
-          progress: bool = True, init: str | None = None, peer_timeout_s: float = 60.0) -> dict:
+def train(
+    exp: ExperimentConfig,
+    workdir: str,
+    *,
+    max_minutes: float | None = None,
+    progress: bool = True,
+    init: str | None = None,
+    peer_timeout_s: float = 60.0,
+) -> dict:
     """Run (or resume) every stage; returns ``{"stages": [...], "eval": summary}``.
 
     ``init`` (fine-tuning): a training workdir, a params folder or ``pretrained:NAME``
@@ -113,23 +144,34 @@ def train(exp: ExperimentConfig, workdir: str, *, max_minutes: float | None = No
     every process again resumes from the last complete checkpoint."""
     lock = workdir_lock(workdir) if jax.process_index() == 0 else contextlib.nullcontext()
     checkpoints = os.path.join(workdir, "checkpoints")
-    peers = watch_peers(peer_timeout_s, resume_hint=lambda: "start every process again to resume from the last "
-                        f"complete checkpoint in {checkpoints}")
+    peers = watch_peers(
+        peer_timeout_s,
+        resume_hint=lambda: f"start every process again to resume from the last complete checkpoint in {checkpoints}",
+    )
     with lock, peers, T.stop_on_signals() as stop:
         return _train_stages(exp, workdir, stop, max_minutes=max_minutes, progress=progress, init=init)
 
 
-def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, max_minutes: float | None,
-                  progress: bool, init: str | None) -> dict:
+def _train_stages(
+    exp: ExperimentConfig,
+    workdir: str,
+    stop: T.StopRequest,
+    *,
+    max_minutes: float | None,
+    progress: bool,
+    init: str | None,
+) -> dict:
     """:func:`train`'s body; ``stop`` ends it at the next step boundary, checkpointed."""
     exp.check_devices(jax.device_count())
     vgg = load_perceptual(exp)  # missing or wrong perceptual weights fail here, before any compile
     scene_source(exp.data)  # so does a missing or empty dataset
     params = None if init is None else _start_params(init, exp)  # and wrong or misfit start weights
     if exp.eval_every and exp.data.eval_reads_training_scenes and jax.process_index() == 0:
-        print(f"note: the held-out evaluation reads the training data ({exp.data.path}): the frames it targets "
-              f"(every {EVAL_EVERY}th) are left out of training; its scenes' other frames are trained on (set data.eval_path "
-              "to other scenes for held-out scenes)")
+        print(
+            f"note: the held-out evaluation reads the training data ({exp.data.path}): the frames it targets "
+            f"(every {EVAL_EVERY}th) are left out of training; its scenes' other frames are trained on (set data.eval_path "
+            "to other scenes for held-out scenes)"
+        )
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes
     t_start = time.time()
@@ -166,23 +208,35 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
         runner = stage_runner(exp, stage, vgg, optimizer, schedule, mesh)
         it = stage_batches(exp, si, start, num_devices=n_local)
         samples, names = eval_samples(exp, stage) if exp.eval_every else ([], [])
-        bar = tqdm(total=stage.steps, initial=start, desc=f"{exp.name}/{stage.name}",
-                   disable=not progress or jax.process_index() != 0, dynamic_ncols=True)
-        hooks = [_log_hook(exp, stage, bar, history, writer),
-                 _checkpoint_hook(exp, ckpt_dir, it)]
+        bar = tqdm(
+            total=stage.steps,
+            initial=start,
+            desc=f"{exp.name}/{stage.name}",
+            disable=not progress or jax.process_index() != 0,
+            dynamic_ncols=True,
+        )
+        hooks = [_log_hook(exp, stage, bar, history, writer), _checkpoint_hook(exp, ckpt_dir, it)]
         if samples:
             hooks.append(_eval_hook(exp, stage, samples, names, writer, stop, result))
         try:
-            done = runner.run(state, it, steps=stage.steps, start=start, hooks=hooks,
-                              stop=lambda: bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget)
+            done = runner.run(
+                state,
+                it,
+                steps=stage.steps,
+                start=start,
+                hooks=hooks,
+                stop=lambda: bool(stop) or budget is not None and (time.time() - t_start) / 60 > budget,
+            )
         finally:
             bar.close()
             it.close()
         # stop() was asked before the step's checkpoint: a signal that came during its
         # evaluation stops the loop after the next step, checkpointed there
         if done.stopped and stop:
-            tqdm.write(f"{stop.signal_name} received: stopped at step {done.step} of stage {stage.name};"
-                       " checkpoint saved, the same command resumes from it")
+            tqdm.write(
+                f"{stop.signal_name} received: stopped at step {done.step} of stage {stage.name};"
+                " checkpoint saved, the same command resumes from it"
+            )
             result["stopped_by"] = stop.signal_name
         elif done.stopped:
             tqdm.write(f"time budget of {budget} min reached at step {done.step}; checkpoint saved")
@@ -197,10 +251,18 @@ def _train_stages(exp: ExperimentConfig, workdir: str, stop: T.StopRequest, *, m
     log_path = os.path.join(workdir, "train_log.json")
     earlier = _earlier_log(log_path, starts)
     with open(log_path, "w") as f:
-        json.dump({"init": init if init is not None else earlier.get("init"), "stages": result["stages"],
-                   "history": earlier["history"] + history, "eval": result.get("eval"),
-                   "evals": earlier["evals"] + result.get("evals", []), "stopped_by": result.get("stopped_by")},
-                  f, indent=1)
+        json.dump(
+            {
+                "init": init if init is not None else earlier.get("init"),
+                "stages": result["stages"],
+                "history": earlier["history"] + history,
+                "eval": result.get("eval"),
+                "evals": earlier["evals"] + result.get("evals", []),
+                "stopped_by": result.get("stopped_by"),
+            },
+            f,
+            indent=1,
+        )
     return result
 
 
@@ -230,14 +292,22 @@ def _checkpoint_hook(exp: ExperimentConfig, ckpt_dir: str, it: BatchIterator) ->
 
     def checkpoint(info: StepInfo) -> None:
         if info.step % exp.checkpoint_every == 0 or info.last:
-            T.save_checkpoint(ckpt_dir, T.host_copy(info.state), data_state=it.state(),
-                              config=exp, keep=exp.keep_checkpoints)
+            T.save_checkpoint(
+                ckpt_dir, T.host_copy(info.state), data_state=it.state(), config=exp, keep=exp.keep_checkpoints
+            )
 
     return checkpoint
 
 
-def _eval_hook(exp: ExperimentConfig, stage: StageConfig, samples: list[dict], names: list[str], writer,
-               stop: T.StopRequest, result: dict) -> Hook:
+def _eval_hook(
+    exp: ExperimentConfig,
+    stage: StageConfig,
+    samples: list[dict],
+    names: list[str],
+    writer,
+    stop: T.StopRequest,
+    result: dict,
+) -> Hook:
     """Every ``eval_every`` steps and after the last (unless a signal stops the run: a
     scheduler's grace period is short), evaluate on the held-out ``samples``: TensorBoard
     scalars and picture grid, a console line, ``result["eval"]`` and ``result["evals"]``."""
@@ -245,15 +315,16 @@ def _eval_hook(exp: ExperimentConfig, stage: StageConfig, samples: list[dict], n
     def held_out(info: StepInfo) -> None:
         if not (info.step % exp.eval_every == 0 or info.last and not stop):
             return
-        _, summary, preds = evaluate(T.host_copy(info.state.params), exp.model_of(stage), samples,
-                                     names=names)
+        _, summary, preds = evaluate(T.host_copy(info.state.params), exp.model_of(stage), samples, names=names)
         if writer is not None:
             for method, vals in summary.items():
                 for k, v in vals.items():
                     writer.add_scalar(f"eval/{method}/{k}", v, info.step)
             writer.add_image("eval/grid", picture_grid(samples[0], preds[0]), info.step, dataformats="HWC")
-        tqdm.write(f"[{stage.name} step {info.step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
-                   f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)")
+        tqdm.write(
+            f"[{stage.name} step {info.step}] held-out PSNR model {summary['model']['psnr']:.2f} dB"
+            f" (input views re-rendered {summary['model']['input_psnr']:.2f} dB)"
+        )
         result["eval"] = summary
         result.setdefault("evals", []).append({"stage": stage.name, "step": info.step, **summary["model"]})
 
@@ -281,4 +352,3 @@ def _start_params(init: str, exp: ExperimentConfig) -> dict:
 
     params, _ = load_params(init, exp.model)
     return jax.tree.map(lambda x: np.asarray(x, np.float32), params)
-

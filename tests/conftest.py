@@ -31,11 +31,13 @@ import zlib
 
 from tests.helpers.environment import QUICK_XLA_FLAGS
 
-os.environ["XLA_FLAGS"] = " ".join([
-    QUICK_XLA_FLAGS,
-    os.environ.get("XLA_FLAGS", ""),
-    "--xla_force_host_platform_device_count=2",
-])
+os.environ["XLA_FLAGS"] = " ".join(
+    [
+        QUICK_XLA_FLAGS,
+        os.environ.get("XLA_FLAGS", ""),
+        "--xla_force_host_platform_device_count=2",
+    ]
+)
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import jax  # noqa: E402

@@ -31,8 +31,12 @@ def annotated_axes() -> dict[str, set[str]]:
     uses: dict[str, set[str]] = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):
-            if not (isinstance(node, ast.Subscript) and isinstance(node.value, ast.Name)
-                    and node.value.id in ARRAY_KINDS and isinstance(node.slice, ast.Tuple)):
+            if not (
+                isinstance(node, ast.Subscript)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in ARRAY_KINDS
+                and isinstance(node.slice, ast.Tuple)
+            ):
                 continue
             shape = node.slice.elts[1]
             assert isinstance(shape, ast.Constant), f"{path}: shape of {ast.unparse(node)} is not a literal"

@@ -24,8 +24,12 @@ def _is_experiment(path: str) -> bool:
 
 
 # The recipes in the package and the experiment files kept in experiments/.
-EXPERIMENT_FILES = sorted(p for d in ("llrmpp_jax/recipes", "experiments")
-                          for p in glob.glob(os.path.join(ROOT, d, "*.py")) if _is_experiment(p))
+EXPERIMENT_FILES = sorted(
+    p
+    for d in ("llrmpp_jax/recipes", "experiments")
+    for p in glob.glob(os.path.join(ROOT, d, "*.py"))
+    if _is_experiment(p)
+)
 
 
 @pytest.mark.parametrize("path", EXPERIMENT_FILES, ids=os.path.basename)
@@ -57,8 +61,11 @@ def test_no_function_in_cli_is_over_60_lines():
 
     with open(cli.__file__) as f:
         tree = ast.parse(f.read())
-    long = [(node.name, node.lineno, node.end_lineno - min([node.lineno, *(d.lineno for d in node.decorator_list)]) + 1)
-            for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    long = [
+        (node.name, node.lineno, node.end_lineno - min([node.lineno, *(d.lineno for d in node.decorator_list)]) + 1)
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+    ]
     assert long and not [row for row in long if row[2] > 60], [row for row in long if row[2] > 60]
 
 
@@ -70,7 +77,7 @@ def test_the_parser_s_verbs_are_the_registry_s():
     from llrmpp_jax.cli import VERBS, build_parser
 
     parser = build_parser()
-    verbs, = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    (verbs,) = (a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     assert list(verbs.choices) == [v.name for v in VERBS] and len(VERBS) == len({v.name for v in VERBS})
     assert [c.help for c in verbs._choices_actions] == [v.help for v in VERBS]
     for verb in VERBS:
@@ -78,27 +85,37 @@ def test_the_parser_s_verbs_are_the_registry_s():
 
 
 def _run_cli(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", *args], capture_output=True, text=True,
-                          timeout=300, cwd=ROOT)
+    return subprocess.run(
+        [sys.executable, "-m", "llrmpp_jax.cli", *args], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
 
 
 @pytest.mark.parametrize(
     "args, message",
     [
         (["train", "--config", "no/such/file.py", "--workdir", "/tmp/x"], "config file not found"),
-        (["eval", "--config", "demo", "--checkpoint", "/no/such/dir", "--out", "/tmp/x"],
-         "checkpoint folder not found"),
-        (["eval", "--config", "demo", "--checkpoint", "pretrained:nope", "--out", "/tmp/x"],
-         "no shipped model 'nope'"),
-        (["render", "--config", "demo", "--checkpoint", "/tmp", "--scene", "/no/scene",
-          "--out", "/tmp/x"], "scene not found"),
+        (
+            ["eval", "--config", "demo", "--checkpoint", "/no/such/dir", "--out", "/tmp/x"],
+            "checkpoint folder not found",
+        ),
+        (["eval", "--config", "demo", "--checkpoint", "pretrained:nope", "--out", "/tmp/x"], "no shipped model 'nope'"),
+        (
+            ["render", "--config", "demo", "--checkpoint", "/tmp", "--scene", "/no/scene", "--out", "/tmp/x"],
+            "scene not found",
+        ),
         (["convert", "--checkpoint", "/no/such.pt", "--out", "/tmp/x"], "checkpoint file not found"),
-        (["train", "--config", "demo", "--workdir", "/tmp/x", "--init", "/no/such/dir"],
-         "--init: checkpoint folder not found"),
-        (["train", "--config", "dl3dv", "--workdir", "/tmp/x"],
-         "uses Long-LRM's VGG19 perceptual loss and needs its weights"),
-        (["train", "--config", "scannet", "--workdir", "/tmp/x", "--vgg16"],
-         "dataset path does not exist"),  # VGG16 opted into: the next check speaks
+        (
+            ["train", "--config", "demo", "--workdir", "/tmp/x", "--init", "/no/such/dir"],
+            "--init: checkpoint folder not found",
+        ),
+        (
+            ["train", "--config", "dl3dv", "--workdir", "/tmp/x"],
+            "uses Long-LRM's VGG19 perceptual loss and needs its weights",
+        ),
+        (
+            ["train", "--config", "scannet", "--workdir", "/tmp/x", "--vgg16"],
+            "dataset path does not exist",
+        ),  # VGG16 opted into: the next check speaks
     ],
 )
 def test_bad_input_is_one_clear_line(args, message):
@@ -119,21 +136,35 @@ def _bad_files(tmp_path) -> list[tuple[list[str], str]]:
     npz_as_pt.write_bytes(data)
     (tmp_path / "cut.npz").write_bytes(data[: len(data) // 3])
     (tmp_path / "cut.pt").write_bytes(data[: len(data) // 3])
-    subprocess.run([sys.executable, "-c", "import torch\nclass Cfg: pass\n"
-                    f"torch.save({{'model': {{'a': torch.ones(2)}}, 'cfg': Cfg()}}, {str(tmp_path / 'objects.pt')!r})"],
-                   check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import torch\nclass Cfg: pass\n"
+            f"torch.save({{'model': {{'a': torch.ones(2)}}, 'cfg': Cfg()}}, {str(tmp_path / 'objects.pt')!r})",
+        ],
+        check=True,
+    )
     (tmp_path / "broken.py").write_text("def get_config(:\n    pass\n")
     out = str(tmp_path / "out")
     return [
         (["convert", "--checkpoint", str(npz_as_pt), "--out", out], f"cannot convert {npz_as_pt}: "),
-        (["convert", "--checkpoint", str(tmp_path / "cut.npz"), "--out", out],
-         f"{tmp_path / 'cut.npz'}: not a .npz archive (not a zip file"),
-        (["convert", "--checkpoint", str(tmp_path / "cut.pt"), "--out", out],
-         f"{tmp_path / 'cut.pt'}: not a readable torch checkpoint or .npz archive"),
-        (["convert", "--checkpoint", str(tmp_path / "objects.pt"), "--out", out],
-         f"{tmp_path / 'objects.pt'}: holds Python objects other than tensors"),
-        (["train", "--config", str(tmp_path / "broken.py"), "--workdir", out],
-         f"{tmp_path / 'broken.py'}:1: syntax error in the experiment file"),
+        (
+            ["convert", "--checkpoint", str(tmp_path / "cut.npz"), "--out", out],
+            f"{tmp_path / 'cut.npz'}: not a .npz archive (not a zip file",
+        ),
+        (
+            ["convert", "--checkpoint", str(tmp_path / "cut.pt"), "--out", out],
+            f"{tmp_path / 'cut.pt'}: not a readable torch checkpoint or .npz archive",
+        ),
+        (
+            ["convert", "--checkpoint", str(tmp_path / "objects.pt"), "--out", out],
+            f"{tmp_path / 'objects.pt'}: holds Python objects other than tensors",
+        ),
+        (
+            ["train", "--config", str(tmp_path / "broken.py"), "--workdir", out],
+            f"{tmp_path / 'broken.py'}:1: syntax error in the experiment file",
+        ),
     ]
 
 
@@ -151,11 +182,11 @@ def test_files_that_are_not_what_they_claim_are_one_line(tmp_path):
 
 def test_an_empty_checkpoint_folder_is_one_line_and_nothing_after(tmp_path):
     """orbax's start-up clean-up thread is joined, so no traceback follows the error at exit."""
-    res = _run_cli("eval", "--config", "demo", "--checkpoint", str(tmp_path), "--out",
-                   str(tmp_path / "ev"))
+    res = _run_cli("eval", "--config", "demo", "--checkpoint", str(tmp_path), "--out", str(tmp_path / "ev"))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
-        f"llrmpp: error: no checkpoint in {tmp_path} (expected a params folder or a training workdir)"]
+        f"llrmpp: error: no checkpoint in {tmp_path} (expected a params folder or a training workdir)"
+    ]
 
 
 def test_wrong_vgg19_file_is_one_line_naming_the_first_mismatching_key(tmp_path):
@@ -175,8 +206,9 @@ def test_wrong_vgg19_file_is_one_line_naming_the_first_mismatching_key(tmp_path)
     res = _run_cli("convert", "--vgg19", path, "--out", str(tmp_path / "out"))
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1 and "first mismatching key 'features.16.weight': missing (vgg19 has conv3_4 there)" \
-        in lines[0], res.stderr
+    assert (
+        len(lines) == 1 and "first mismatching key 'features.16.weight': missing (vgg19 has conv3_4 there)" in lines[0]
+    ), res.stderr
     assert not os.path.exists(tmp_path / "out")
 
 
@@ -195,8 +227,10 @@ def test_bad_dataset_and_batch_fail_before_compiling(tmp_path):
 def _micro_experiment_file(tmp_path, steps: int):
     """An experiment file (for ``--config``) whose ``get_config`` is ``micro_experiment(steps)``."""
     path = tmp_path / "micro.py"
-    path.write_text(f"import sys\nsys.path.insert(0, {ROOT!r})\nfrom tests.helpers.micro_experiment import micro_experiment\n"
-                    f"def get_config():\n    return micro_experiment({steps:d})\n")
+    path.write_text(
+        f"import sys\nsys.path.insert(0, {ROOT!r})\nfrom tests.helpers.micro_experiment import micro_experiment\n"
+        f"def get_config():\n    return micro_experiment({steps:d})\n"
+    )
     return path
 
 
@@ -219,26 +253,88 @@ def test_train_resume_and_eval(tmp_path, capsys):
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--out", str(tmp_path / "ev")]) == 0
     rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
     assert rows[0].startswith("scene,method,psnr,ssim,lpips") and len(rows) == 1 + 3
-    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
-                 "--out", str(tmp_path / "ev2")]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--config",
+                str(cfg_file),
+                "--checkpoint",
+                work,
+                "--refine-steps",
+                "2",
+                "--out",
+                str(tmp_path / "ev2"),
+            ]
+        )
+        == 0
+    )
     rows = open(tmp_path / "ev2" / "per_scene.csv").read().splitlines()
     assert [r.split(",")[1] for r in rows[1:]] == ["model", "refined_2", "mean_colour", "nearest_view"]
     assert "refined_2" in json.load(open(tmp_path / "ev2" / "metrics.json"))
     capsys.readouterr()
-    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "-1",
-                 "--out", str(tmp_path / "ev3")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--config",
+                str(cfg_file),
+                "--checkpoint",
+                work,
+                "--refine-steps",
+                "-1",
+                "--out",
+                str(tmp_path / "ev3"),
+            ]
+        )
+        == 2
+    )
     assert capsys.readouterr().err.strip().splitlines() == ["llrmpp: error: --refine-steps must be >= 0, got -1"]
     assert not os.path.exists(tmp_path / "ev3")
-    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
-                 "--refine-perceptual-weight", "-0.5", "--out", str(tmp_path / "ev3")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--config",
+                str(cfg_file),
+                "--checkpoint",
+                work,
+                "--refine-steps",
+                "2",
+                "--refine-perceptual-weight",
+                "-0.5",
+                "--out",
+                str(tmp_path / "ev3"),
+            ]
+        )
+        == 2
+    )
     assert capsys.readouterr().err.strip().splitlines() == [
-        "llrmpp: error: --refine-perceptual-weight must be >= 0, got -0.5"]
+        "llrmpp: error: --refine-perceptual-weight must be >= 0, got -0.5"
+    ]
     assert not os.path.exists(tmp_path / "ev3")
     n_in = micro_experiment(3).stages[-1].num_inputs
-    assert main(["eval", "--config", str(cfg_file), "--checkpoint", work, "--refine-steps", "2",
-                 "--refine-views-per-step", str(n_in + 1), "--out", str(tmp_path / "ev3")]) == 2
+    assert (
+        main(
+            [
+                "eval",
+                "--config",
+                str(cfg_file),
+                "--checkpoint",
+                work,
+                "--refine-steps",
+                "2",
+                "--refine-views-per-step",
+                str(n_in + 1),
+                "--out",
+                str(tmp_path / "ev3"),
+            ]
+        )
+        == 2
+    )
     assert capsys.readouterr().err.strip().splitlines() == [
-        f"llrmpp: error: --refine-views-per-step must be in [1, {n_in}] (the input views), got {n_in + 1}"]
+        f"llrmpp: error: --refine-views-per-step must be in [1, {n_in}] (the input views), got {n_in + 1}"
+    ]
     assert not os.path.exists(tmp_path / "ev3")
 
 
@@ -295,12 +391,47 @@ def test_workdir_reconstruct_render_export_feature_mode(tmp_path):
     scene = in_memory_scene("s", rng.uniform(0.2, 0.8, (9, 32, 32, 3)), c2w, np.tile([[30.0, 30, 16, 16]], (9, 1)))
     write_nerfstudio_scene(scene, str(tmp_path / "ns"), bits=8)
     gs = str(tmp_path / "s.gs")
-    assert main(["reconstruct", "--checkpoint", work, "--scene", str(tmp_path / "ns"), "--num-inputs", "2",
-                 "--size", "32", "--repeats", "1", "--out", gs]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--checkpoint",
+                work,
+                "--scene",
+                str(tmp_path / "ns"),
+                "--num-inputs",
+                "2",
+                "--size",
+                "32",
+                "--repeats",
+                "1",
+                "--out",
+                gs,
+            ]
+        )
+        == 0
+    )
     assert load_gs(gs).model == exp.model
     assert main(["render", "--gaussians", gs, "--path", "targets", "--quiet", "--out", str(tmp_path / "f")]) == 2
-    assert main(["render", "--gaussians", gs, "--checkpoint", work, "--path", "orbit", "--frames", "3", "--quiet",
-                 "--out", str(tmp_path / "f")]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--gaussians",
+                gs,
+                "--checkpoint",
+                work,
+                "--path",
+                "orbit",
+                "--frames",
+                "3",
+                "--quiet",
+                "--out",
+                str(tmp_path / "f"),
+            ]
+        )
+        == 0
+    )
     assert sorted(os.listdir(tmp_path / "f")) == ["orbit_00000.png", "orbit_00001.png", "orbit_00002.png"]
     assert main(["export", "--gaussians", gs, "--checkpoint", work, "--ply", str(tmp_path / "s.ply")]) == 0
     back = read_ply(str(tmp_path / "s.ply"))
@@ -364,8 +495,17 @@ def test_eval_on_a_capture_says_and_takes_the_view_size(tmp_path, capsys):
     exp = micro_experiment()
     save_params(str(tmp_path / "p"), init_params(jax.random.key(3), exp.model, 2, 32, 32), exp.model)
     cfg_file = _micro_experiment_file(tmp_path, 2)
-    base = ["eval", "--config", str(cfg_file), "--checkpoint", str(tmp_path / "p"), "--data",
-            shared_path("data", "beer"), "--num-inputs", "2"]
+    base = [
+        "eval",
+        "--config",
+        str(cfg_file),
+        "--checkpoint",
+        str(tmp_path / "p"),
+        "--data",
+        shared_path("data", "beer"),
+        "--num-inputs",
+        "2",
+    ]
     capsys.readouterr()
     assert main([*base, "--size", "48x40", "--out", str(tmp_path / "ev")]) == 0
     line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("eval scene beer:")]
@@ -374,7 +514,8 @@ def test_eval_on_a_capture_says_and_takes_the_view_size(tmp_path, capsys):
     assert [r.split(",")[1] for r in rows[1:]] == ["model", "mean_colour", "nearest_view"]
     assert main([*base, "--size", "big", "--out", str(tmp_path / "bad")]) == 2
     assert capsys.readouterr().err.strip().splitlines() == [
-        "llrmpp: error: --size must be H or HxW (e.g. 256 or 256x448), got 'big'"]
+        "llrmpp: error: --size must be H or HxW (e.g. 256 or 256x448), got 'big'"
+    ]
 
 
 def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
@@ -391,14 +532,23 @@ def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
 
     out = ["--out", str(tmp_path / "ev")]
     monkeypatch.chdir(tmp_path)  # the recipe's data/scannet/... paths are relative: absent here
-    cases = [(["--config", "scannet", "--checkpoint", "pretrained:small", "--split", "dev"],
-              "the split must be 'train', 'val' or 'test', got 'dev'"),
-             (["--config", "scannet", "--checkpoint", "pretrained:small"],
-              "scene list not found: data/scannet/scannetv2_test.txt"),
-             (["--config", "scannet", "--checkpoint", "pretrained:small", "--data", str(tmp_path), "--split", "val"],
-              "--split picks a split of the config's held-out data; --data names the scenes itself")]
-    root = fake_scannet(tmp_path / "scannet", size=32,
-                        lists={"val": ["scene0011_00"], "test": ["scene0707_00", "scene0710_00"]})
+    cases = [
+        (
+            ["--config", "scannet", "--checkpoint", "pretrained:small", "--split", "dev"],
+            "the split must be 'train', 'val' or 'test', got 'dev'",
+        ),
+        (
+            ["--config", "scannet", "--checkpoint", "pretrained:small"],
+            "scene list not found: data/scannet/scannetv2_test.txt",
+        ),
+        (
+            ["--config", "scannet", "--checkpoint", "pretrained:small", "--data", str(tmp_path), "--split", "val"],
+            "--split picks a split of the config's held-out data; --data names the scenes itself",
+        ),
+    ]
+    root = fake_scannet(
+        tmp_path / "scannet", size=32, lists={"val": ["scene0011_00"], "test": ["scene0707_00", "scene0710_00"]}
+    )
     cfg_file = tmp_path / "micro_scannet.py"
     cfg_file.write_text(
         f"import dataclasses, sys\nsys.path.insert(0, {ROOT!r})\n"
@@ -406,10 +556,15 @@ def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
         "from tests.helpers.micro_experiment import micro_experiment\n"
         "def get_config():\n    exp = micro_experiment(1)\n"
         f"    data = dataclasses.replace(split_data({root!r}, 'test'), eval_inputs='uniform', workers=1)\n"
-        "    return dataclasses.replace(exp, data=data)\n")
-    cases.append((["--config", str(cfg_file), "--checkpoint", "pretrained:small"],
-                  f"scene list {root}/scannetv2_test.txt: 1 of its 2 scenes are not folders of {root}/test, "
-                  "the first: scene0710_00"))
+        "    return dataclasses.replace(exp, data=data)\n"
+    )
+    cases.append(
+        (
+            ["--config", str(cfg_file), "--checkpoint", "pretrained:small"],
+            f"scene list {root}/scannetv2_test.txt: 1 of its 2 scenes are not folders of {root}/test, "
+            "the first: scene0710_00",
+        )
+    )
     for args, message in cases:
         capsys.readouterr()
         with unchecked():  # argparse lets "--split dev" through: DataConfig's own one line is the point
@@ -422,7 +577,9 @@ def test_eval_takes_a_split_and_says_which(tmp_path, capsys, monkeypatch):
     assert main(["eval", "--config", str(cfg_file), "--checkpoint", str(tmp_path / "p"), "--split", "val", *out]) == 0
     printed = capsys.readouterr().out.splitlines()
     assert f"held-out data: split val: the first 100 scenes named in {root}/scannetv2_val.txt in {root}/val" in printed
-    assert [x for x in printed if x.startswith("eval scene")][0].startswith("eval scene scene0011_00: 2 inputs, 2 targets")
+    assert [x for x in printed if x.startswith("eval scene")][0].startswith(
+        "eval scene scene0011_00: 2 inputs, 2 targets"
+    )
     rows = open(tmp_path / "ev" / "per_scene.csv").read().splitlines()
     assert {r.split(",")[0] for r in rows[1:]} == {"scene0011_00"}
 
@@ -446,8 +603,10 @@ def test_train_init_starts_from_the_given_weights_and_a_resume_ignores_them(tmp_
         return dataclasses.replace(exp, eval_every=0, stages=(dataclasses.replace(exp.stages[0], lr=0.0),))
 
     exp = frozen(1)
-    start = jax.tree.map(lambda p: p + jax.random.normal(jax.random.key(5), p.shape, p.dtype),
-                         init_params(jax.random.key(3), exp.model, 2, 32, 32))
+    start = jax.tree.map(
+        lambda p: p + jax.random.normal(jax.random.key(5), p.shape, p.dtype),
+        init_params(jax.random.key(3), exp.model, 2, 32, 32),
+    )
     other = jax.tree.map(lambda p: p - 1.0, start)
     save_params(str(tmp_path / "start"), start, exp.model)
     save_params(str(tmp_path / "other"), other, exp.model)
@@ -480,8 +639,15 @@ def test_train_init_of_another_architecture_is_one_line(tmp_path):
     exp = micro_experiment(1)
     wide = replace(exp.model, head=replace(exp.model.head, feature_dim=16))
     save_params(str(tmp_path / "wide"), init_params(jax.random.key(0), wide, 2, 32, 32), wide)
-    res = _run_cli("train", "--config", str(_micro_experiment_file(tmp_path, 1)), "--workdir",
-                   str(tmp_path / "run"), "--init", str(tmp_path / "wide"))
+    res = _run_cli(
+        "train",
+        "--config",
+        str(_micro_experiment_file(tmp_path, 1)),
+        "--workdir",
+        str(tmp_path / "run"),
+        "--init",
+        str(tmp_path / "wide"),
+    )
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "first mismatch" in lines[0] and "(another architecture?" in lines[0], res.stderr
@@ -501,8 +667,9 @@ def test_workdir_params_come_from_the_curriculum_s_last_stage(tmp_path):
     from llrmpp_jax.params_io import load_params
 
     whole = micro_experiment(1)
-    whole = dataclasses.replace(whole, stages=(dataclasses.replace(whole.stages[0], name="a"),
-                                               dataclasses.replace(whole.stages[0], name="b")))
+    whole = dataclasses.replace(
+        whole, stages=(dataclasses.replace(whole.stages[0], name="a"), dataclasses.replace(whole.stages[0], name="b"))
+    )
     first = dataclasses.replace(whole, stages=whole.stages[:1])
     params = init_params(jax.random.key(0), whole.model, 2, 32, 32)
     opt = T.make_optimizer(T.OptimizerConfig(total_steps=1, warmup_steps=0))
@@ -527,7 +694,7 @@ def test_distributed_train_runs_itself_under_the_supervisor(tmp_path, monkeypatc
     monkeypatch.delenv(supervise.ENV, raising=False)
     argv = ["train", "--config", "demo", "--workdir", str(tmp_path / "w"), "--distributed", "--heartbeat-timeout", "5"]
     assert main(argv) == 7
-    (command, hint, log), = calls
+    ((command, hint, log),) = calls
     assert command == [sys.executable, "-m", "llrmpp_jax.cli", *argv]
     assert hint == f"resume from the last complete checkpoint in {tmp_path / 'w' / 'checkpoints'}"
     assert log.startswith(str(tmp_path / "w" / "logs" / "jax_abort_"))

@@ -68,8 +68,14 @@ def test_user_and_environment_errors_are_one_line_with_their_status(exc, message
     assert len(lines) == 1 and lines[0].startswith("llrmpp: error:") and message in lines[0], res.stderr
 
 
-@pytest.mark.parametrize("exc", ["ValueError('shapes disagree inside the model')", "KeyError('params')",
-                                 "OSError(errno.EIO, 'Input/output error')"])
+@pytest.mark.parametrize(
+    "exc",
+    [
+        "ValueError('shapes disagree inside the model')",
+        "KeyError('params')",
+        "OSError(errno.EIO, 'Input/output error')",
+    ],
+)
 def test_internal_errors_keep_their_traceback_exit_1(exc):
     res = _run(_RAISER.format(exc=exc))
     assert res.returncode == 1, res.stderr
@@ -81,10 +87,23 @@ def test_a_library_check_reaches_the_user_as_one_line(tmp_path):
     fake = tmp_path / "scene.gs"
     np.savez(fake, means=np.random.default_rng(0).normal(size=(4, 3)))
     env = dict(os.environ, JAX_PLATFORMS="cpu")
-    res = subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "export", "--gaussians", str(fake), "--ply",
-                          str(tmp_path / "out.ply")], capture_output=True, text=True, env=env, timeout=300)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "llrmpp_jax.cli",
+            "export",
+            "--gaussians",
+            str(fake),
+            "--ply",
+            str(tmp_path / "out.ply"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert res.returncode == 2, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and str(fake) in lines[0], res.stderr
     assert not (tmp_path / "out.ply").exists()
-

@@ -22,8 +22,13 @@ PROC = ProceduralConfig(height=16, width=16, num_frames=17)
 
 def experiment(seed: int = 3, **data) -> ExperimentConfig:
     stage = StageConfig(name="s", steps=1, global_batch=1, num_inputs=3, num_targets=2, resize_h=None)
-    return ExperimentConfig(name="t", model=C.tiny(), stages=(stage,), seed=seed,
-                            data=DataConfig(procedural=PROC, eval_seed_offset=500, num_eval_scenes=2, **data))
+    return ExperimentConfig(
+        name="t",
+        model=C.tiny(),
+        stages=(stage,),
+        seed=seed,
+        data=DataConfig(procedural=PROC, eval_seed_offset=500, num_eval_scenes=2, **data),
+    )
 
 
 def expected(i: int, inputs, targets, rescale: bool = True) -> dict:
@@ -66,6 +71,8 @@ def test_rescale_reaches_the_training_batches_and_a_bad_view_rule_is_one_line():
     exp = experiment(rescale=False)
     assert batch_config(exp, exp.stages[0]).rescale is False
     assert batch_config(experiment(), exp.stages[0]).rescale is True
-    with pytest.raises(UserError, match="^DataConfig.procedural_eval must be 'window' or 'split', got 'every8'$"), \
-            unchecked():
+    with (
+        pytest.raises(UserError, match="^DataConfig.procedural_eval must be 'window' or 'split', got 'every8'$"),
+        unchecked(),
+    ):
         dataclasses.replace(exp.data, procedural_eval="every8")

@@ -16,16 +16,20 @@ from tests.oracles.sh import scipy_real_sh
 N = 40
 COLOUR = C.ModelConfig(head=C.GaussianHeadConfig(mode="color", sh_degree=3))
 # The 3DGS save_ply list for SH degree 3, written out by hand.
-STANDARD_DEG3 = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-                 + [f"f_rest_{i}" for i in range(45)]
-                 + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+STANDARD_DEG3 = (
+    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    + [f"f_rest_{i}" for i in range(45)]
+    + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+)
 
 
 def random_gaussians(rng, n, f, batch=True) -> Gaussians:
     q = rng.normal(size=(n, 4))
     g = Gaussians(
-        means=rng.normal(size=(n, 3)), quats=q / np.linalg.norm(q, axis=-1, keepdims=True),
-        scales=np.exp(rng.uniform(-5, -1, (n, 3))), opacities=rng.uniform(0.01, 0.99, n),
+        means=rng.normal(size=(n, 3)),
+        quats=q / np.linalg.norm(q, axis=-1, keepdims=True),
+        scales=np.exp(rng.uniform(-5, -1, (n, 3))),
+        opacities=rng.uniform(0.01, 0.99, n),
         features=rng.normal(size=(n, f)),
     )
     return Gaussians(*(np.asarray(a, np.float32)[None] if batch else np.asarray(a, np.float32) for a in g))
@@ -70,9 +74,11 @@ def test_feature_ply_fields_round_trip_exactly(tmp_path, rng):
     path = str(tmp_path / "f.ply")
     export_ply(path, g, cfg, m, partition_logits=logits)
     vertex, names = _read_vertex(path)
-    want_names = (["x", "y", "z", "nx", "ny", "nz"] + [f"f_feat_{i}" for i in range(16)]
-                  + ["partition_0", "partition_1", "opacity", "scale_0", "scale_1", "scale_2",
-                     "rot_0", "rot_1", "rot_2", "rot_3"])
+    want_names = (
+        ["x", "y", "z", "nx", "ny", "nz"]
+        + [f"f_feat_{i}" for i in range(16)]
+        + ["partition_0", "partition_1", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     assert names == want_names
     for k, want in ply_fields(g, cfg, m, logits).items():
         np.testing.assert_array_equal(vertex[k], want, err_msg=k)
@@ -131,8 +137,9 @@ def test_read_ply_decodes_to_world_gaussians(tmp_path, rng):
     export_ply(path, g, COLOUR, m)
     back = read_ply(path)
     assert back.mode == "color" and back.partition_logits is None
-    np.testing.assert_allclose(back.gaussians.means, s * rot.apply(g.means[0].astype(np.float64)) + t,
-                               rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(
+        back.gaussians.means, s * rot.apply(g.means[0].astype(np.float64)) + t, rtol=1e-6, atol=1e-5
+    )
     np.testing.assert_allclose(back.gaussians.scales, s * g.scales[0], rtol=2e-6)
     np.testing.assert_allclose(back.gaussians.opacities, g.opacities[0], rtol=1e-6, atol=1e-7)
     np.testing.assert_allclose(back.gaussians.features[:, :3], g.features[0, :, :3], atol=1e-6)
@@ -150,17 +157,19 @@ def test_expit_inverts_opacity_logit_clip(tmp_path, rng):
     g = g._replace(opacities=np.array([0.0, 1.0, 0.5, 1e-3], np.float32))
     vertex = ply_fields(g, COLOUR, np.eye(4))
     assert np.all(np.isfinite(vertex["opacity"]))
-    np.testing.assert_allclose(expit(vertex["opacity"].astype(np.float64)), [2**-24, 1 - 2**-24, 0.5, 1e-3],
-                               rtol=1e-6)
+    np.testing.assert_allclose(expit(vertex["opacity"].astype(np.float64)), [2**-24, 1 - 2**-24, 0.5, 1e-3], rtol=1e-6)
 
 
-@pytest.mark.parametrize("case, match", [
-    ("reflection", "determinant"),
-    ("shear", "uniform scale"),
-    ("batch", "one scene"),
-    ("no_logits", "partition_logits"),
-    ("nan", "non-finite"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("reflection", "determinant"),
+        ("shear", "uniform scale"),
+        ("batch", "one scene"),
+        ("no_logits", "partition_logits"),
+        ("nan", "non-finite"),
+    ],
+)
 def test_bad_input(rng, case, match):
     g = random_gaussians(rng, N, 48)
     cfg, m, logits = COLOUR, np.eye(4), None

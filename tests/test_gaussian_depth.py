@@ -22,9 +22,18 @@ def test_splatted_depth_and_loss_match_brute_force_and_numpy_area_mean(rng):
     h, w, intr = 64, 96, intr * r  # the canvas is the cameras' own 32 x 48 (the depth loss needs >= 32)
     pred, alpha = jax.jit(splatted_depth, static_argnums=(3, 4, 5))(g, c2w, intr / r, h // r, w // r, cfg)
     for b, t in ((0, 0), (1, 1)):
-        _, trans, acc_z = render_features_reference(g.means[b], g.quats[b], g.scales[b], g.opacities[b],
-                                                     g.features[b, :, :3], c2w[b, t], intr[b, t] / r,
-                                                     h // r, w // r, cfg.splat)
+        _, trans, acc_z = render_features_reference(
+            g.means[b],
+            g.quats[b],
+            g.scales[b],
+            g.opacities[b],
+            g.features[b, :, :3],
+            c2w[b, t],
+            intr[b, t] / r,
+            h // r,
+            w // r,
+            cfg.splat,
+        )
         want_alpha = 1.0 - np.asarray(trans)
         assert want_alpha.min() > 0.01
         np.testing.assert_allclose(np.asarray(alpha[b, t]), want_alpha, rtol=1e-9, atol=1e-12)

@@ -16,7 +16,7 @@ def oracle_means(raw, c2w, intr, s, f, offset_scale, max_dist, grid=False):
     out = np.zeros((b, v, h, w, k, 3))
     m = int(round(np.sqrt(k)))
     for i in np.ndindex(b, v, h, w, k):
-        off = raw[i][f:f + 2]
+        off = raw[i][f : f + 2]
         off = off * s if offset_scale is None else offset_scale * s * np.tanh(off)
         ax, ay = ((i[4] % m + 0.5) * s / m, (i[4] // m + 0.5) * s / m) if grid else (s / 2, s / 2)
         x, y = i[3] * s + ax + off[0], i[2] * s + ay + off[1]
@@ -42,20 +42,23 @@ def test_feature_means_bounded_and_free_offsets(rng, offset_scale):
     raw = rng.normal(size=(b, v, h, w, k, 4 + 2 + 1 + 4 + 1 + 3)) * 2.0  # offsets up to ~6 patches raw
     c2w, intr = _cameras(rng, b, v)
     g = decode_gaussians(raw, c2w, intr, s, cfg)
-    np.testing.assert_allclose(np.asarray(g.means), oracle_means(raw, c2w, intr, s, 4, offset_scale, 6.0),
-                               rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(g.means), oracle_means(raw, c2w, intr, s, 4, offset_scale, 6.0), rtol=1e-10, atol=1e-10
+    )
 
 
 @pytest.mark.parametrize("offset_scale", [1.0, None])
 def test_grid_anchors_means(rng, offset_scale):
-    cfg = C.GaussianHeadConfig(gaussians_per_token=9, feature_dim=4, offset_scale=offset_scale, max_dist=6.0,
-                               anchors="grid")
+    cfg = C.GaussianHeadConfig(
+        gaussians_per_token=9, feature_dim=4, offset_scale=offset_scale, max_dist=6.0, anchors="grid"
+    )
     b, v, h, w, k, s = 1, 2, 2, 3, 9, 6
     raw = rng.normal(size=(b, v, h, w, k, 4 + 2 + 1 + 4 + 1 + 3))
     c2w, intr = _cameras(rng, b, v)
     g = decode_gaussians(raw, c2w, intr, s, cfg)
-    np.testing.assert_allclose(np.asarray(g.means), oracle_means(raw, c2w, intr, s, 4, offset_scale, 6.0, grid=True),
-                               rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(g.means), oracle_means(raw, c2w, intr, s, 4, offset_scale, 6.0, grid=True), rtol=1e-10, atol=1e-10
+    )
 
 
 def test_grid_anchors_start_on_the_sub_grid(rng):

@@ -98,9 +98,13 @@ def test_plucker_matches_cross(rng):
     d = rng.normal(size=(4, 5, 3))
     p = G.plucker(o, d)
     m = np.stack(
-        [o[..., 1] * d[..., 2] - o[..., 2] * d[..., 1],
-         o[..., 2] * d[..., 0] - o[..., 0] * d[..., 2],
-         o[..., 0] * d[..., 1] - o[..., 1] * d[..., 0]], axis=-1)
+        [
+            o[..., 1] * d[..., 2] - o[..., 2] * d[..., 1],
+            o[..., 2] * d[..., 0] - o[..., 0] * d[..., 2],
+            o[..., 0] * d[..., 1] - o[..., 1] * d[..., 0],
+        ],
+        axis=-1,
+    )
     np.testing.assert_allclose(p, np.concatenate([m, d], axis=-1), atol=1e-14)
 
 

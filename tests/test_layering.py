@@ -23,8 +23,12 @@ from collections.abc import Iterator, Mapping
 from tests.helpers.environment import ROOT
 
 PACKAGE = "llrmpp_jax"
-DATA_MUST_NOT_REACH = ("llrmpp_jax.experiment", "llrmpp_jax.experiment_data", "llrmpp_jax.trainer",
-                       "llrmpp_jax.ablation")
+DATA_MUST_NOT_REACH = (
+    "llrmpp_jax.experiment",
+    "llrmpp_jax.experiment_data",
+    "llrmpp_jax.trainer",
+    "llrmpp_jax.ablation",
+)
 
 
 def module_files(root: str, package: str = PACKAGE) -> dict[str, str]:
@@ -119,9 +123,11 @@ def type_checking_uses(root: str, package: str = PACKAGE) -> Iterator[str]:
     """``file:line`` of every name or attribute ``TYPE_CHECKING`` under ``root/package``."""
     for path in sorted(module_files(root, package).values()):
         for node in ast.walk(ast.parse(open(path, encoding="utf-8").read(), path)):
-            named = (isinstance(node, ast.Name) and node.id == "TYPE_CHECKING") or (
-                isinstance(node, ast.Attribute) and node.attr == "TYPE_CHECKING") or (
-                isinstance(node, ast.alias) and node.name == "TYPE_CHECKING")
+            named = (
+                (isinstance(node, ast.Name) and node.id == "TYPE_CHECKING")
+                or (isinstance(node, ast.Attribute) and node.attr == "TYPE_CHECKING")
+                or (isinstance(node, ast.alias) and node.name == "TYPE_CHECKING")
+            )
             if named:
                 yield f"{os.path.relpath(path, root)}:{getattr(node, 'lineno', '?')}"
 
@@ -137,14 +143,17 @@ def test_the_checks_see_a_cycle_behind_a_function_import_and_type_checking(tmp_p
     """A made-up package: ``b`` imports ``a`` inside a function (relative), ``a`` imports
     ``b`` at the top, ``c`` hides one under ``TYPE_CHECKING``; ``d`` reaches ``a`` only
     through ``c``'s package re-export."""
-    _write(tmp_path, {
-        "pkg/__init__.py": "",
-        "pkg/a.py": "from pkg import b\n",
-        "pkg/b.py": "def f():\n    from . import a\n    return a\n",
-        "pkg/sub/__init__.py": "from pkg.sub.c import C\n",
-        "pkg/sub/c.py": "import typing\nif typing.TYPE_CHECKING:\n    from pkg.a import X\nC = 1\n",
-        "pkg/d.py": "from pkg.sub import C\n",
-    })
+    _write(
+        tmp_path,
+        {
+            "pkg/__init__.py": "",
+            "pkg/a.py": "from pkg import b\n",
+            "pkg/b.py": "def f():\n    from . import a\n    return a\n",
+            "pkg/sub/__init__.py": "from pkg.sub.c import C\n",
+            "pkg/sub/c.py": "import typing\nif typing.TYPE_CHECKING:\n    from pkg.a import X\nC = 1\n",
+            "pkg/d.py": "from pkg.sub import C\n",
+        },
+    )
     graph = import_graph(str(tmp_path), "pkg")
     assert graph["pkg.b"] == {"pkg.a"} and graph["pkg.a"] == {"pkg.b"}
     assert cycles(graph) == [["pkg.a", "pkg.b"]]

@@ -92,8 +92,14 @@ def test_stage_perceptual_weight_overrides_the_experiments(rng, vgg19):
     cfg = C.tiny()
     images, c2w, intr = orbit_scene(jax.random.key(int(rng.integers(1 << 30))), 1, 3, 16, 16)
     model = init_params(jax.random.key(1), cfg, 2, 16, 16)
-    batch = {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
-             "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:]}
+    batch = {
+        "input_images": images[:, :2],
+        "input_c2w": c2w[:, :2],
+        "input_intrinsics": intr[:, :2],
+        "target_images": images[:, 2:],
+        "target_c2w": c2w[:, 2:],
+        "target_intrinsics": intr[:, 2:],
+    }
 
     def rendered(m):
         g = reconstruct(m, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
@@ -212,7 +218,9 @@ def test_depth_loss_matches_torch_reference(rng):
     fn = jax.jit(jax.value_and_grad(depth_loss, has_aux=True))
     (loss, aux), grad = fn(p32, t32, k32)
     tp = torch.tensor(p32, dtype=torch.float64, requires_grad=True)
-    want, want_aux = torch_depth_loss(tp, torch.tensor(t32, dtype=torch.float64), torch.tensor(k32, dtype=torch.float64))
+    want, want_aux = torch_depth_loss(
+        tp, torch.tensor(t32, dtype=torch.float64), torch.tensor(k32, dtype=torch.float64)
+    )
     want.backward()
 
     for name in ("depth", "grad", "normal"):
@@ -234,7 +242,7 @@ def _numpy_spatial_gradient(x):
     out = np.zeros(x.shape[:1] + (2,) + x.shape[1:])
     for i in range(3):
         for j in range(3):
-            window = xp[:, i:i + h, j:j + w]
+            window = xp[:, i : i + h, j : j + w]
             out[:, 0] += kx[i, j] * window
             out[:, 1] += kx[j, i] * window
     return out
@@ -265,8 +273,9 @@ def test_gradient_term_is_simplerecon_s_ms_gradient_loss(rng):
     pred = rng.uniform(0.5, 5.0, (3, h, w))
     intrinsics = _random_intrinsics(rng, 3, h, w)
     _, aux = jax.jit(depth_loss)(pred.astype(np.float32), target.astype(np.float32), intrinsics.astype(np.float32))
-    want = simplerecon_ms_gradient_loss(target.astype(np.float32).astype(np.float64),
-                                        pred.astype(np.float32).astype(np.float64))
+    want = simplerecon_ms_gradient_loss(
+        target.astype(np.float32).astype(np.float64), pred.astype(np.float32).astype(np.float64)
+    )
     np.testing.assert_allclose(float(aux["grad"]), want, rtol=1e-5)
 
 

@@ -21,8 +21,15 @@ def test_psnr_matches_skimage(rng):
     got = np.asarray(psnr(pred, target))
     assert got.shape == (2, 3)
     want = np.array(
-        [[peak_signal_noise_ratio(target[i, j].astype(np.float64), np.clip(pred[i, j], 0, 1).astype(np.float64),
-                                  data_range=1.0) for j in range(3)] for i in range(2)]
+        [
+            [
+                peak_signal_noise_ratio(
+                    target[i, j].astype(np.float64), np.clip(pred[i, j], 0, 1).astype(np.float64), data_range=1.0
+                )
+                for j in range(3)
+            ]
+            for i in range(2)
+        ]
     )
     np.testing.assert_allclose(got, want, atol=1e-4)
 
@@ -35,16 +42,24 @@ ssim_jit = jax.jit(ssim, static_argnames=("gaussian", "sample_covariance"))
 def test_ssim_matches_skimage(rng, gaussian, sample_cov):
     kwargs = {}
     if gaussian:
-        kwargs = {"gaussian_weights": True, "sigma": 1.5,
-                  "use_sample_covariance": bool(sample_cov)}  # None -> population covariance
+        kwargs = {
+            "gaussian_weights": True,
+            "sigma": 1.5,
+            "use_sample_covariance": bool(sample_cov),
+        }  # None -> population covariance
     for hw in SSIM_SIZES:
         if gaussian and min(hw) < 11:
             continue
         pred, target = _pair(rng, (2, *hw, 3), noise=rng.uniform(0.02, 0.3))
         got = np.asarray(ssim_jit(pred, target, gaussian=gaussian, sample_covariance=sample_cov))
         want = [
-            structural_similarity(np.clip(pred[i], 0, 1).astype(np.float64), target[i].astype(np.float64),
-                                  channel_axis=-1, data_range=1.0, **kwargs)
+            structural_similarity(
+                np.clip(pred[i], 0, 1).astype(np.float64),
+                target[i].astype(np.float64),
+                channel_axis=-1,
+                data_range=1.0,
+                **kwargs,
+            )
             for i in range(2)
         ]
         np.testing.assert_allclose(got, want, atol=1e-5, err_msg=str(hw))
@@ -134,16 +149,20 @@ def test_eval_depth_metrics_are_in_metres(monkeypatch):
 
     scene = procedural_scene(3, ProceduralConfig(height=32, width=48, num_frames=10))
     targets = np.array([2, 5])
-    s = make_sample(scene, np.array([0, 3, 6, 9]), targets, ViewGeometry(multiple=8), with_depth=True,
-                    scene_scale=2.5)
+    s = make_sample(scene, np.array([0, 3, 6, 9]), targets, ViewGeometry(multiple=8), with_depth=True, scene_scale=2.5)
     assert abs(float(s["scene_scale"]) - 1.0) > 0.5  # the normalisation really rescales
 
     def fake_predict(params, cfg, batch, diagnose=False):
         t = batch["target_images"]
         stats = {k: np.float32(0.5) for k in ("mean_scale", "mean_opacity", "opaque_fraction")}
-        return {"rgb": t, "depth": (batch["target_depth"] * np.float32(1.1))[..., None],
-                "dropped": np.zeros((), np.int32), "gaussian_usage": np.ones((1,), np.float32),
-                "input_rgb": batch["input_images"], **stats}
+        return {
+            "rgb": t,
+            "depth": (batch["target_depth"] * np.float32(1.1))[..., None],
+            "dropped": np.zeros((), np.int32),
+            "gaussian_usage": np.ones((1,), np.float32),
+            "input_rgb": batch["input_images"],
+            **stats,
+        }
 
     monkeypatch.setattr(E, "predict", fake_predict)
     rows, _, _ = E.evaluate({}, paper_scannet(), [s])  # the params go only to predict, faked here

@@ -66,8 +66,9 @@ def test_paper_model_size_and_forward_shapes():
 
     v, t, h, w = 32, 8, 544, 960
     f32 = lambda *s: jax.ShapeDtypeStruct(s, jnp.float32)  # noqa: E731
-    gauss = jax.eval_shape(lambda p, i, c, k: reconstruct(p, cfg, i, c, k),
-                           shapes, f32(1, v, h, w, 3), f32(1, v, 4, 4), f32(1, v, 4))
+    gauss = jax.eval_shape(
+        lambda p, i, c, k: reconstruct(p, cfg, i, c, k), shapes, f32(1, v, h, w, 3), f32(1, v, 4, 4), f32(1, v, 4)
+    )
     assert gauss.means.shape == (1, v * (h // 8) * (w // 8) * 16, 3)
     assert gauss.features.shape == (1, gauss.means.shape[1], 32)
     out = jax.eval_shape(lambda p, g, c, k: render(p, cfg, g, c, k, h, w), shapes, gauss, f32(1, t, 4, 4), f32(1, t, 4))
@@ -75,8 +76,11 @@ def test_paper_model_size_and_forward_shapes():
 
 
 def test_tiny_loss_gradient_reaches_every_parameter(key):
-    cfg = replace(C.tiny(), outputs=("rgb", "depth"),
-                    head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
+    cfg = replace(
+        C.tiny(),
+        outputs=("rgb", "depth"),
+        head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0),
+    )
     k0, k1 = jax.random.split(key)
     images, c2w, intr = orbit_scene(k1, 1, 3, 32, 32)
     params = init_params(k0, cfg, 3, 32, 32)
@@ -87,8 +91,11 @@ def test_tiny_loss_gradient_reaches_every_parameter(key):
         g = reconstruct(p, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
         out = render(p, cfg, g, c2w[:, 1:], intr[:, 1:], 32, 32, outputs=("rgb", "depth"))
         l_rgb, _ = rgb_loss(out.images["rgb"].reshape(-1, 32, 32, 3), images[:, 1:].reshape(-1, 32, 32, 3), vgg)
-        l_d, _ = depth_loss(out.images["depth"][..., 0].reshape(-1, 32, 32), depth_target.reshape(-1, 32, 32),
-                            intr[:, 1:].reshape(-1, 4))
+        l_d, _ = depth_loss(
+            out.images["depth"][..., 0].reshape(-1, 32, 32),
+            depth_target.reshape(-1, 32, 32),
+            intr[:, 1:].reshape(-1, 4),
+        )
         return l_rgb + l_d
 
     value, grads = jax.jit(jax.value_and_grad(loss))(params)
@@ -102,16 +109,20 @@ def test_tiny_loss_gradient_reaches_every_parameter(key):
 
 def test_single_partition_equals_no_partition(key):
     """S=1: render == splat with the raw opacities -> rays -> decoder (no partition, no merge)."""
-    cfg = replace(C.tiny(), decoder=replace(C.tiny().decoder, partitions=1),
-                    head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
+    cfg = replace(
+        C.tiny(),
+        decoder=replace(C.tiny().decoder, partitions=1),
+        head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0),
+    )
     k0, k1 = jax.random.split(key)
     images, c2w, intr = orbit_scene(k1, 1, 3, 32, 48)
     params = init_params(k0, cfg, 2, 32, 48)
     g = reconstruct(params, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
     got = render(params, cfg, g, c2w[:, 2:], intr[:, 2:], 32, 48).images["rgb"]
 
-    canvas = rasterize(g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.features[0],
-                       c2w[0, 2], intr[0, 2] / 2, 16, 24, cfg.splat).features
+    canvas = rasterize(
+        g.means[0], g.quats[0], g.scales[0], g.opacities[0], g.features[0], c2w[0, 2], intr[0, 2] / 2, 16, 24, cfg.splat
+    ).features
     rays = plucker(*pixel_rays(c2w[0, 2], intr[0, 2] / 2, 16, 24))
     x = jnp.concatenate([canvas, rays], axis=-1)[None, None]
     want = TargetDecoder(cfg.decoder).apply({"params": params["decoder"]}, x)["rgb"]
@@ -119,34 +130,41 @@ def test_single_partition_equals_no_partition(key):
 
 
 def test_local_decoder_is_translation_invariant(key):
-    cfg = C.DecoderConfig(dim=32, blocks="LL", num_neighbours=9, partitions=1,
-                          transformer=C.TransformerConfig(head_dim=16))
+    cfg = C.DecoderConfig(
+        dim=32, blocks="LL", num_neighbours=9, partitions=1, transformer=C.TransformerConfig(head_dim=16)
+    )
     dec = TargetDecoder(cfg)
     hc, wc, cp, q = 40, 48, 4, 8  # canvas, canvas pixels per token, output pixels per token
     big = jax.random.normal(key, (1, 1, hc + 2 * cp, wc + 3 * cp, 7), jnp.float32)
-    a, b = big[:, :, :hc, :wc], big[:, :, 2 * cp:, 3 * cp:]  # b = a shifted by (2, 3) tokens
+    a, b = big[:, :, :hc, :wc], big[:, :, 2 * cp :, 3 * cp :]  # b = a shifted by (2, 3) tokens
     params = dec.init(jax.random.key(1), a)["params"]
     ya, yb = (dec.apply({"params": params}, x)["rgb"][0] for x in (a, b))
     # b's token (i, j) is a's (i+2, j+3); compare tokens at least 2 rings (k=9) from every border.
     m = 2 * q
-    np.testing.assert_allclose(np.asarray(yb[m:-m - 2 * q, m:-m - 3 * q]),
-                               np.asarray(ya[m + 2 * q:-m, m + 3 * q:-m]), atol=1e-5)
-    assert not np.allclose(np.asarray(yb[:q, :q]), np.asarray(ya[2 * q:3 * q, 3 * q:4 * q]), atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(yb[m : -m - 2 * q, m : -m - 3 * q]), np.asarray(ya[m + 2 * q : -m, m + 3 * q : -m]), atol=1e-5
+    )
+    assert not np.allclose(np.asarray(yb[:q, :q]), np.asarray(ya[2 * q : 3 * q, 3 * q : 4 * q]), atol=1e-5)
 
 
 def test_decoder_remat_loops_match_unrolled(key, monkeypatch):
     """Decoder with remat: its ``LLGGG`` blocks run as loops (``remat_blocks``: a scan over
     the L run, one over the G run); output and the gradients of every parameter and of the
     canvas equal the unrolled blocks' (float32, <= 1e-5 relative), same random parameters."""
-    cfg = C.DecoderConfig(dim=32, blocks="LLGGG", num_neighbours=9, partitions=2,
-                          transformer=C.TransformerConfig(head_dim=16))
+    cfg = C.DecoderConfig(
+        dim=32, blocks="LLGGG", num_neighbours=9, partitions=2, transformer=C.TransformerConfig(head_dim=16)
+    )
     k_init, k_noise, k_x, k_ct = jax.random.split(key, 4)
     canvas = jax.random.normal(k_x, (1, 2, 16, 24, 7), jnp.float32)
     unrolled, looped = TargetDecoder(cfg), TargetDecoder(replace(cfg, remat=True))
     params = jax.jit(unrolled.init)(k_init, canvas)["params"]
     leaves, tree = jax.tree.flatten(params)
-    params = tree.unflatten([p + 0.1 * jax.random.normal(k, p.shape, p.dtype)
-                             for p, k in zip(leaves, jax.random.split(k_noise, len(leaves)))])
+    params = tree.unflatten(
+        [
+            p + 0.1 * jax.random.normal(k, p.shape, p.dtype)
+            for p, k in zip(leaves, jax.random.split(k_noise, len(leaves)))
+        ]
+    )
 
     def loss(model, p, x):
         y = model.apply({"params": p}, x)["rgb"]
@@ -206,16 +224,18 @@ def test_absolute_positions_add_the_sincos_embedding(key):
 def test_depth_bias_offsets_the_log_depth_head(key):
     """``depth_bias`` b: the depth output is exp(b) times the unbiased one (depth =
     exp(head + b)), the RGB output is unchanged; random parameters and canvas."""
-    cfg = C.DecoderConfig(dim=32, blocks="LG", num_neighbours=9, partitions=2,
-                          transformer=C.TransformerConfig(head_dim=16))
+    cfg = C.DecoderConfig(
+        dim=32, blocks="LG", num_neighbours=9, partitions=2, transformer=C.TransformerConfig(head_dim=16)
+    )
     k_init, k_x = jax.random.split(key)
     canvas = jax.random.normal(k_x, (2, 2, 16, 24, 7), jnp.float32)
     params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
     base = TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))
     biased = TargetDecoder(replace(cfg, depth_bias=1.7)).apply({"params": params}, canvas, ("rgb", "depth"))
     assert base["depth"].shape == (2, 32, 48, 1)
-    np.testing.assert_allclose(np.asarray(biased["depth"], np.float64),
-                               np.exp(1.7) * np.asarray(base["depth"], np.float64), rtol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(biased["depth"], np.float64), np.exp(1.7) * np.asarray(base["depth"], np.float64), rtol=1e-5
+    )
     np.testing.assert_array_equal(np.asarray(biased["rgb"]), np.asarray(base["rgb"]))
 
 
@@ -248,12 +268,21 @@ def test_colour_mode_depth_equals_brute_force():
     assert set(got) == {"depth"} and got["depth"].shape == (2, 2, h, w, 1)
     reference = jax.jit(render_features_reference, static_argnums=(7, 8, 9))
     for b, t in ((0, 0), (1, 1)):
-        _, trans, acc_z = reference(g.means[b], g.quats[b], g.scales[b], g.opacities[b],
-                                    g.features[b, :, :3], c2w[b, t], intr[b, t], h, w, cfg.splat)
+        _, trans, acc_z = reference(
+            g.means[b],
+            g.quats[b],
+            g.scales[b],
+            g.opacities[b],
+            g.features[b, :, :3],
+            c2w[b, t],
+            intr[b, t],
+            h,
+            w,
+            cfg.splat,
+        )
         alpha = 1.0 - np.asarray(trans)
         assert alpha.min() > 0.01  # every pixel is reached, so the division is well conditioned
-        np.testing.assert_allclose(np.asarray(got["depth"][b, t, ..., 0]), np.asarray(acc_z) / alpha,
-                                   rtol=1e-9, atol=0)
+        np.testing.assert_allclose(np.asarray(got["depth"][b, t, ..., 0]), np.asarray(acc_z) / alpha, rtol=1e-9, atol=0)
 
 
 @pytest.mark.slow  # ~40 s idle: compiles the splatter's backward pass

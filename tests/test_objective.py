@@ -31,8 +31,11 @@ SIZE = 32  # the depth loss's coarsest gradient scale needs 32 pixels (the Gauss
 
 
 def _depth_model() -> C.ModelConfig:
-    return replace(C.tiny(), outputs=("rgb", "depth"),
-                     head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0))
+    return replace(
+        C.tiny(),
+        outputs=("rgb", "depth"),
+        head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0),
+    )
 
 
 def _batch(key, size: int = SIZE) -> dict:
@@ -41,9 +44,15 @@ def _batch(key, size: int = SIZE) -> dict:
     k_scene, k_depth = jax.random.split(key)
     images, c2w, intr = orbit_scene(k_scene, 1, 4, size, size)
     depth = jax.random.uniform(k_depth, (1, 2, size, size), jnp.float32, 0.5, 4.0)
-    return {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
-            "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:],
-            "target_depth": depth}
+    return {
+        "input_images": images[:, :2],
+        "input_c2w": c2w[:, :2],
+        "input_intrinsics": intr[:, :2],
+        "target_images": images[:, 2:],
+        "target_c2w": c2w[:, 2:],
+        "target_intrinsics": intr[:, 2:],
+        "target_depth": depth,
+    }
 
 
 def _terms(params, cfg, batch, grad_weight, normal_weight, gaussian_depth=False):
@@ -53,8 +62,13 @@ def _terms(params, cfg, batch, grad_weight, normal_weight, gaussian_depth=False)
     h, w = batch["target_images"].shape[2:4]
     out = render(params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, cfg.outputs)
     rgb, _ = rgb_loss(out.images["rgb"], batch["target_images"], None, perceptual_weight=0.0)
-    depth, _ = depth_loss(out.images["depth"][..., 0], batch["target_depth"], batch["target_intrinsics"],
-                          grad_weight=grad_weight, normal_weight=normal_weight)
+    depth, _ = depth_loss(
+        out.images["depth"][..., 0],
+        batch["target_depth"],
+        batch["target_intrinsics"],
+        grad_weight=grad_weight,
+        normal_weight=normal_weight,
+    )
     gdepth = None
     if gaussian_depth:
         gdepth, _ = gaussian_depth_loss(g, batch["target_c2w"], batch["target_intrinsics"], batch["target_depth"], cfg)
@@ -66,8 +80,14 @@ def test_notebook_and_trainer_objectives_agree(key):
     k_params, k_batch, k_loss = jax.random.split(key, 3)
     params, batch = init_params(k_params, cfg, 2, SIZE, SIZE), _batch(k_batch)
     grad_w, normal_w = 0.2, 0.05
-    exp = ExperimentConfig("t", cfg, (StageConfig("s", 1, 1, 2, 2, SIZE),), perceptual_weight=0.0,
-                           depth_grad_weight=grad_w, depth_normal_weight=normal_w)
+    exp = ExperimentConfig(
+        "t",
+        cfg,
+        (StageConfig("s", 1, 1, 2, 2, SIZE),),
+        perceptual_weight=0.0,
+        depth_grad_weight=grad_w,
+        depth_normal_weight=normal_w,
+    )
     trainer_loss = make_loss_fn(exp, None, exp.stages[0])
     scale = ablation.make_scale("smoke", paper_views=2, depth=True)
     assert scale.size == SIZE and scale.perceptual_weight == 0.0
@@ -139,4 +159,3 @@ def test_opacity_term_and_a_stage_s_pruning(key):
     assert abs(float(want[0][1]) - float(want[1][1])) > 1e-4  # pruning kept the more opaque ones
     with pytest.raises(ValueError, match=r"stage 'pruned': GaussianHeadConfig: pruning is Long-LRM's colour-mode"):
         ExperimentConfig("t", C.tiny(), (pruned,))
-

@@ -51,7 +51,9 @@ def test_wrong_checksum_is_one_line_naming_the_file(shipped_tmp, tmp_path):
     raw = bytearray(open(path, "rb").read())
     raw[len(raw) // 2] ^= 0x01  # one flipped bit inside the float16 data
     open(path, "wb").write(bytes(raw))
-    with pytest.raises(ValueError, match=r"tiny\.npz: checksum mismatch: sha256 [0-9a-f]{16}\.\.\., tiny\.json records") as e:
+    with pytest.raises(
+        ValueError, match=r"tiny\.npz: checksum mismatch: sha256 [0-9a-f]{16}\.\.\., tiny\.json records"
+    ) as e:
         load_pretrained("tiny", cfg, weights_dir=bad)
     assert "\n" not in str(e.value)
 
@@ -59,8 +61,11 @@ def test_wrong_checksum_is_one_line_naming_the_file(shipped_tmp, tmp_path):
 def test_another_config_is_one_line_naming_the_field(shipped_tmp):
     d, cfg, _, _ = shipped_tmp
     other = replace(cfg, head=replace(cfg.head, feature_dim=8))
-    with pytest.raises(ValueError, match=r"tiny\.npz: weights are for another model config: "
-                                         r"model\.head\.feature_dim: shipped 16, expected 8$"):
+    with pytest.raises(
+        ValueError,
+        match=r"tiny\.npz: weights are for another model config: "
+        r"model\.head\.feature_dim: shipped 16, expected 8$",
+    ):
         load_pretrained("tiny", other, weights_dir=d)
     with pytest.raises(FileNotFoundError, match="no shipped model 'nope'"):
         load_pretrained("nope", weights_dir=d)
@@ -81,7 +86,9 @@ def test_a_field_added_after_shipping_takes_its_default(shipped_tmp, tmp_path):
     _, got_cfg = load_pretrained("tiny", cfg, weights_dir=old)
     assert got_cfg == cfg
     other = replace(cfg, backbone=replace(cfg.backbone, mamba=replace(cfg.backbone.mamba, inter_chunk="sequential")))
-    with pytest.raises(ValueError, match=r"model\.backbone\.mamba\.inter_chunk: shipped 'auto', expected 'sequential'$"):
+    with pytest.raises(
+        ValueError, match=r"model\.backbone\.mamba\.inter_chunk: shipped 'auto', expected 'sequential'$"
+    ):
         load_pretrained("tiny", other, weights_dir=old)
 
 
@@ -97,8 +104,11 @@ def test_shipped_small_model_loads_and_reproduces_its_recorded_forward():
     with open(os.path.join(WEIGHTS_DIR, "small.json")) as f:
         meta = json.load(f)
     start = meta["started_from"]
-    assert (meta["experiment"], start["init"], start["experiment"]) == \
-        ("experiments/small_accel_sharpen.py", "pretrained:small", "experiments/small_accel_sharpen.py")
+    assert (meta["experiment"], start["init"], start["experiment"]) == (
+        "experiments/small_accel_sharpen.py",
+        "pretrained:small",
+        "experiments/small_accel_sharpen.py",
+    )
     tuned = load_experiment(os.path.join(ROOT, meta["experiment"]))
     assert tuned.model == cfg
     assert meta["steps"] == start["steps"] + tuned.stages[0].steps

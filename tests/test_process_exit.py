@@ -24,8 +24,13 @@ def _default_ctrl_c() -> None:
 
 def _start(program: str) -> subprocess.Popen:
     """``program`` in a child process, once it has printed "ready" (inside its ``try``)."""
-    proc = subprocess.Popen([sys.executable, "-c", program], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=_default_ctrl_c)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", program],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_ctrl_c,
+    )
     assert proc.stdout.readline() == "ready\n", proc.stderr.read()
     return proc
 
@@ -33,8 +38,10 @@ def _start(program: str) -> subprocess.Popen:
 def _interrupt(body: str, grace_s: float = 10.0) -> tuple[int, str, float]:
     """Start PRELUDE + ``body`` (``GRACE_S`` set to ``grace_s``), send one SIGINT once it
     prints "ready": (exit status, stderr, seconds from the signal to the exit)."""
-    proc = _start(PRELUDE.replace("process_exit.install()",
-                                  f"process_exit.GRACE_S = {grace_s}\nprocess_exit.install()") + textwrap.dedent(body))
+    proc = _start(
+        PRELUDE.replace("process_exit.install()", f"process_exit.GRACE_S = {grace_s}\nprocess_exit.install()")
+        + textwrap.dedent(body)
+    )
     start = time.monotonic()
     proc.send_signal(signal.SIGINT)
     status = proc.wait(timeout=60)
@@ -54,20 +61,24 @@ def test_an_interrupt_python_would_ignore_leaves_at_once():
         time.sleep(60)
         """)
     start = time.monotonic()
-    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60,
-                          preexec_fn=_default_ctrl_c)
+    done = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, timeout=60, preexec_fn=_default_ctrl_c
+    )
     assert (done.returncode, done.stderr) == (130, "llrmpp: interrupted\n")
     assert time.monotonic() - start < 8  # not the 10 s grace
 
 
 def test_a_command_that_swallows_the_interrupt_leaves_after_the_grace():
-    status, err, took = _interrupt("""
+    status, err, took = _interrupt(
+        """
         try:
             print("ready", flush=True)
             time.sleep(60)
         except KeyboardInterrupt:
             time.sleep(60)  # a finally block that hangs
-        """, grace_s=1.0)
+        """,
+        grace_s=1.0,
+    )
     assert (status, err) == (130, "llrmpp: interrupted\n")
     assert 1.0 <= took < 30
 
@@ -82,8 +93,9 @@ def test_leave_after_an_interrupt_skips_the_teardown_and_otherwise_runs_it():
         """)
     assert (status, err) == (130, "")
     for status in (2, 130):  # 130 without an interrupt: a run that stopped itself on SIGINT, and checkpointed
-        done = subprocess.run([sys.executable, "-c", PRELUDE + f"process_exit.leave({status})"], capture_output=True,
-                              text=True)
+        done = subprocess.run(
+            [sys.executable, "-c", PRELUDE + f"process_exit.leave({status})"], capture_output=True, text=True
+        )
         assert (done.returncode, done.stderr) == (status, "teardown ran\n")
 
 
@@ -106,8 +118,14 @@ def test_a_second_interrupt_leaves_at_once():
 
 def test_an_ignored_sigint_stays_ignored():
     """``nohup`` and background jobs start a command with SIGINT ignored: it stays so."""
-    program = "import signal\nfrom llrmpp_jax import process_exit\nprocess_exit.install()\n" \
-              "print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"
-    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True,
-                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    program = (
+        "import signal\nfrom llrmpp_jax import process_exit\nprocess_exit.install()\n"
+        "print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", program],
+        capture_output=True,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
     assert done.stdout == "True\n", done.stderr

@@ -37,8 +37,10 @@ def golden_gaussians() -> tuple[Gaussians, np.ndarray, np.ndarray]:
     logits = out["opacity"][..., 0]
     index = np.broadcast_to(np.arange(n, dtype=np.float64), (b, n))[..., None]
     g = Gaussians(
-        means=jnp.asarray(out["xyz"]), quats=jnp.asarray(out["render_quats"]),
-        scales=jnp.asarray(out["render_scales"]), opacities=jnp.asarray(out["render_opacities"]),
+        means=jnp.asarray(out["xyz"]),
+        quats=jnp.asarray(out["render_quats"]),
+        scales=jnp.asarray(out["render_scales"]),
+        opacities=jnp.asarray(out["render_opacities"]),
         features=jnp.asarray(np.concatenate([out["feature"].reshape(b, n, -1), index], axis=-1)),
     )
     return g, logits, out["gaussian_usage"]
@@ -62,7 +64,9 @@ def test_golden_stage3_pruning_keeps_official_count_and_top_opacity(key):
         ranks.append(np.argsort(order)[rest])
         # every field of a kept Gaussian is that Gaussian's
         for name in ("means", "quats", "scales", "opacities"):
-            np.testing.assert_array_equal(np.asarray(getattr(pruned, name))[s], np.asarray(getattr(g, name))[s, kept[s]])
+            np.testing.assert_array_equal(
+                np.asarray(getattr(pruned, name))[s], np.asarray(getattr(g, name))[s, kept[s]]
+            )
     np.testing.assert_array_equal(ranks[0], ranks[1])  # one permutation of rank positions for the batch
     other = np.asarray(prune_gaussians(g, 0.6, 0.1, jax.random.fold_in(key, 1)).features[0, num_top:, -1])
     assert set(other.astype(int).tolist()) != set(kept[0, num_top:].tolist())  # the key draws the random share
@@ -95,12 +99,22 @@ def test_training_and_evaluation_prune_and_log_usage(key):
     from llrmpp_jax.evaluate import predict
     from llrmpp_jax.objective import make_loss_fn
 
-    cfg = replace(C.tiny(), head=C.GaussianHeadConfig(mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0,
-                                                         prune_ratio=0.6, prune_random_ratio=0.1))
+    cfg = replace(
+        C.tiny(),
+        head=C.GaussianHeadConfig(
+            mode="color", sh_degree=1, max_dist=4.0, scale_bias=-3.0, prune_ratio=0.6, prune_random_ratio=0.1
+        ),
+    )
     images, c2w, intr = orbit_scene(key, 1, 3, 16, 16)
     params = init_params(jax.random.key(1), cfg, 2, 16, 16)
-    sample = {"input_images": images[:, :2], "input_c2w": c2w[:, :2], "input_intrinsics": intr[:, :2],
-              "target_images": images[:, 2:], "target_c2w": c2w[:, 2:], "target_intrinsics": intr[:, 2:]}
+    sample = {
+        "input_images": images[:, :2],
+        "input_c2w": c2w[:, :2],
+        "input_intrinsics": intr[:, :2],
+        "target_images": images[:, 2:],
+        "target_c2w": c2w[:, 2:],
+        "target_intrinsics": intr[:, 2:],
+    }
     g = reconstruct(params, cfg, images[:, :2], c2w[:, :2], intr[:, :2])
     pk = jax.random.key(5)
     want = render(params, cfg, prune_gaussians(g, 0.6, 0.1, pk), c2w[:, 2:], intr[:, 2:], 16, 16).images["rgb"]

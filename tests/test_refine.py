@@ -29,8 +29,13 @@ def known_scene(rng, n=300, views=12):
     """Random SH-degree-1 Gaussians in a 1.2-unit cube, cameras on an arc 2.5 units out."""
     q = rng.normal(size=(n, 4))
     sh = np.concatenate([rng.uniform(-1.5, 1.5, (n, 1, 3)), rng.normal(0, 0.2, (n, 3, 3))], axis=1)
-    g = Gaussians(rng.uniform(-0.6, 0.6, (n, 3)), q / np.linalg.norm(q, axis=-1, keepdims=True),
-                  np.exp(rng.uniform(-3.2, -2.2, (n, 3))), rng.uniform(0.5, 0.95, n), sh.reshape(n, 12))
+    g = Gaussians(
+        rng.uniform(-0.6, 0.6, (n, 3)),
+        q / np.linalg.norm(q, axis=-1, keepdims=True),
+        np.exp(rng.uniform(-3.2, -2.2, (n, 3))),
+        rng.uniform(0.5, 0.95, n),
+        sh.reshape(n, 12),
+    )
     ang = np.linspace(-0.9, 0.9, views)
     eye = np.stack([2.5 * np.sin(ang), -2.5 * np.cos(ang), 0.6 + 0.2 * np.cos(3 * ang)], -1)
     c2w = look_at(eye, np.zeros_like(eye))
@@ -64,8 +69,14 @@ def test_refine_recovers_perturbed_known_gaussians(rng):
     held = np.arange(12) % 3 == 1
     inp, tgt = np.where(~held)[0], np.where(held)[0]
     start = perturb(rng, true)
-    rc = RefineConfig(lr_means=1e-2, lr_log_scales=2e-2, lr_quats=1e-2, lr_opacity_logits=5e-2,
-                      lr_features=3e-2, sh_rest_lr_factor=1.0)
+    rc = RefineConfig(
+        lr_means=1e-2,
+        lr_log_scales=2e-2,
+        lr_quats=1e-2,
+        lr_opacity_logits=5e-2,
+        lr_features=3e-2,
+        sh_rest_lr_factor=1.0,
+    )
     refined, info = refine({}, COLOUR, start, images[:, inp], c2w[:, inp], intr[:, inp], steps=30, rc=rc)
     before = heldout_psnr({}, COLOUR, start, images[:, tgt], c2w[:, tgt], intr[:, tgt])
     after = heldout_psnr({}, COLOUR, refined, images[:, tgt], c2w[:, tgt], intr[:, tgt])
@@ -85,8 +96,9 @@ def test_refine_recovers_perturbed_known_gaussians(rng):
 def test_refine_lowers_feature_mode_loss_with_frozen_decoder(key):
     """Tiny feature model, random init: 5 steps strictly lower the input-view loss, the
     decoder is untouched (params are an input only), every optimised field moves."""
-    cfg = replace(C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0,
-                                                         scale_bias=-3.0))
+    cfg = replace(
+        C.tiny(), head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=4.0, scale_bias=-3.0)
+    )
     k0, k1 = jax.random.split(key)
     images = jax.random.uniform(k1, (1, 2, H, W, 3), jnp.float32)
     eye = np.array([[0.3, 0.0, -2.0], [-0.3, 0.1, -2.0]])
@@ -113,14 +125,23 @@ def test_a_step_fits_the_views_its_key_draws(rng, views):
     rc = RefineConfig(views_per_step=1)
     got, info = refine({}, COLOUR, g, images, c2w, intr, steps=1, rc=rc, key=key)
     j = int(jax.random.permutation(jax.random.fold_in(key, 0), views)[0])
-    want, _ = refine({}, COLOUR, g, images[:, j:j + 1], c2w[:, j:j + 1], intr[:, j:j + 1], steps=1, rc=rc,
-                     key=jax.random.key(7))
+    want, _ = refine(
+        {},
+        COLOUR,
+        g,
+        images[:, j : j + 1],
+        c2w[:, j : j + 1],
+        intr[:, j : j + 1],
+        steps=1,
+        rc=rc,
+        key=jax.random.key(7),
+    )
     for name, a, b in zip(Gaussians._fields, got, want, strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=name)
     assert info.views_per_step == 1 and info.steps == 1 and info.losses.shape == (2,)
     for start, loss in ((g, info.losses[0]), (got, info.losses[-1])):
-        rgb = render({}, COLOUR, start, c2w[:, j:j + 1], intr[:, j:j + 1], H, W).images["rgb"]
-        np.testing.assert_allclose(float(jnp.mean(jnp.square(rgb - images[:, j:j + 1]))), loss, rtol=1e-4)
+        rgb = render({}, COLOUR, start, c2w[:, j : j + 1], intr[:, j : j + 1], H, W).images["rgb"]
+        np.testing.assert_allclose(float(jnp.mean(jnp.square(rgb - images[:, j : j + 1]))), loss, rtol=1e-4)
 
 
 def test_refine_sizes_the_splat_buffer_from_the_scene(rng):
@@ -132,8 +153,24 @@ def test_refine_sizes_the_splat_buffer_from_the_scene(rng):
     g, c2w, intr = known_scene(rng, n=80, views=3)
     images = jnp.asarray(rng.uniform(0.1, 0.9, (1, 3, H, W, 3)), jnp.float32)
     _, info = refine({}, COLOUR, g, images, c2w, intr, steps=1)
-    most = max(int(rasterize(g.means[0], g.quats[0], g.scales[0], g.opacities[0], None, c2w[0, v], intr[0, v], H, W,
-                             COLOUR.splat, render_mode="D").stats.num_intersections) for v in range(3))
+    most = max(
+        int(
+            rasterize(
+                g.means[0],
+                g.quats[0],
+                g.scales[0],
+                g.opacities[0],
+                None,
+                c2w[0, v],
+                intr[0, v],
+                H,
+                W,
+                COLOUR.splat,
+                render_mode="D",
+            ).stats.num_intersections
+        )
+        for v in range(3)
+    )
     want = int(np.ceil(1.25 * most))
     sizes = sorted({m << e for m in range(8, 16) for e in range(24)})
     assert info.capacity == min(x for x in sizes if x >= want) and info.dropped == 0
@@ -163,9 +200,14 @@ def test_default_rates_scale_with_the_steps(rng):
     g, c2w, intr = known_scene(rng, n=40, views=2)
     images = jnp.asarray(rng.uniform(0.1, 0.9, (1, 2, H, W, 3)), jnp.float32)
     base = RefineConfig()
-    by_hand = RefineConfig(rate_scale=1.0, lr_means=base.lr_means * scale, lr_log_scales=base.lr_log_scales * scale,
-                           lr_quats=base.lr_quats * scale, lr_opacity_logits=base.lr_opacity_logits * scale,
-                           lr_features=base.lr_features * scale)
+    by_hand = RefineConfig(
+        rate_scale=1.0,
+        lr_means=base.lr_means * scale,
+        lr_log_scales=base.lr_log_scales * scale,
+        lr_quats=base.lr_quats * scale,
+        lr_opacity_logits=base.lr_opacity_logits * scale,
+        lr_features=base.lr_features * scale,
+    )
     got, _ = refine({}, COLOUR, g, images, c2w, intr, steps=steps)
     want, _ = refine({}, COLOUR, g, images, c2w, intr, steps=steps, rc=by_hand)
     unscaled, _ = refine({}, COLOUR, g, images, c2w, intr, steps=steps, rc=RefineConfig(rate_scale=1.0))

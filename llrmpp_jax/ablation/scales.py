@@ -85,11 +85,13 @@ class Scale:
 
     def __str__(self) -> str:
         m = self.base
-        return (f"{self.name}: {self.size}x{self.size}, {self.num_inputs} inputs + {self.num_targets} targets, "
-                f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.seeds} seed(s) per row, "
-                f"{self.eval_scenes} held-out scenes, {self.workers} worker(s); "
-                f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}"
-                + ("" if self.rescale else "; poses not rescaled (world units)"))
+        return (
+            f"{self.name}: {self.size}x{self.size}, {self.num_inputs} inputs + {self.num_targets} targets, "
+            f"batch {self.batch}, {self.steps} steps (lr {self.lr}), {self.seeds} seed(s) per row, "
+            f"{self.eval_scenes} held-out scenes, {self.workers} worker(s); "
+            f"backbone D={m.backbone.dims} {m.backbone.pattern!r} x{m.backbone.num_layers}, outputs {m.outputs}"
+            + ("" if self.rescale else "; poses not rescaled (world units)")
+        )
 
     def width(self, paper_width: int) -> int:
         """A paper layer width at this scale."""
@@ -126,9 +128,12 @@ def cpu_base() -> C.ModelConfig:
     # The tables were run with the demo's earlier head start (every Gaussian at its patch
     # centre, scale_bias -2.5); the demo's grid start needs a square K, and Table 4 has K = 8, 32.
     head = replace(base.head, gaussians_per_token=16, feature_dim=32, anchors="centre", scale_bias=-2.5)
-    return replace(base, head=head,
-                     decoder=replace(base.decoder, blocks="LLGGG", dim=64, partitions=2),
-                     splat=replace(base.splat, intersections_per_gaussian=16.0, tiles_per_group=2))
+    return replace(
+        base,
+        head=head,
+        decoder=replace(base.decoder, blocks="LLGGG", dim=64, partitions=2),
+        splat=replace(base.splat, intersections_per_gaussian=16.0, tiles_per_group=2),
+    )
 
 
 def _env_int(name: str, minimum: int) -> int | None:
@@ -152,8 +157,15 @@ def scale_name() -> str:
     return name
 
 
-def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps: int = 10_000,
-               cpu_seeds: int = 3, cpu_steps: int = CPU_STEPS) -> Scale:
+def make_scale(
+    name: str,
+    *,
+    paper_views: int,
+    depth: bool = False,
+    paper_steps: int = 10_000,
+    cpu_seeds: int = 3,
+    cpu_steps: int = CPU_STEPS,
+) -> Scale:
     """The ``"smoke"``, ``"cpu"`` or ``"paper"`` scale of a table whose paper setting has
     ``paper_views`` input views at 256x256 (``depth``: ScanNet-style colour + depth).
     ``cpu_seeds``: seeds per row at the cpu scale (3; a table whose rows are cheap enough
@@ -165,21 +177,67 @@ def make_scale(name: str, *, paper_views: int, depth: bool = False, paper_steps:
     if cpu_steps < 1:
         raise ValueError(f"make_scale: cpu_steps must be >= 1, got {cpu_steps}")
     if name == "smoke":
-        scale = Scale(name="smoke", base=smoke_base(), size=32, num_inputs=2, num_targets=2, batch=2, steps=40,
-                      lr=2e-3, warmup=10, perceptual_weight=0.0, eval_scenes=4, frames=16, lpips=False,
-                      timing_repeats=3, width_divisor=4)
+        scale = Scale(
+            name="smoke",
+            base=smoke_base(),
+            size=32,
+            num_inputs=2,
+            num_targets=2,
+            batch=2,
+            steps=40,
+            lr=2e-3,
+            warmup=10,
+            perceptual_weight=0.0,
+            eval_scenes=4,
+            frames=16,
+            lpips=False,
+            timing_repeats=3,
+            width_divisor=4,
+        )
     elif name == "cpu":
-        scale = Scale(name="cpu", base=cpu_base(), size=64, num_inputs=4, num_targets=2, batch=2, steps=cpu_steps,
-                      lr=CPU_LR, warmup=50, perceptual_weight=0.0, eval_scenes=16, frames=16, lpips=True,
-                      timing_repeats=3, width_divisor=4, seeds=cpu_seeds, min_span=6, max_span=10, eval_span=8,
-                      max_seeds=CPU_MAX_SEEDS, budget_min=CPU_BUDGET_MIN,
-                      workers=min(CPU_WORKERS, len(os.sched_getaffinity(0))))
+        scale = Scale(
+            name="cpu",
+            base=cpu_base(),
+            size=64,
+            num_inputs=4,
+            num_targets=2,
+            batch=2,
+            steps=cpu_steps,
+            lr=CPU_LR,
+            warmup=50,
+            perceptual_weight=0.0,
+            eval_scenes=16,
+            frames=16,
+            lpips=True,
+            timing_repeats=3,
+            width_divisor=4,
+            seeds=cpu_seeds,
+            min_span=6,
+            max_span=10,
+            eval_span=8,
+            max_seeds=CPU_MAX_SEEDS,
+            budget_min=CPU_BUDGET_MIN,
+            workers=min(CPU_WORKERS, len(os.sched_getaffinity(0))),
+        )
     elif name == "paper":
         base = C.paper_scannet() if depth else C.paper_dl3dv()
-        scale = Scale(name="paper", base=base, size=256, num_inputs=paper_views, num_targets=8, batch=8,
-                      steps=paper_steps, lr=4e-4, warmup=min(2000, paper_steps // 10), perceptual_weight=0.5,
-                      eval_scenes=64, frames=max(64, 2 * paper_views + 16), lpips=True, timing_repeats=10,
-                      seeds=3)
+        scale = Scale(
+            name="paper",
+            base=base,
+            size=256,
+            num_inputs=paper_views,
+            num_targets=8,
+            batch=8,
+            steps=paper_steps,
+            lr=4e-4,
+            warmup=min(2000, paper_steps // 10),
+            perceptual_weight=0.5,
+            eval_scenes=64,
+            frames=max(64, 2 * paper_views + 16),
+            lpips=True,
+            timing_repeats=10,
+            seeds=3,
+        )
     else:
         raise ValueError(f"make_scale: name must be one of {', '.join(SCALES)}, got {name!r}")
     if name != "paper":  # the paper scale keeps its data's normalisation, range and depth_bias

@@ -34,9 +34,14 @@ def held_out_experiment(cfg: C.ModelConfig, scale: Scale) -> ExperimentConfig:
     over the rest) or one draw of the training view sampler in ``eval_span``-frame windows,
     the same views at every training seed (paired seeds)."""
     exp = row_experiment(cfg, scale)
-    data = dataclasses.replace(exp.data, eval_seed_offset=EVAL_SEED, num_eval_scenes=scale.eval_scenes,
-                               eval_span=scale.eval_span, eval_views_follow_seed=False,
-                               procedural_eval="split" if scale.eval_span is None else "window")
+    data = dataclasses.replace(
+        exp.data,
+        eval_seed_offset=EVAL_SEED,
+        num_eval_scenes=scale.eval_scenes,
+        eval_span=scale.eval_span,
+        eval_views_follow_seed=False,
+        procedural_eval="split" if scale.eval_span is None else "window",
+    )
     return dataclasses.replace(exp, data=data)
 
 
@@ -47,8 +52,7 @@ def held_out_samples(cfg: C.ModelConfig, scale: Scale) -> list[dict[str, np.ndar
     return eval_samples(exp, exp.stages[0])[0]
 
 
-def row_scores(params: dict, cfg: C.ModelConfig, samples: Sequence[dict], lpips_params: Any = None
-               ) -> dict[str, float]:
+def row_scores(params: dict, cfg: C.ModelConfig, samples: Sequence[dict], lpips_params: Any = None) -> dict[str, float]:
     """The model's summary of :func:`llrmpp_jax.evaluate.evaluate` on ``samples`` (PSNR,
     SSIM, LPIPS with ``lpips_params``, the depth metrics when ``cfg`` renders depth, the
     diagnostics), plus ``eval_dropped``: splat intersections lost to capacity over every
@@ -84,13 +88,14 @@ def time_model(params: dict, cfg: C.ModelConfig, scale: Scale, sample: dict) -> 
     return {
         "gaussians": int(g.means.shape[1]),
         "recon_s": _median_seconds(lambda: predicted_gaussians(params, cfg, batch, None), scale.timing_repeats),
-        "render_s": _median_seconds(lambda: render_sample(params, cfg, g, batch, False),
-                                    scale.timing_repeats) / n_targets,
+        "render_s": _median_seconds(lambda: render_sample(params, cfg, g, batch, False), scale.timing_repeats)
+        / n_targets,
     }
 
 
-def references(cfg: C.ModelConfig, scale: Scale, samples: Sequence[dict], lpips_params: Any = None
-               ) -> list[dict[str, Any]]:
+def references(
+    cfg: C.ModelConfig, scale: Scale, samples: Sequence[dict], lpips_params: Any = None
+) -> list[dict[str, Any]]:
     """What a row must beat, on the held-out ``samples``: ``cfg`` untrained (one init per
     seed, :func:`row_scores`) and the two baselines :func:`llrmpp_jax.evaluate.evaluate`
     scores beside the model (mean input colour; the input view nearest each target, shown

@@ -22,8 +22,11 @@ def interval(values: Sequence[float] | np.ndarray, confidence: float = 0.95) -> 
     if n < 2:
         return {"mean": float(np.mean(x)) if n else float("nan"), "std": float("nan"), "ci": float("nan")}
     sd = float(np.std(x, ddof=1))
-    return {"mean": float(np.mean(x)), "std": sd,
-            "ci": float(stats.t.ppf(0.5 + confidence / 2, n - 1) * sd / np.sqrt(n))}
+    return {
+        "mean": float(np.mean(x)),
+        "std": sd,
+        "ci": float(stats.t.ppf(0.5 + confidence / 2, n - 1) * sd / np.sqrt(n)),
+    }
 
 
 def summarise(per_seed: Sequence[dict[str, float]]) -> dict[str, Any]:
@@ -37,8 +40,9 @@ def summarise(per_seed: Sequence[dict[str, float]]) -> dict[str, Any]:
     return out
 
 
-def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering], confidence: float = 0.95
-            ) -> list[dict[str, Any]]:
+def compare(
+    results: Sequence[dict[str, Any]], orderings: Sequence[Ordering], confidence: float = 0.95
+) -> list[dict[str, Any]]:
     """For each ordering, the paired per-seed difference ``better - worse`` over the seeds
     both rows ran (sign flipped for lower-is-better metrics, so > 0 means the paper's
     ordering holds) with its ``confidence`` interval, the number of ``seeds`` paired, and a
@@ -57,10 +61,18 @@ def compare(results: Sequence[dict[str, Any]], orderings: Sequence[Ordering], co
         diffs = sign * (np.asarray(a[f"{o.metric}_seeds"][:n]) - np.asarray(b[f"{o.metric}_seeds"][:n]))
         iv = interval(diffs, confidence)
         paper = _paper_number(a, o.metric), _paper_number(b, o.metric)
-        out.append({**entry, "diff": iv["mean"], "diff_ci": iv["ci"], "confidence": confidence,
-                    "diff_seeds": diffs.tolist(), "seeds": n,
-                    "paper_diff": None if None in paper else sign * (paper[0] - paper[1]),
-                    "verdict": verdict(iv, n)})
+        out.append(
+            {
+                **entry,
+                "diff": iv["mean"],
+                "diff_ci": iv["ci"],
+                "confidence": confidence,
+                "diff_seeds": diffs.tolist(),
+                "seeds": n,
+                "paper_diff": None if None in paper else sign * (paper[0] - paper[1]),
+                "verdict": verdict(iv, n),
+            }
+        )
     return out
 
 

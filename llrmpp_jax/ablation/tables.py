@@ -121,6 +121,7 @@ def _runner(scale: Scale) -> Iterator[Callable[[Sequence[Job]], Iterator[tuple[i
     ``os.sched_setaffinity``, the worker ``i`` on the ``i``-th core this process may use).
     Seed 0's params come back for the row's timings."""
     if scale.workers == 1:
+
         def run_here(jobs: Sequence[Job]) -> Iterator[tuple[int, int, SeedRun]]:
             for row, cfg, variant, seed in jobs:
                 yield row, seed, run_seed(cfg, scale, variant, seed, keep_params=seed == 0)
@@ -133,12 +134,18 @@ def _runner(scale: Scale) -> Iterator[Callable[[Sequence[Job]], Iterator[tuple[i
     for i in range(scale.workers):
         cores.put(allowed[i % len(allowed)])
     with ProcessPoolExecutor(scale.workers, mp_context=ctx, initializer=_pin_to_core, initargs=(cores,)) as pool:
+
         def run_on_pool(jobs: Sequence[Job]) -> Iterator[tuple[int, int, SeedRun]]:
             # A Variant's build function may be a notebook lambda (not picklable); workers
             # need only its loss weights.
             with _main_hidden():  # workers start on submit (spawn context)
-                futures = {pool.submit(run_seed, cfg, scale, dataclasses.replace(variant, build=None), seed,
-                                       seed == 0): (row, seed) for row, cfg, variant, seed in jobs}
+                futures = {
+                    pool.submit(run_seed, cfg, scale, dataclasses.replace(variant, build=None), seed, seed == 0): (
+                        row,
+                        seed,
+                    )
+                    for row, cfg, variant, seed in jobs
+                }
             for future in as_completed(futures):
                 row, seed = futures[future]
                 yield row, seed, future.result()
@@ -148,16 +155,36 @@ def _runner(scale: Scale) -> Iterator[Callable[[Sequence[Job]], Iterator[tuple[i
 
 def _scores(index: int, v: Variant, per_seed: Sequence[SeedRun]) -> dict[str, Any]:
     """A row's labels, paper numbers and its scores summarised over its seeds (in order)."""
-    tails = [r.losses[-max(1, len(r.losses) // 10):] for r in per_seed]
-    return {"row": index, **v.labels, "chosen": v.chosen, "paper": dict(v.paper), "status": "ok",
-            "seeds": len(per_seed), **summarise([
-                {**r.scores, "train_s": r.seconds, "train_dropped": float(r.dropped),
-                 "final_loss": float(np.mean(tail)) if len(tail) else float("nan")}
-                for r, tail in zip(per_seed, tails)])}
+    tails = [r.losses[-max(1, len(r.losses) // 10) :] for r in per_seed]
+    return {
+        "row": index,
+        **v.labels,
+        "chosen": v.chosen,
+        "paper": dict(v.paper),
+        "status": "ok",
+        "seeds": len(per_seed),
+        **summarise(
+            [
+                {
+                    **r.scores,
+                    "train_s": r.seconds,
+                    "train_dropped": float(r.dropped),
+                    "final_loss": float(np.mean(tail)) if len(tail) else float("nan"),
+                }
+                for r, tail in zip(per_seed, tails)
+            ]
+        ),
+    }
 
 
-def _next_round(runs: dict[int, dict[int, SeedRun]], variants: Sequence[Variant], orderings: Sequence[Ordering],
-                scale: Scale, stops: dict[str, str], out_of_time: bool) -> list[tuple[int, int]]:
+def _next_round(
+    runs: dict[int, dict[int, SeedRun]],
+    variants: Sequence[Variant],
+    orderings: Sequence[Ordering],
+    scale: Scale,
+    stops: dict[str, str],
+    out_of_time: bool,
+) -> list[tuple[int, int]]:
     """The ``(row, seed)`` trainings of the next sequential round: one more seed for both
     rows of every ordering still unresolved; orderings that stop get their reason in
     ``stops``."""
@@ -219,29 +246,40 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
             jobs = [(index, configs[index], variants[index], seed) for index, seed in todo]
             for done, (index, seed, r) in enumerate(run(jobs), 1):
                 runs[index][seed] = r
-                progress(f"row {index} {variants[index].labels} seed {seed}: PSNR {r.scores['psnr']:.2f}, "
-                         f"trained in {r.seconds:.0f} s ({done}/{len(jobs)} of this round, "
-                         f"{(time.perf_counter() - t_start) / 60:.1f} min)")
+                progress(
+                    f"row {index} {variants[index].labels} seed {seed}: PSNR {r.scores['psnr']:.2f}, "
+                    f"trained in {r.seconds:.0f} s ({done}/{len(jobs)} of this round, "
+                    f"{(time.perf_counter() - t_start) / 60:.1f} min)"
+                )
             if scale.max_seeds <= scale.seeds or not orderings:
                 break
             minutes = (time.perf_counter() - t_start) / 60
-            todo = _next_round(runs, variants, orderings, scale, stops,
-                               out_of_time=scale.budget_min is not None and minutes >= scale.budget_min)
+            todo = _next_round(
+                runs,
+                variants,
+                orderings,
+                scale,
+                stops,
+                out_of_time=scale.budget_min is not None and minutes >= scale.budget_min,
+            )
             if todo:
                 progress(f"round: {len(todo)} more trainings for unresolved orderings ({minutes:.1f} min)")
     results, curves = [], {}
     for index, v in rows:
         if index not in configs:
-            results.append({"row": index, **v.labels, "chosen": v.chosen, "paper": dict(v.paper),
-                            "status": f"not run: {v.note}"})
+            results.append(
+                {"row": index, **v.labels, "chosen": v.chosen, "paper": dict(v.paper), "status": f"not run: {v.note}"}
+            )
             continue
         cfg, per_seed = configs[index], [runs[index][seed] for seed in sorted(runs[index])]
         samples = _held_out(scale, cfg)
         row = _scores(index, v, per_seed)
-        row.update(time_model(per_seed[0].params, cfg, scale, samples[0]),
-                   params=count_params(per_seed[0].params),
-                   decoder_params=count_params(per_seed[0].params.get("decoder", {})),
-                   decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None)
+        row.update(
+            time_model(per_seed[0].params, cfg, scale, samples[0]),
+            params=count_params(per_seed[0].params),
+            decoder_params=count_params(per_seed[0].params.get("decoder", {})),
+            decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None,
+        )
         curves[index] = np.mean([r.losses for r in per_seed], axis=0).tolist()
         results.append(row)
     sequential = scale.max_seeds > scale.seeds

@@ -32,8 +32,9 @@ from llrmpp_jax.train.loop import StepInfo
 from llrmpp_jax.train.step import LossFn
 
 
-def row_experiment(cfg: C.ModelConfig, scale: Scale, seed: int = 0, grad_weight: float = 0.1,
-                   normal_weight: float = 0.1) -> ExperimentConfig:
+def row_experiment(
+    cfg: C.ModelConfig, scale: Scale, seed: int = 0, grad_weight: float = 0.1, normal_weight: float = 0.1
+) -> ExperimentConfig:
     """The one-stage ``llrmpp train`` experiment of a row: ``cfg`` trained ``scale.steps``
     steps on procedural scenes of ``scale``'s size, views, spans and batch, its learning rate
     and warmup (a cosine to 0 at the last step), its world units or not (``Scale.rescale``),
@@ -41,16 +42,37 @@ def row_experiment(cfg: C.ModelConfig, scale: Scale, seed: int = 0, grad_weight:
     depth loss's auxiliary weights ``grad_weight`` / ``normal_weight``; ``seed`` sets the
     init, the loss's randomness and the data order. No logging, evaluation or checkpoints
     between steps."""
-    stage = StageConfig(name="row", steps=scale.steps, global_batch=scale.batch, num_inputs=scale.num_inputs,
-                        num_targets=scale.num_targets, resize_h=scale.size, resize_w=scale.size, lr=scale.lr,
-                        warmup_steps=scale.warmup, lr_schedule="stage", min_span=scale.min_span,
-                        max_span=scale.max_span)
-    data = DataConfig(procedural=ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames),
-                      rescale=scale.rescale)
-    return ExperimentConfig(name=f"ablation-{scale.name}", model=cfg, stages=(stage,), data=data, seed=seed,
-                            perceptual_weight=scale.perceptual_weight, perceptual_net="vgg16",
-                            depth_grad_weight=grad_weight, depth_normal_weight=normal_weight,
-                            log_every=1, eval_every=0, checkpoint_every=max(scale.steps, 1))
+    stage = StageConfig(
+        name="row",
+        steps=scale.steps,
+        global_batch=scale.batch,
+        num_inputs=scale.num_inputs,
+        num_targets=scale.num_targets,
+        resize_h=scale.size,
+        resize_w=scale.size,
+        lr=scale.lr,
+        warmup_steps=scale.warmup,
+        lr_schedule="stage",
+        min_span=scale.min_span,
+        max_span=scale.max_span,
+    )
+    data = DataConfig(
+        procedural=ProceduralConfig(height=scale.size, width=scale.size, num_frames=scale.frames), rescale=scale.rescale
+    )
+    return ExperimentConfig(
+        name=f"ablation-{scale.name}",
+        model=cfg,
+        stages=(stage,),
+        data=data,
+        seed=seed,
+        perceptual_weight=scale.perceptual_weight,
+        perceptual_net="vgg16",
+        depth_grad_weight=grad_weight,
+        depth_normal_weight=normal_weight,
+        log_every=1,
+        eval_every=0,
+        checkpoint_every=max(scale.steps, 1),
+    )
 
 
 def row_objective(cfg: C.ModelConfig, scale: Scale, grad_weight: float, normal_weight: float, vgg: Any) -> LossFn:
@@ -84,8 +106,14 @@ def _row_fns(exp: ExperimentConfig, spike_factor: float | None, n_dev: int):
     and the runner over the first ``n_dev`` local devices."""
     opt_cfg = trainer.optimizer_config(exp.stages[0], spike_factor=spike_factor)
     optimizer = T.make_optimizer(opt_cfg)
-    runner = trainer.stage_runner(exp, exp.stages[0], load_perceptual(exp), optimizer, T.make_schedule(opt_cfg),
-                                  T.make_data_mesh(jax.local_devices()[:n_dev]))
+    runner = trainer.stage_runner(
+        exp,
+        exp.stages[0],
+        load_perceptual(exp),
+        optimizer,
+        T.make_schedule(opt_cfg),
+        T.make_data_mesh(jax.local_devices()[:n_dev]),
+    )
     # One jitted init: optimizer.init run eagerly would compile a fill op per leaf shape.
     init = jax.jit(lambda p, k: T.init_train_state(p, optimizer, k))
     return init, runner
@@ -106,8 +134,7 @@ class Trained:
     snapshots: dict[int, dict] = dataclasses.field(default_factory=dict)
 
 
-def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, snapshots: Sequence[int] = ()
-          ) -> Trained:
+def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, snapshots: Sequence[int] = ()) -> Trained:
     """Train ``cfg`` for ``scale.steps`` steps on procedural scenes, data-parallel over the
     local devices that split the batch: :func:`row_experiment` through ``llrmpp train``'s
     optimizer, step, batches and runner, with the scale's spike guard.
@@ -132,5 +159,11 @@ def train(cfg: C.ModelConfig, scale: Scale, variant: Variant, seed: int = 0, sna
 
     with trainer.stage_batches(exp, 0, num_devices=n_dev) as batches:
         done = runner.run(state, batches, steps=scale.steps, hooks=[record])
-    return Trained(T.host_copy(done.state.params), np.asarray(losses, np.float32),
-                   np.asarray(grad_norms, np.float32), time.perf_counter() - t0, int(sum(dropped)), kept)
+    return Trained(
+        T.host_copy(done.state.params),
+        np.asarray(losses, np.float32),
+        np.asarray(grad_norms, np.float32),
+        time.perf_counter() - t0,
+        int(sum(dropped)),
+        kept,
+    )

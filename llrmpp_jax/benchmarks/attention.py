@@ -32,8 +32,11 @@ def attention_fwd_bwd(implementation: str, block: int = 512):
 
     def step(q, k, v, cot):
         _, vjp = jax.vjp(
-            lambda q, k, v: multi_head_attention(q, k, v, implementation=implementation,
-                                                 block_q=block, block_k=block), q, k, v)
+            lambda q, k, v: multi_head_attention(q, k, v, implementation=implementation, block_q=block, block_k=block),
+            q,
+            k,
+            v,
+        )
         return vjp(cot)
 
     return step
@@ -43,8 +46,15 @@ def _one_line(e: Exception) -> str:
     return f"{type(e).__name__}: {(str(e).splitlines() or [''])[0][:300]}"
 
 
-def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192), heads: int = 12,
-                        head_dim: int = 64, block: int = 512, dtype: str = "float32", repeats: int = 2) -> dict:
+def attention_benchmark(
+    lengths=(8192, 32768, 131072),
+    run_lengths=(4096, 8192),
+    heads: int = 12,
+    head_dim: int = 64,
+    block: int = 512,
+    dtype: str = "float32",
+    repeats: int = 2,
+) -> dict:
     """Memory of one attention fwd+bwd ``[1, L, heads, head_dim]`` (the paper backbone's
     12 x 64 heads), plain vs blockwise (and cuDNN on a GPU), from XLA's ``memory_analysis()``
     of the compiled program (compile only: nothing is allocated); then compile and run times
@@ -70,10 +80,12 @@ def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192),
             except Exception as e:  # noqa: BLE001 -- recorded, the next row goes on
                 row[impl] = {"failed": _one_line(e), "compile_s": time.perf_counter() - t0}
                 continue
-            row[impl] = {"temp_bytes": int(ma.temp_size_in_bytes),
-                         "argument_bytes": int(ma.argument_size_in_bytes),
-                         "output_bytes": int(ma.output_size_in_bytes),
-                         "compile_s": time.perf_counter() - t0}
+            row[impl] = {
+                "temp_bytes": int(ma.temp_size_in_bytes),
+                "argument_bytes": int(ma.argument_size_in_bytes),
+                "output_bytes": int(ma.output_size_in_bytes),
+                "compile_s": time.perf_counter() - t0,
+            }
         rows.append(row)
     runs = []
     key = jax.random.key(0)
@@ -87,17 +99,33 @@ def attention_benchmark(lengths=(8192, 32768, 131072), run_lengths=(4096, 8192),
                 run[impl] = {"failed": _one_line(e)}
         runs.append(run)
     ok = [r for r in rows if "temp_bytes" in r["blockwise"]]
-    return {"heads": heads, "head_dim": head_dim, "block": block, "dtype": dtype, "memory": rows,
-            "blockwise_temp_bytes_per_token": {r["L"]: r["blockwise"]["temp_bytes"] / r["L"] for r in ok},
-            "runs": runs}
+    return {
+        "heads": heads,
+        "head_dim": head_dim,
+        "block": block,
+        "dtype": dtype,
+        "memory": rows,
+        "blockwise_temp_bytes_per_token": {r["L"]: r["blockwise"]["temp_bytes"] / r["L"] for r in ok},
+        "runs": runs,
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--lengths", type=int, nargs="+", default=[8192, 32768, 131072],
-                    help="sequence lengths of the memory analysis (compile only)")
-    ap.add_argument("--run-lengths", type=int, nargs="*", default=[4096, 8192],
-                    help="sequence lengths at which the blockwise kernel is also run and timed")
+    ap.add_argument(
+        "--lengths",
+        type=int,
+        nargs="+",
+        default=[8192, 32768, 131072],
+        help="sequence lengths of the memory analysis (compile only)",
+    )
+    ap.add_argument(
+        "--run-lengths",
+        type=int,
+        nargs="*",
+        default=[4096, 8192],
+        help="sequence lengths at which the blockwise kernel is also run and timed",
+    )
     ap.add_argument("--block", type=int, default=512, help="blockwise query and key block size")
     ap.add_argument("--heads", type=int, default=12, help="attention heads (paper backbone 12, decoder 4)")
     ap.add_argument("--head-dim", type=int, default=64, help="channels per head")
@@ -106,15 +134,28 @@ def main() -> None:
     ap.add_argument("--out", default=os.path.join("runs", "bench", "bench_attention.json"), help="JSON file written")
     args = ap.parse_args()
     env = environment()
-    result = attention_benchmark(args.lengths, args.run_lengths, heads=args.heads, head_dim=args.head_dim,
-                                 block=args.block, dtype=args.dtype, repeats=args.repeats)
+    result = attention_benchmark(
+        args.lengths,
+        args.run_lengths,
+        heads=args.heads,
+        head_dim=args.head_dim,
+        block=args.block,
+        dtype=args.dtype,
+        repeats=args.repeats,
+    )
     result["environment"] = env
     result["load_average_at_end"] = list(os.getloadavg())
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
-    print(json.dumps({r["L"]: {i: r[i].get("temp_bytes", r[i].get("failed")) for i in r if isinstance(r[i], dict)}
-                      for r in result["memory"]}))
+    print(
+        json.dumps(
+            {
+                r["L"]: {i: r[i].get("temp_bytes", r[i].get("failed")) for i in r if isinstance(r[i], dict)}
+                for r in result["memory"]
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

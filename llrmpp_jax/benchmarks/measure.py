@@ -26,8 +26,12 @@ def environment() -> dict:
             versions[pkg] = None
     dev = jax.devices()[0]
     return {
-        "backend": jax.default_backend(), "device": str(dev), "device_kind": dev.device_kind,
-        "device_count": jax.device_count(), "host": platform.machine(), "cpu_count": os.cpu_count(),
+        "backend": jax.default_backend(),
+        "device": str(dev),
+        "device_kind": dev.device_kind,
+        "device_count": jax.device_count(),
+        "host": platform.machine(),
+        "cpu_count": os.cpu_count(),
         "versions": versions,
         "default_matmul_precision": jax.config.jax_default_matmul_precision or "default (backend's own)",
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
@@ -98,8 +102,7 @@ def _conv_flops(eqn) -> float:
     pairs = 1
     for ax, (lo, _) in enumerate(p["padding"]):
         n_in, n_k, n_out = lhs[dn.lhs_spec[2 + ax]], rhs[dn.rhs_spec[2 + ax]], out[dn.out_spec[2 + ax]]
-        pos = (np.arange(n_out)[:, None] * p["window_strides"][ax] + np.arange(n_k)[None, :] * p["rhs_dilation"][ax]
-               - lo)
+        pos = np.arange(n_out)[:, None] * p["window_strides"][ax] + np.arange(n_k)[None, :] * p["rhs_dilation"][ax] - lo
         dil = p["lhs_dilation"][ax]
         pairs *= int(np.sum((pos >= 0) & (pos <= (n_in - 1) * dil) & (pos % dil == 0)))
     batch = lhs[dn.lhs_spec[0]] // p["batch_group_count"]
@@ -170,10 +173,16 @@ def timed_with_output(fn, *args, repeats: int = 3, warmup: int = 1) -> tuple[dic
         runs.append(time.perf_counter() - t0)
     ordered = sorted(runs)
     cost = xla_cost(compiled)
-    return {"compile_s": compile_s, "run_s_median": ordered[len(ordered) // 2], "run_s_min": ordered[0],
-            "run_s_all": runs, "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes),
-            "xla_flops": cost["flops"], "xla_bytes_accessed": cost["bytes_accessed"],
-            "device_peak_bytes": device_peak_bytes()}, out
+    return {
+        "compile_s": compile_s,
+        "run_s_median": ordered[len(ordered) // 2],
+        "run_s_min": ordered[0],
+        "run_s_all": runs,
+        "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes),
+        "xla_flops": cost["flops"],
+        "xla_bytes_accessed": cost["bytes_accessed"],
+        "device_peak_bytes": device_peak_bytes(),
+    }, out
 
 
 def timed(fn, *args, repeats: int = 3, warmup: int = 1) -> dict:

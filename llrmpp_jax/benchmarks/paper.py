@@ -73,11 +73,21 @@ class BenchScale:
 
 SCALES: dict[str, BenchScale] = {
     # The paper's model and Table 1's inputs; 960x540 rounds up to the patch multiple.
-    "paper": BenchScale(C.paper_dl3dv(), (16, 32, 64), 544, 960, render_views=32, profile_views=8,
-                        bf16=True, repeats=3, render_repeats=10),
+    "paper": BenchScale(
+        C.paper_dl3dv(),
+        (16, 32, 64),
+        544,
+        960,
+        render_views=32,
+        profile_views=8,
+        bf16=True,
+        repeats=3,
+        render_repeats=10,
+    ),
     # Seconds on one CPU core: the same code paths on config.tiny().
-    "cpu": BenchScale(C.tiny(), (2, 4), 64, 96, render_views=4, profile_views=2,
-                      bf16=True, repeats=3, render_repeats=10),
+    "cpu": BenchScale(
+        C.tiny(), (2, 4), 64, 96, render_views=4, profile_views=2, bf16=True, repeats=3, render_repeats=10
+    ),
 }
 
 
@@ -114,8 +124,10 @@ def check_case(cfg: C.ModelConfig, views: tuple[int, ...], height: int, width: i
     m = cfg.size_multiple
     if height < m or width < m or height % m or width % m:
         near = lambda x: max(m, round(x / m) * m)  # noqa: E731
-        raise UserError(f"bench: size {height}x{width} is not a multiple of {m} (the model's size multiple); "
-                        f"the nearest that is: {near(height)}x{near(width)}")
+        raise UserError(
+            f"bench: size {height}x{width} is not a multiple of {m} (the model's size multiple); "
+            f"the nearest that is: {near(height)}x{near(width)}"
+        )
 
 
 def counting_config(model: C.ModelConfig) -> C.ModelConfig:
@@ -125,8 +137,9 @@ def counting_config(model: C.ModelConfig) -> C.ModelConfig:
     same parameters."""
     model = C.with_attention(model, "xla")
     mamba = replace(model.backbone.mamba, inter_chunk="associative", remat_directions=False)
-    return replace(model, backbone=replace(model.backbone, mamba=mamba, remat=False),
-                     decoder=replace(model.decoder, remat=False))
+    return replace(
+        model, backbone=replace(model.backbone, mamba=mamba, remat=False), decoder=replace(model.decoder, remat=False)
+    )
 
 
 def host_init_params(model: C.ModelConfig, seed: int = 0) -> dict:
@@ -150,8 +163,10 @@ def synthetic_batch(b: int, v: int, t: int, h: int, w: int, seed: int = 0) -> di
     n = v + t
     is_target = np.zeros(n, bool)
     is_target[np.linspace(0, n - 1, t).round().astype(int)] = True
-    out: dict[str, list] = {k: [] for k in ("input_images", "input_c2w", "input_intrinsics",
-                                            "target_images", "target_c2w", "target_intrinsics")}
+    out: dict[str, list] = {
+        k: []
+        for k in ("input_images", "input_c2w", "input_intrinsics", "target_images", "target_c2w", "target_intrinsics")
+    }
     for _ in range(b):
         c2w = orbit_path(rng, n, np.zeros(3), 2.0, 3.0).astype(np.float32)
         intr = pinhole_intrinsics(rng, n, h, w, (50.0, 70.0)).astype(np.float32)
@@ -174,8 +189,9 @@ def _flops_row(timing: dict, flops: float, device_kind: str) -> dict:
     return {**timing, "model_flops": flops, **throughput(flops, timing["run_s_median"], device_kind)}
 
 
-def reconstruct_case(params: dict, cfg: C.ModelConfig, batch: dict[str, np.ndarray], repeats: int,
-                     device_kind: str) -> tuple[dict, object]:
+def reconstruct_case(
+    params: dict, cfg: C.ModelConfig, batch: dict[str, np.ndarray], repeats: int, device_kind: str
+) -> tuple[dict, object]:
     """Time ``reconstruct`` of ``batch``'s inputs (one scene, ``[1, V, H, W, 3]``; median of
     ``repeats`` calls) and count its FLOPs. Returns the row (:func:`llrmpp_jax.benchmarks.measure.timed`'s fields, ``views``,
     ``size``, ``gaussians``, ``model_flops``, ``tflops_per_s``, ``peak_fraction``) and the Gaussians."""
@@ -185,14 +201,26 @@ def reconstruct_case(params: dict, cfg: C.ModelConfig, batch: dict[str, np.ndarr
     count = counting_config(cfg)
     flops = matmul_flops(lambda p, i, c, k: reconstruct(p, count, i, c, k), *args)
     v, h, w = batch["input_images"].shape[1:4]
-    row = {"views": int(v), "size": [int(h), int(w)], "gaussians": int(g.means.shape[1]),
-           **_flops_row(timing, flops, device_kind)}
+    row = {
+        "views": int(v),
+        "size": [int(h), int(w)],
+        "gaussians": int(g.means.shape[1]),
+        **_flops_row(timing, flops, device_kind),
+    }
     return row, g
 
 
-def render_case(params: dict, cfg: C.ModelConfig, gaussians, c2w: Float[np.ndarray, "1 1 4 4"],
-                intrinsics: Float[np.ndarray, "1 1 4"], height: int, width: int, repeats: int,
-                device_kind: str) -> dict:
+def render_case(
+    params: dict,
+    cfg: C.ModelConfig,
+    gaussians,
+    c2w: Float[np.ndarray, "1 1 4 4"],
+    intrinsics: Float[np.ndarray, "1 1 4"],
+    height: int,
+    width: int,
+    repeats: int,
+    device_kind: str,
+) -> dict:
     """Time ``render`` of one ``height x width`` target from ``gaussians`` (splat of the S
     partition copies + decoder) and count its FLOPs. Row: :func:`llrmpp_jax.benchmarks.measure.timed`'s
     fields, ``fps`` (1 / median), ``splat_dropped`` (intersections over the splatter's
@@ -202,13 +230,23 @@ def render_case(params: dict, cfg: C.ModelConfig, gaussians, c2w: Float[np.ndarr
     timing, out = timed_with_output(fn, *args, repeats=repeats)
     count = counting_config(cfg)
     flops = matmul_flops(lambda p, g, c, k: render(p, count, g, c, k, height, width).images, *args)
-    return {"size": [height, width], "partitions": cfg.decoder.partitions, "fps": 1.0 / timing["run_s_median"],
-            "splat_dropped": int(np.sum(out.dropped)),
-            **_flops_row(timing, flops, device_kind)}
+    return {
+        "size": [height, width],
+        "partitions": cfg.decoder.partitions,
+        "fps": 1.0 / timing["run_s_median"],
+        "splat_dropped": int(np.sum(out.dropped)),
+        **_flops_row(timing, flops, device_kind),
+    }
 
 
-def run_table1(scale: str, views: tuple[int, ...] | None = None, size: tuple[int, int] | None = None,
-               seed: int = 0, log=print, save=None) -> dict:
+def run_table1(
+    scale: str,
+    views: tuple[int, ...] | None = None,
+    size: tuple[int, int] | None = None,
+    seed: int = 0,
+    log=print,
+    save=None,
+) -> dict:
     """The Table-1 cases at ``scale`` (a key of :data:`SCALES`), the model as training runs
     it on this backend (:func:`config.for_accelerators`): reconstruct at each of ``views``
     (default the scale's) input counts, ascending, and render one target from the
@@ -231,29 +269,45 @@ def run_table1(scale: str, views: tuple[int, ...] | None = None, size: tuple[int
     kind = env["device_kind"]
     params = compute_params(host_init_params(cfg, seed), s.bf16)
     render_v = s.render_views if s.render_views in views else views[-1]
-    result = {"scale": scale, "environment": env, "bf16": s.bf16, "params": count_params(params),
-              "reconstruct": [], "render": None, "paper_a100": PAPER_A100}
+    result = {
+        "scale": scale,
+        "environment": env,
+        "bf16": s.bf16,
+        "params": count_params(params),
+        "reconstruct": [],
+        "render": None,
+        "paper_a100": PAPER_A100,
+    }
     for v in views:
         batch = synthetic_batch(1, v, 1, h, w, seed)
         row, g = reconstruct_case(params, cfg, batch, s.repeats, kind)
         result["reconstruct"].append(row)
-        log(f"reconstruct V={v} {h}x{w}: {row['run_s_median']:.3f} s (compile {row['compile_s']:.1f} s), "
-            f"{row['tflops_per_s']:.2f} TFLOP/s")
+        log(
+            f"reconstruct V={v} {h}x{w}: {row['run_s_median']:.3f} s (compile {row['compile_s']:.1f} s), "
+            f"{row['tflops_per_s']:.2f} TFLOP/s"
+        )
         if save:
             save(result)
         if v == render_v:
-            result["render"] = {"from_views": v, **render_case(params, cfg, g, batch["target_c2w"],
-                                                               batch["target_intrinsics"], h, w, s.render_repeats, kind)}
-            log(f"render {h}x{w} from V={v}: {result['render']['fps']:.2f} FPS "
-                f"(compile {result['render']['compile_s']:.1f} s)")
+            result["render"] = {
+                "from_views": v,
+                **render_case(
+                    params, cfg, g, batch["target_c2w"], batch["target_intrinsics"], h, w, s.render_repeats, kind
+                ),
+            }
+            log(
+                f"render {h}x{w} from V={v}: {result['render']['fps']:.2f} FPS "
+                f"(compile {result['render']['compile_s']:.1f} s)"
+            )
             if save:
                 save(result)
         del g  # its device buffers go before the next, larger reconstruction
     return result
 
 
-def profile_reconstruct_render(scale: str, views: int | None = None, size: tuple[int, int] | None = None,
-                               repeats: int = 2, seed: int = 0) -> dict:
+def profile_reconstruct_render(
+    scale: str, views: int | None = None, size: tuple[int, int] | None = None, repeats: int = 2, seed: int = 0
+) -> dict:
     """:func:`llrmpp_jax.profiling.profile_program` of one program: reconstruct ``views``
     inputs (default the scale's ``profile_views``) then render one target from them, as
     :func:`run_table1` runs them. Returns ``{"scale", "views", "size", "environment",
@@ -271,8 +325,10 @@ def profile_reconstruct_render(scale: str, views: int | None = None, size: tuple
     def program(p, images, c2w, intr, target_c2w, target_intr):
         return render(p, cfg, reconstruct(p, cfg, images, c2w, intr), target_c2w, target_intr, h, w).images
 
-    args = (params, *(batch[k] for k in ("input_images", "input_c2w", "input_intrinsics",
-                                         "target_c2w", "target_intrinsics")))
+    args = (
+        params,
+        *(batch[k] for k in ("input_images", "input_c2w", "input_intrinsics", "target_c2w", "target_intrinsics")),
+    )
     prof = profile_program(program, args, repeats=repeats)
     return {"scale": scale, "views": v, "size": [h, w], "environment": environment(), "profile": prof.to_json()}
 
@@ -281,9 +337,12 @@ def profile_markdown(profile: dict) -> str:
     """Markdown of a ``ProgramProfile.to_json()``: the per-phase table, then the top ops."""
     phases = [(phase, f"{ms:.2f}") for phase, ms in profile["phases_ms"].items()]
     ops = [(o["name"], o["phase"], f"{o['ms']:.3f}", f"{o['count']:g}") for o in profile["ops"]]
-    return (f"compile {profile['compile_s']:.1f} s, wall {profile['wall_ms']:.1f} ms per call\n\n"
-            + markdown_table(("phase", "ms per call"), phases) + "\n\n"
-            + markdown_table(("op", "phase", "ms per call", "runs per call"), ops))
+    return (
+        f"compile {profile['compile_s']:.1f} s, wall {profile['wall_ms']:.1f} ms per call\n\n"
+        + markdown_table(("phase", "ms per call"), phases)
+        + "\n\n"
+        + markdown_table(("op", "phase", "ms per call", "runs per call"), ops)
+    )
 
 
 def train_step_model_flops(exp, vgg_params: dict | None, batch: dict) -> float:
@@ -317,14 +376,27 @@ def paper_comparison(table1: dict | None, step: dict | None) -> str:
     def add(name: str, ours: float, paper: float, goal: float, unit: str, higher_is_better: bool = False):
         ratio = paper / ours if higher_is_better else ours / paper
         met = ours >= goal if higher_is_better else ours <= goal
-        rows.append((name, f"{ours:.3g} {unit}", f"{paper:g} {unit}", f"{ratio:.2f}", f"{goal:g} {unit}",
-                     "met" if met else "not met"))
+        rows.append(
+            (
+                name,
+                f"{ours:.3g} {unit}",
+                f"{paper:g} {unit}",
+                f"{ratio:.2f}",
+                f"{goal:g} {unit}",
+                "met" if met else "not met",
+            )
+        )
 
     for row in (table1 or {}).get("reconstruct", []):
         v = row["views"]
         if v in PAPER_A100["reconstruct_s"]:
-            add(f"reconstruct {v} views", row["run_s_median"], PAPER_A100["reconstruct_s"][v],
-                GOALS_H100["reconstruct_s"][v], "s")
+            add(
+                f"reconstruct {v} views",
+                row["run_s_median"],
+                PAPER_A100["reconstruct_s"][v],
+                GOALS_H100["reconstruct_s"][v],
+                "s",
+            )
     if (table1 or {}).get("render"):
         add("render", table1["render"]["fps"], PAPER_A100["render_fps"], GOALS_H100["render_fps"], "FPS", True)
     if step and "step_s_median" in step:

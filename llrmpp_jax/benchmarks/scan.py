@@ -73,9 +73,7 @@ def _flops(method: str, L: int, b: int, nh: int, P: int, g: int, n: int, Q: int)
     return float(total)
 
 
-def _activation_bytes(
-    method: str, backward: bool, L: int, b: int, nh: int, P: int, g: int, n: int, Q: int
-) -> float:
+def _activation_bytes(method: str, backward: bool, L: int, b: int, nh: int, P: int, g: int, n: int, Q: int) -> float:
     """Rough peak activation bytes (float32) used to skip runs that cannot fit."""
     c = -(-L // Q)
     if method == "sequential":
@@ -121,16 +119,21 @@ def main() -> None:
     ap.add_argument("--d-state", type=int, default=256)
     ap.add_argument("--ngroups", type=int, default=1)
     ap.add_argument("--chunk", type=int, default=256, help="chunk size of the chunked and dense forms")
-    ap.add_argument("--fused-chunk", type=int, default=128,
-                    help="chunk size of the fused form (128 measured fastest on CPU)")
+    ap.add_argument(
+        "--fused-chunk", type=int, default=128, help="chunk size of the fused form (128 measured fastest on CPU)"
+    )
     ap.add_argument("--batch", type=int, default=1)
     ap.add_argument("--dtype", choices=["float32", "bfloat16"], default="float32")
     ap.add_argument("--repeats", type=int, help="override the preset's timed repeats")
     ap.add_argument("--mem-limit-gb", type=float, help="override the preset's activation budget")
     ap.add_argument("--no-backward", action="store_true", help="forward only")
-    ap.add_argument("--sequential-slice", type=int, default=4096,
-                    help="time the sequential forward on this many tokens when L is longer and scale "
-                         "linearly by L / slice (its per-step cost does not depend on L)")
+    ap.add_argument(
+        "--sequential-slice",
+        type=int,
+        default=4096,
+        help="time the sequential forward on this many tokens when L is longer and scale "
+        "linearly by L / slice (its per-step cost does not depend on L)",
+    )
     args = ap.parse_args()
 
     preset = PRESETS[args.preset]
@@ -178,9 +181,7 @@ def main() -> None:
                     fn_args = tuple(a[:, :m] if a.ndim > 1 else a for a in fn_args)
                     row["extrapolated_from_L"], scale = m, L / m
                 elif need > mem_limit:
-                    row["skipped"] = (
-                        f"predicted activations {need / 2**30:.1f} GiB > limit {mem_limit / 2**30:.1f} GiB"
-                    )
+                    row["skipped"] = f"predicted activations {need / 2**30:.1f} GiB > limit {mem_limit / 2**30:.1f} GiB"
                     print(f"L={L:6d} {method:20s} {name:8s} skipped: {row['skipped']}", flush=True)
                     continue
                 try:
@@ -208,7 +209,11 @@ def main() -> None:
         for row, _, _, _ in jobs:
             ts = times[id(row)]
             row.update(seconds_median=statistics.median(ts), seconds_min=min(ts))
-            gflop = _flops(row["method"], L, b, nh, P, g, n, row["chunk_size"]) * (3 if row["pass"] == "fwd+bwd" else 1) / 1e9
+            gflop = (
+                _flops(row["method"], L, b, nh, P, g, n, row["chunk_size"])
+                * (3 if row["pass"] == "fwd+bwd" else 1)
+                / 1e9
+            )
             row["gflop"] = gflop
             row["gflops_achieved"] = gflop / row["seconds_min"]
             row["fraction_of_matmul"] = row["gflops_achieved"] / matmul["gflops"]
@@ -251,8 +256,16 @@ def main() -> None:
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "preset": args.preset,
         "sizes": {
-            "d_model": args.d_model, "d_inner": d_inner, "nheads": nh, "headdim": P, "d_state": n,
-            "ngroups": g, "chunk_size": Q, "fused_chunk_size": args.fused_chunk, "batch": b, "dtype": args.dtype,
+            "d_model": args.d_model,
+            "d_inner": d_inner,
+            "nheads": nh,
+            "headdim": P,
+            "d_state": n,
+            "ngroups": g,
+            "chunk_size": Q,
+            "fused_chunk_size": args.fused_chunk,
+            "batch": b,
+            "dtype": args.dtype,
         },
         "repeats": repeats,
         "matmul_reference_by_L": matmul_by_L,

@@ -91,8 +91,18 @@ def _device_peak() -> int | None:
     return None if not stats else int(stats.get("peak_bytes_in_use", 0))
 
 
-def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats: int, oracle_max_work: float,
-              oracle_max_bytes: float, seed: int, fitted: bool = False) -> dict:
+def bench_one(
+    n: int,
+    width: int,
+    height: int,
+    f: int,
+    cfg: SplatConfig,
+    repeats: int,
+    oracle_max_work: float,
+    oracle_max_bytes: float,
+    seed: int,
+    fitted: bool = False,
+) -> dict:
     rng = np.random.default_rng(seed)
     means, quats, scales, opac, feats, c2w, intr = make_scene(rng, n, f, height, width)
     if fitted:
@@ -111,9 +121,16 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
     fwd_compile_s, fwd_s, out = _time(forward, args, repeats)
     stats = out.stats
     row = {
-        "capacity_rule": "fitted" if fitted else "default", "n": n, "width": width, "height": height, "pixels": width * height, "features": f,
-        "num_visible": int(stats.num_visible), "num_intersections": int(stats.num_intersections),
-        "capacity": int(stats.capacity), "overflow": bool(stats.overflow),
+        "capacity_rule": "fitted" if fitted else "default",
+        "n": n,
+        "width": width,
+        "height": height,
+        "pixels": width * height,
+        "features": f,
+        "num_visible": int(stats.num_visible),
+        "num_intersections": int(stats.num_intersections),
+        "capacity": int(stats.capacity),
+        "overflow": bool(stats.overflow),
         "max_tile_intersections": int(stats.max_tile_intersections),
     }
     row["fwd_compile_s"], row["fwd_s"] = fwd_compile_s, fwd_s
@@ -123,6 +140,7 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
     row["device_peak_bytes"] = _device_peak()
 
     if n * width * height <= oracle_max_work:
+
         def oracle(m, q, s, o, x):
             return render_features_reference(m, q, s, o, x, c2w, intr, height, width, cfg)
 
@@ -130,6 +148,7 @@ def bench_one(n: int, width: int, height: int, f: int, cfg: SplatConfig, repeats
         row["oracle_fwd_ratio"] = row["oracle_fwd_s"] / row["fwd_s"]
         residual_bytes = 4.0 * n * width * height * (f + 3)  # the scan carries per step
         if residual_bytes <= oracle_max_bytes:
+
             def oracle_loss(m, q, s, o, x):
                 return sum(jnp.sum(a * b) for a, b in zip(oracle(m, q, s, o, x), cot))
 
@@ -175,27 +194,36 @@ def main() -> None:
     parser.add_argument("--features", type=int, default=32, help="feature width F")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs after the compile (best is kept)")
     parser.add_argument("--chunk-size", type=int, default=SplatConfig.chunk_size, help="SplatConfig.chunk_size")
-    parser.add_argument("--tiles-per-group", type=int, default=SplatConfig.tiles_per_group,
-                        help="SplatConfig.tiles_per_group")
-    parser.add_argument("--composite-tile", type=int, default=SplatConfig.composite_tile,
-                        help="SplatConfig.composite_tile (pixels a side of a compositor block)")
-    parser.add_argument("--capacity", choices=("default", "fitted", "both"), default="both",
-                        help="intersection buffer: SplatConfig's default, fitted to the scene, or both")
+    parser.add_argument(
+        "--tiles-per-group", type=int, default=SplatConfig.tiles_per_group, help="SplatConfig.tiles_per_group"
+    )
+    parser.add_argument(
+        "--composite-tile",
+        type=int,
+        default=SplatConfig.composite_tile,
+        help="SplatConfig.composite_tile (pixels a side of a compositor block)",
+    )
+    parser.add_argument(
+        "--capacity",
+        choices=("default", "fitted", "both"),
+        default="both",
+        help="intersection buffer: SplatConfig's default, fitted to the scene, or both",
+    )
     parser.add_argument("--oracle-max-work", type=float, default=2e8, help="largest N x pixels for the oracle")
     parser.add_argument("--oracle-max-bytes", type=float, default=2e9, help="largest oracle fwd+bwd residuals")
     parser.add_argument("--quick", action="store_true", help="N in {1e4, 1e5}, canvases 128x128 and 256x256")
     parser.add_argument("--seed", type=int, default=0, help="scene seed")
     parser.add_argument("--rounds", type=int, default=1, help="sweeps; each row keeps its median time")
-    parser.add_argument("--out", default=os.path.join("runs", "bench", "bench_splat.json"),
-                        help="JSON file to write")
+    parser.add_argument("--out", default=os.path.join("runs", "bench", "bench_splat.json"), help="JSON file to write")
     args = parser.parse_args()
     if args.quick:
         args.n, args.canvas = [1e4, 1e5], ["128x128", "256x256"]
     if args.rounds < 1:
         parser.error(f"--rounds must be >= 1, got {args.rounds}")
 
-    cfg = SplatConfig(chunk_size=args.chunk_size, tiles_per_group=args.tiles_per_group,
-                      composite_tile=args.composite_tile)
+    cfg = SplatConfig(
+        chunk_size=args.chunk_size, tiles_per_group=args.tiles_per_group, composite_tile=args.composite_tile
+    )
     rules = {"default": [False], "fitted": [True], "both": [False, True]}[args.capacity]
 
     def sweep() -> list[dict]:
@@ -204,8 +232,18 @@ def main() -> None:
             width, height = (int(v) for v in canvas.lower().split("x"))
             for n in args.n:
                 for fitted in rules:
-                    row = bench_one(int(n), width, height, args.features, cfg, args.repeats, args.oracle_max_work,
-                                    args.oracle_max_bytes, args.seed, fitted)
+                    row = bench_one(
+                        int(n),
+                        width,
+                        height,
+                        args.features,
+                        cfg,
+                        args.repeats,
+                        args.oracle_max_work,
+                        args.oracle_max_bytes,
+                        args.seed,
+                        fitted,
+                    )
                     rows.append(row)
                     print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
         return rows
@@ -213,8 +251,12 @@ def main() -> None:
     rows = median_rows([sweep() for _ in range(args.rounds)])
 
     result = {
-        "device": str(jax.devices()[0]), "backend": jax.default_backend(), "jax": jax.__version__,
-        "host": platform.node(), "cpu_count": os.cpu_count(), "config": vars(args) | {"splat": repr(cfg)},
+        "device": str(jax.devices()[0]),
+        "backend": jax.default_backend(),
+        "jax": jax.__version__,
+        "host": platform.node(),
+        "cpu_count": os.cpu_count(),
+        "config": vars(args) | {"splat": repr(cfg)},
         "rows": rows,
         "exponents": {"fwd_s": fit_exponents(rows, "fwd_s"), "fwd_bwd_s": fit_exponents(rows, "fwd_bwd_s")},
     }

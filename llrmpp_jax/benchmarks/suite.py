@@ -45,8 +45,19 @@ SCALES: dict[str, dict[str, list[str]]] = {
     },
     # One accelerator: the paper's sequence lengths run.
     "paper": {
-        "attention": ["--lengths", "8192", "32768", "131072", "261122", "--run-lengths", "8192", "32768", "131072",
-                      "--dtype", "bfloat16"],
+        "attention": [
+            "--lengths",
+            "8192",
+            "32768",
+            "131072",
+            "261122",
+            "--run-lengths",
+            "8192",
+            "32768",
+            "131072",
+            "--dtype",
+            "bfloat16",
+        ],
         "scan": ["--preset", "full"],
         "splat": [],
         "model": ["--scale", "paper"],
@@ -56,8 +67,13 @@ SCALES: dict[str, dict[str, list[str]]] = {
 }
 
 
-def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS,
-                   views: tuple[int, ...] | None = None, size: tuple[int, int] | None = None) -> dict:
+def run_benchmarks(
+    scale: str,
+    out_dir: str,
+    only: tuple[str, ...] = BENCHMARKS,
+    views: tuple[int, ...] | None = None,
+    size: tuple[int, int] | None = None,
+) -> dict:
     """Run the ``only`` benchmarks at ``scale`` (a key of :data:`SCALES`); write
     ``<out_dir>/bench_<name>.json`` for each and ``<out_dir>/bench.json`` (the summary).
     ``views`` (input view counts) and ``size`` (H, W) replace the ``model`` benchmark's
@@ -72,8 +88,9 @@ def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS,
         from llrmpp_jax.benchmarks.paper import bench_scale, check_case
 
         if "model" not in only:
-            raise UserError(f"bench: --views/--size set the model benchmark's cases, which --only {','.join(only)} "
-                            "leaves out")
+            raise UserError(
+                f"bench: --views/--size set the model benchmark's cases, which --only {','.join(only)} leaves out"
+            )
         s = bench_scale(scale)
         views, size = views or s.views, size or (s.height, s.width)
         check_case(s.model, views, *size)
@@ -82,8 +99,15 @@ def run_benchmarks(scale: str, out_dir: str, only: tuple[str, ...] = BENCHMARKS,
     summary = {"scale": scale, "environment_at_start": environment(), "benchmarks": {}}
     for name in only:
         out = os.path.join(out_dir, f"bench_{name}.json")
-        cmd = [sys.executable, "-m", f"llrmpp_jax.benchmarks.{name}", *SCALES[scale][name],
-               *(model_args if name == "model" else []), "--out", out]
+        cmd = [
+            sys.executable,
+            "-m",
+            f"llrmpp_jax.benchmarks.{name}",
+            *SCALES[scale][name],
+            *(model_args if name == "model" else []),
+            "--out",
+            out,
+        ]
         t0 = time.perf_counter()
         # Output passes through: a benchmark stopped from outside (a time limit) leaves its
         # progress lines where the caller can see how far it got.

@@ -94,8 +94,9 @@ def convert_backbone(state_dict, cfg, *, dtype=np.float32, source: str = "state_
     mult = p * 2 ** len(cfg.merge_layers)
     pixels = jax.ShapeDtypeStruct((1, 1, mult, mult, 9), jnp.float32)
     expected = jax.eval_shape(Backbone(cfg, p).init, jax.random.key(0), pixels)["params"]
-    return convert_state_dict(state_dict, backbone_rules(), expected=expected,
-                              keep_prefixes=MODEL_PREFIXES[:4], dtype=dtype, source=source)
+    return convert_state_dict(
+        state_dict, backbone_rules(), expected=expected, keep_prefixes=MODEL_PREFIXES[:4], dtype=dtype, source=source
+    )
 
 
 def convert_long_lrm(state_dict, cfg, *, dtype=np.float32, source: str = "state_dict") -> dict:
@@ -112,8 +113,9 @@ def convert_long_lrm(state_dict, cfg, *, dtype=np.float32, source: str = "state_
         raise UserError("convert_long_lrm: Long-LRM checkpoints need a colour-mode ModelConfig")
     m = cfg.size_multiple
     expected = jax.eval_shape(lambda k: init_params(k, cfg, 1, m, m), jax.random.key(0))
-    return convert_state_dict(state_dict, long_lrm_rules(), expected=expected,
-                              keep_prefixes=MODEL_PREFIXES, dtype=dtype, source=source)
+    return convert_state_dict(
+        state_dict, long_lrm_rules(), expected=expected, keep_prefixes=MODEL_PREFIXES, dtype=dtype, source=source
+    )
 
 
 def unused_keys(state_dict) -> list[str]:
@@ -132,7 +134,9 @@ def convert_checkpoint(path: str, out: str, cfg, *, allow_unused: bool = False) 
     unused = unused_keys(state_dict)
     if unused and not allow_unused:
         more = " ..." if len(unused) > 5 else ""
-        raise UserError(f"{path}: {len(unused)} key(s) outside the model's prefixes {MODEL_PREFIXES}: "
-                         f"{', '.join(unused[:5])}{more} (pass --allow-unused to convert anyway)")
+        raise UserError(
+            f"{path}: {len(unused)} key(s) outside the model's prefixes {MODEL_PREFIXES}: "
+            f"{', '.join(unused[:5])}{more} (pass --allow-unused to convert anyway)"
+        )
     params = convert_long_lrm(state_dict, cfg, source=path)
     return save_params(out, params, cfg), unused

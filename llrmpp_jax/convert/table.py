@@ -112,8 +112,7 @@ def convert_state_dict(
         for path in sorted(set(want) & set(flat)):
             if tuple(want[path].shape) != flat[path].shape:
                 problems.append(
-                    f"parameter {path!r}: the model's shape {tuple(want[path].shape)}, the file's "
-                    f"{flat[path].shape}"
+                    f"parameter {path!r}: the model's shape {tuple(want[path].shape)}, the file's {flat[path].shape}"
                 )
     if problems:
         shown = "; ".join(problems[:3])
@@ -151,14 +150,14 @@ def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
     try:
         import torch
     except ImportError as e:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            f"reading {path} needs torch: pip install 'llrmpp-jax[torch]'"
-        ) from e
+        raise ImportError(f"reading {path} needs torch: pip install 'llrmpp-jax[torch]'") from e
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
-        raise UserError(f"{path}: holds Python objects other than tensors, which torch will not unpickle safely "
-                         "(weights_only=True); save the weights alone with torch.save(model.state_dict(), path)") from None
+        raise UserError(
+            f"{path}: holds Python objects other than tensors, which torch will not unpickle safely "
+            "(weights_only=True); save the weights alone with torch.save(model.state_dict(), path)"
+        ) from None
     except (RuntimeError, EOFError, OSError) as e:
         first = (str(e).splitlines() or [type(e).__name__])[0]
         raise UserError(f"{path}: not a readable torch checkpoint or .npz archive ({first})") from None

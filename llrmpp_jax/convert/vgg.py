@@ -130,6 +130,4 @@ def convert_vgg(
         }
         for name, _, cin, cout in layers[:n_weights]
     }
-    return convert_state_dict(
-        state_dict, vgg_rules(arch), expected=expected, keep_prefixes=prefixes, source=source
-    )
+    return convert_state_dict(state_dict, vgg_rules(arch), expected=expected, keep_prefixes=prefixes, source=source)

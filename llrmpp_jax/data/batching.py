@@ -125,11 +125,21 @@ def build_sample(source: SceneSource, cfg: BatchConfig, rng: np.random.Generator
         inputs = inputs[::-1]
     if cfg.shuffle_prob > 0 and rng.random() < cfg.shuffle_prob:
         inputs = rng.permutation(inputs)
-    return make_sample(scene, inputs, targets, cfg.geometry, rng=rng, with_depth=cfg.with_depth,
-                       scene_scale=cfg.scene_scale, rescale=cfg.rescale)
+    return make_sample(
+        scene,
+        inputs,
+        targets,
+        cfg.geometry,
+        rng=rng,
+        with_depth=cfg.with_depth,
+        scene_scale=cfg.scene_scale,
+        rescale=cfg.rescale,
+    )
 
 
-def build_element(source: SceneSource, cfg: BatchConfig, seed: int, step: int, b: int) -> tuple[dict[str, np.ndarray], list[str]]:
+def build_element(
+    source: SceneSource, cfg: BatchConfig, seed: int, step: int, b: int
+) -> tuple[dict[str, np.ndarray], list[str]]:
     """Element ``b`` of the global batch of ``step``: ``(sample, skipped)``, ``skipped`` one
     line per bad scene passed over before it (each retry draws another scene). Raises
     ``RuntimeError`` after ``cfg.max_attempts`` bad scenes in a row."""
@@ -194,8 +204,10 @@ class BatchIterator:
             raise UserError(f"global_batch {cfg.global_batch} does not split over {process_count} processes")
         local = cfg.global_batch // process_count
         if local % num_devices:
-            raise UserError(f"local batch {local} (global {cfg.global_batch} / {process_count} processes) "
-                             f"does not split over {num_devices} devices")
+            raise UserError(
+                f"local batch {local} (global {cfg.global_batch} / {process_count} processes) "
+                f"does not split over {num_devices} devices"
+            )
         if len(source) < 1:
             raise UserError("BatchIterator: the scene source is empty")
         if seed < 0 or start_step < 0:
@@ -210,8 +222,12 @@ class BatchIterator:
         self._processes = None
         if worker_processes:
             # spawn, not fork: the parent runs JAX's threads, which a fork would copy mid-state
-            self._processes = ProcessPoolExecutor(max(1, num_workers), mp_context=multiprocessing.get_context("spawn"),
-                                                  initializer=_init_process, initargs=(source, cfg))
+            self._processes = ProcessPoolExecutor(
+                max(1, num_workers),
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_process,
+                initargs=(source, cfg),
+            )
         # with processes, the threads only gather elements: one per batch in flight
         threads = self._prefetch + 1 if worker_processes else max(1, num_workers)
         self._pool = ThreadPoolExecutor(max_workers=threads)

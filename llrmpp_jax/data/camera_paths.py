@@ -24,7 +24,9 @@ WORLD_UP = np.array([0.0, 0.0, 1.0])
 
 
 def look_at(
-    eye: Float[np.ndarray, "frames 3"], target: Float[np.ndarray, "frames 3"], roll: Float[np.ndarray, " frames"] | None = None
+    eye: Float[np.ndarray, "frames 3"],
+    target: Float[np.ndarray, "frames 3"],
+    roll: Float[np.ndarray, " frames"] | None = None,
 ) -> Float[np.ndarray, "frames 4 4"]:
     """OpenCV camera-to-world looking from ``eye`` at ``target`` with world z up (image
     rows point down the world), optionally rolled by ``roll`` radians about the view axis."""
@@ -54,7 +56,9 @@ def orbit_path(
     start = rng.uniform(0, 2 * np.pi)
     t = np.linspace(0.0, 1.0, n)
     angle = start + arc * t * (1 if rng.random() < 0.5 else -1)
-    radius = rng.uniform(min_radius, max_radius) + 0.15 * (max_radius - min_radius) * np.sin(2 * np.pi * t + rng.uniform(0, 6.3))
+    radius = rng.uniform(min_radius, max_radius) + 0.15 * (max_radius - min_radius) * np.sin(
+        2 * np.pi * t + rng.uniform(0, 6.3)
+    )
     radius = np.clip(radius, min_radius, max_radius)
     height = rng.uniform(0.7, 2.0) + 0.25 * np.sin(np.pi * t * rng.uniform(1, 3))
     eye = np.stack([center[0] + radius * np.cos(angle), center[1] + radius * np.sin(angle), height], axis=1)
@@ -84,7 +88,10 @@ def walk_path(rng: np.random.Generator, n: int, half_x: float, half_y: float) ->
     heading = np.zeros((n, 3))
     heading[:, axis] = direction
     cos_y, sin_y = np.cos(yaw), np.sin(yaw)
-    fwd = np.stack([heading[:, 0] * cos_y - heading[:, 1] * sin_y, heading[:, 0] * sin_y + heading[:, 1] * cos_y, np.tan(pitch)], axis=1)
+    fwd = np.stack(
+        [heading[:, 0] * cos_y - heading[:, 1] * sin_y, heading[:, 0] * sin_y + heading[:, 1] * cos_y, np.tan(pitch)],
+        axis=1,
+    )
     return look_at(eye, eye + fwd, roll=rng.normal(0.0, 0.02, size=n))
 
 

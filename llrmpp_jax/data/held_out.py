@@ -14,9 +14,16 @@ from llrmpp_jax.data.selection import checked_inputs, eval_views, every_nth
 from llrmpp_jax.data.sources import EVAL_EVERY
 
 
-def eval_split(scene: Scene, num_inputs: int, inputs: str = "kmeans", max_frames: int | None = None,
-               json_path: str | None = None, index: dict[str, dict] | None = None, index_name: str = "the index",
-               every: int = EVAL_EVERY) -> tuple[np.ndarray, np.ndarray, str]:
+def eval_split(
+    scene: Scene,
+    num_inputs: int,
+    inputs: str = "kmeans",
+    max_frames: int | None = None,
+    json_path: str | None = None,
+    index: dict[str, dict] | None = None,
+    index_name: str = "the index",
+    every: int = EVAL_EVERY,
+) -> tuple[np.ndarray, np.ndarray, str]:
     """The paper's evaluation split of one held-out ``scene``: ``(inputs, targets, how)``,
     index arrays ``[num_inputs]`` and ``[T]`` into its frames, and ``how`` a line saying
     what was used.
@@ -33,8 +40,10 @@ def eval_split(scene: Scene, num_inputs: int, inputs: str = "kmeans", max_frames
         chosen, targets = eval_views(scene.c2w, num_inputs, every, max_frames, inputs="uniform")
         first = max_frames is not None and n >= max_frames
         used = max_frames if first else n
-        how = (f"targets every {every}th of {'the first' if first else 'all'} {used} frames, "
-               f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}")
+        how = (
+            f"targets every {every}th of {'the first' if first else 'all'} {used} frames, "
+            f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}"
+        )
         if max_frames is not None and n < max_frames:
             how = f"only {n} frames, fewer than {max_frames}: {how}"
         return chosen, targets, how

@@ -120,8 +120,9 @@ def write_image(path: str, image: Float[np.ndarray, "H W 3"], bits: int = 8) -> 
         raise UserError(f"write_image {path}: bits must be 8, 16 or 32, got {bits}")
 
 
-def write_depth(path: str, depth: Float[np.ndarray, "H W"], scale: float | None = 1e-3,
-                attributes: dict[str, str] | None = None) -> None:
+def write_depth(
+    path: str, depth: Float[np.ndarray, "H W"], scale: float | None = 1e-3, attributes: dict[str, str] | None = None
+) -> None:
     """Write a ``[H, W]`` depth map: ``scale`` given -> 16-bit integers ``round(depth / scale)``
     (PNG; ``ValueError`` if a value exceeds 65535 units); ``scale=None`` -> float32 (EXR).
     ``attributes``: metadata written into the file's header (e.g. what the values mean)."""

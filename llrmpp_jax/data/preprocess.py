@@ -68,7 +68,9 @@ def resized_size(hw: tuple[IntLike, IntLike], geom: ViewGeometry) -> tuple[int, 
     m = geom.multiple
     out = (int(round(rh / m)) * m, int(round(rw / m)) * m)
     if min(out) <= 0:
-        raise UserError(f"resized size {out} from {hw} with {geom} is empty; choose a larger resize or smaller multiple")
+        raise UserError(
+            f"resized size {out} from {hw} with {geom} is empty; choose a larger resize or smaller multiple"
+        )
     return out
 
 
@@ -102,7 +104,9 @@ def zoom_offset(hw: tuple[int, int], r: float) -> tuple[int, int]:
     return tuple((int(math.floor(float(n) * scale)) - n) // 2 for n in hw)
 
 
-def zoom_intrinsics(intrinsics: Float[np.ndarray, "... 4"], r: float, offset: tuple[int, int]) -> Float[np.ndarray, "... 4"]:
+def zoom_intrinsics(
+    intrinsics: Float[np.ndarray, "... 4"], r: float, offset: tuple[int, int]
+) -> Float[np.ndarray, "... 4"]:
     """Exact intrinsics after step 3: every coordinate scales by ``1/r``, then the crop
     moves the principal point by ``-(left, top)``."""
     return crop_intrinsics(np.asarray(intrinsics, np.float64) / r, offset[0], offset[1])
@@ -174,8 +178,9 @@ def make_sample(
     zoom = draw_zoom(geom, rng)
     in_img, in_k, _ = load_views(scene, inputs, resized, box, zoom, False)
     tg_img, tg_k, tg_depth = load_views(scene, targets, resized, box, zoom, with_depth)
-    in_c2w, tg_c2w, _, scale = normalize_scene(scene.c2w[inputs], scene.c2w[targets], scene_scale=scene_scale,
-                                              rescale=rescale)
+    in_c2w, tg_c2w, _, scale = normalize_scene(
+        scene.c2w[inputs], scene.c2w[targets], scene_scale=scene_scale, rescale=rescale
+    )
     sample = {
         "input_images": in_img,
         "input_c2w": in_c2w.astype(np.float32),

@@ -128,7 +128,9 @@ class Scene:
         """The scene restricted to ``indices`` (in that order); loaders are re-indexed."""
         idx = np.asarray(indices, dtype=np.int64)
         if idx.ndim != 1 or idx.size == 0 or (idx < 0).any() or (idx >= len(self)).any():
-            raise UserError(f"scene {self.name!r}: subset indices must be a non-empty list in [0, {len(self)}), got {indices}")
+            raise UserError(
+                f"scene {self.name!r}: subset indices must be a non-empty list in [0, {len(self)}), got {indices}"
+            )
         image_fn, depth_fn = self.image_fn, self.depth_fn
         return dataclasses.replace(
             self,

@@ -74,9 +74,7 @@ def eval_views(
     return rest[uniform_inputs(len(rest), num_inputs)], targets
 
 
-def checked_inputs(
-    indices: Sequence[int], num_frames: int, num_inputs: int, source: str
-) -> Int[np.ndarray, " V"]:
+def checked_inputs(indices: Sequence[int], num_frames: int, num_inputs: int, source: str) -> Int[np.ndarray, " V"]:
     """Precomputed input indices (e.g. Long-LRM's cached k-means ones) as sorted int64;
     ``ValueError`` (one line naming ``source``) unless they are ``num_inputs`` integers in
     ``[0, num_frames)``."""

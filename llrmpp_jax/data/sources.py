@@ -25,8 +25,7 @@ def dataset_source(path: str, kind: formats.Format, scene_list: str | None = Non
     """The scenes of the dataset at ``path`` of format ``kind`` (a readable format of
     :func:`~llrmpp_jax.data.formats.read_scene`): every scene, or with ``scene_list`` (a text
     file of scene names, one a line) those it names, in its order."""
-    paths = (formats.listed_scenes(path, scene_list) if scene_list is not None
-             else formats.dataset_scenes(path, kind))
+    paths = formats.listed_scenes(path, scene_list) if scene_list is not None else formats.dataset_scenes(path, kind)
     return FileSource(paths, functools.partial(formats.read_scene, kind=kind))
 
 

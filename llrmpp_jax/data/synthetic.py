@@ -55,7 +55,9 @@ class Layout:
     texture: Int[np.ndarray, " boxes+spheres+quads"]
     tint: Float[np.ndarray, "boxes+spheres+quads 3"]
     texels_per_m: Float[np.ndarray, " boxes+spheres+quads"]
-    light_dir: Float[np.ndarray, " 3"] = field(default_factory=lambda: np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9]))
+    light_dir: Float[np.ndarray, " 3"] = field(
+        default_factory=lambda: np.array([0.35, 0.25, 0.9]) / np.linalg.norm([0.35, 0.25, 0.9])
+    )
 
     @property
     def num_primitives(self) -> int:
@@ -179,7 +181,11 @@ _CHUNK = 1 << 14  # rays per pass: keeps every temporary (~128 KiB) in cache
 
 
 def render_views(
-    lay: Layout, c2w: Float[np.ndarray, "frames 4 4"], intrinsics: Float[np.ndarray, "frames 4"], height: int, width: int
+    lay: Layout,
+    c2w: Float[np.ndarray, "frames 4 4"],
+    intrinsics: Float[np.ndarray, "frames 4"],
+    height: int,
+    width: int,
 ) -> Rendered:
     """Ray-cast one view per camera of ``lay`` at ``height x width`` (pixel centres, OpenCV cameras)."""
     c2w = np.asarray(c2w, dtype=np.float64)
@@ -249,7 +255,9 @@ class ProceduralConfig:
             raise ValueError(f"ProceduralConfig: height, width, num_frames must be positive, got {self}")
         bad = set(self.path_kinds) - set(PATH_KINDS)
         if bad or not self.path_kinds:
-            raise ValueError(f"ProceduralConfig: path_kinds must be a non-empty subset of {PATH_KINDS}, got {self.path_kinds}")
+            raise ValueError(
+                f"ProceduralConfig: path_kinds must be a non-empty subset of {PATH_KINDS}, got {self.path_kinds}"
+            )
 
 
 def _tint(rng: np.random.Generator, grey: bool) -> np.ndarray:
@@ -263,7 +271,9 @@ def _yaw_rot(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def procedural_layout(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> tuple[Layout, np.ndarray, np.ndarray, str]:
+def procedural_layout(
+    seed: int, cfg: ProceduralConfig = ProceduralConfig()
+) -> tuple[Layout, np.ndarray, np.ndarray, str]:
     """Scene layout, cameras and path kind for ``seed``: ``(layout, c2w [frames, 4, 4],
     intrinsics [frames, 4], kind)``. Deterministic: the same seed and config give the same scene.
     Objects never contain a camera (0.35 m clearance)."""
@@ -283,7 +293,13 @@ def procedural_layout(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> 
         slack_x, slack_y = (max(0.0, h - 0.6 - min_r) for h in (hx, hy))
         centre = np.array([rng.uniform(-slack_x, slack_x), rng.uniform(-slack_y, slack_y), 0.0])
         if rng.random() < 0.5:
-            boxes.append((centre + [0, 0, size], _yaw_rot(rng.uniform(0, np.pi)), np.array([size, size * rng.uniform(0.6, 1.2), size])))
+            boxes.append(
+                (
+                    centre + [0, 0, size],
+                    _yaw_rot(rng.uniform(0, np.pi)),
+                    np.array([size, size * rng.uniform(0.6, 1.2), size]),
+                )
+            )
             top = 2 * size
         else:
             spheres.append((centre + [0, 0, size], size))
@@ -311,7 +327,13 @@ def procedural_layout(seed: int, cfg: ProceduralConfig = ProceduralConfig()) -> 
             boxes.append((c, _yaw_rot(rng.uniform(0, np.pi)), half))
     for _ in range(int(rng.integers(cfg.num_spheres[0], cfg.num_spheres[1] + 1))):
         r = rng.uniform(0.15, 0.5)
-        c = np.array([rng.uniform(-hx + r, hx - r), rng.uniform(-hy + r, hy - r), r + (rng.uniform(0, 1.2) if rng.random() < 0.4 else 0)])
+        c = np.array(
+            [
+                rng.uniform(-hx + r, hx - r),
+                rng.uniform(-hy + r, hy - r),
+                r + (rng.uniform(0, 1.2) if rng.random() < 0.4 else 0),
+            ]
+        )
         if clear(c, r):
             spheres.append((c, r))
     # Room faces, 1 mm oversized so that rays into an edge or corner cannot slip between faces.

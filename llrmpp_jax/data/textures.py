@@ -19,12 +19,37 @@ from llrmpp_jax.array_typing import Float, Int
 
 # Photographs shipped inside scikit-image (no download needed), by loader name.
 _PHOTOS = (
-    "text", "page", "brick", "astronaut", "checkerboard", "camera", "coffee", "chelsea", "grass",
-    "gravel", "rocket", "coins", "moon", "hubble_deep_field", "immunohistochemistry", "clock",
+    "text",
+    "page",
+    "brick",
+    "astronaut",
+    "checkerboard",
+    "camera",
+    "coffee",
+    "chelsea",
+    "grass",
+    "gravel",
+    "rocket",
+    "coins",
+    "moon",
+    "hubble_deep_field",
+    "immunohistochemistry",
+    "clock",
 )
 # Textures that carry text or a single picture: shown once on a poster, never tiled.
-POSTER_TEXTURES = ("text", "page", "astronaut", "camera", "coffee", "chelsea", "rocket", "coins", "clock",
-                   "hubble_deep_field", "checkerboard")
+POSTER_TEXTURES = (
+    "text",
+    "page",
+    "astronaut",
+    "camera",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "coins",
+    "clock",
+    "hubble_deep_field",
+    "checkerboard",
+)
 _PATTERN_SIZE = 256
 
 

@@ -61,8 +61,7 @@ def multi_head_attention(
     """
     if implementation not in ATTENTION_IMPLEMENTATIONS:
         raise ValueError(
-            f"multi_head_attention: implementation must be one of {ATTENTION_IMPLEMENTATIONS}, "
-            f"got {implementation!r}"
+            f"multi_head_attention: implementation must be one of {ATTENTION_IMPLEMENTATIONS}, got {implementation!r}"
         )
     if q.ndim < 3 or k.ndim != q.ndim or v.shape != k.shape:
         raise ValueError(
@@ -70,9 +69,7 @@ def multi_head_attention(
             f"k.shape == v.shape, got q {q.shape}, k {k.shape}, v {v.shape}"
         )
     if q.shape[:-3] != k.shape[:-3] or q.shape[-2:] != k.shape[-2:]:
-        raise ValueError(
-            f"multi_head_attention: q {q.shape} and k {k.shape} must share batch dims, nh and hd"
-        )
+        raise ValueError(f"multi_head_attention: q {q.shape} and k {k.shape} must share batch dims, nh and hd")
     batch = q.shape[:-3]
     nb = math.prod(batch)
     lq, nh, hd = q.shape[-3:]
@@ -163,7 +160,11 @@ class Attention(nn.Module):
         _check_width(x, self.dim, "Attention")
         q, k, v = _qkv_heads(x, self.dim, self.head_dim, self.qk_norm, self.norm_eps, self.dtype)
         o = multi_head_attention(
-            q, k, v, implementation=self.implementation,
-            block_q=self.block_sizes[0], block_k=self.block_sizes[1],
+            q,
+            k,
+            v,
+            implementation=self.implementation,
+            block_q=self.block_sizes[0],
+            block_k=self.block_sizes[1],
         )
         return _out_proj(o, self.dim, self.dtype)

@@ -55,9 +55,7 @@ def parse_block_pattern(pattern: str, allowed: str, num_layers: int | None = Non
         raise ValueError(f"block pattern {pattern!r}: letters {bad} not in {allowed!r}")
     if num_layers is not None:
         if len(layout) > num_layers:
-            raise ValueError(
-                f"block pattern {pattern!r} expands to {len(layout)} blocks > num_layers={num_layers}"
-            )
+            raise ValueError(f"block pattern {pattern!r} expands to {len(layout)} blocks > num_layers={num_layers}")
         layout = (layout * (num_layers // len(layout) + 1))[:num_layers]
     return layout
 
@@ -87,8 +85,12 @@ class TokenMerge(nn.Module):
         g = nn.Dense(self.d_out, name="resize")(global_tokens)
         img = tokens.reshape(b * views, h, w, self.d_in)
         img = nn.Conv(
-            self.d_out, (2, 2), strides=(2, 2), padding="VALID",
-            feature_group_count=self.d_in, name="conv",
+            self.d_out,
+            (2, 2),
+            strides=(2, 2),
+            padding="VALID",
+            feature_group_count=self.d_in,
+            name="conv",
         )(img)
         return g, img.reshape(b, views * (h // 2) * (w // 2), self.d_out), (h // 2, w // 2)
 

@@ -240,12 +240,14 @@ def blockwise_attention(
     lk = k.shape[1]
     for name, a in (("bias", bias), ("mask", mask)):
         if a is not None and (
-            a.ndim != 4 or a.shape[0] not in (1, b) or a.shape[1] not in (1, nh)
-            or a.shape[2] not in (1, lq) or a.shape[3] != lk
+            a.ndim != 4
+            or a.shape[0] not in (1, b)
+            or a.shape[1] not in (1, nh)
+            or a.shape[2] not in (1, lq)
+            or a.shape[3] != lk
         ):
             raise ValueError(
-                f"blockwise_attention: {name} has shape {a.shape}, expected [B|1, nh|1, Lq|1, Lk] "
-                f"= {(b, nh, lq, lk)}"
+                f"blockwise_attention: {name} has shape {a.shape}, expected [B|1, nh|1, Lq|1, Lk] = {(b, nh, lq, lk)}"
             )
     bq, bk = min(block_q, lq), min(block_k, lk)
     qp = _pad_to(q, 1, bq)

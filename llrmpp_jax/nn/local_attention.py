@@ -50,9 +50,7 @@ def _window_radius(h: int, w: int, kn: int) -> int:
 
 
 @functools.lru_cache(maxsize=64)
-def neighbour_table(
-    h: int, w: int, k: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def neighbour_table(h: int, w: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Static k-nearest-neighbour table of an ``h x w`` token grid (NumPy, module doc's rule).
 
     Returns, with ``L = h*w`` and ``kn = min(k, L)``:
@@ -68,8 +66,12 @@ def neighbour_table(
     n = h * w
     kn = min(k, n)
     r = _window_radius(h, w, kn)
-    dy, dx = (a.ravel() for a in np.meshgrid(np.arange(-min(h - 1, r), min(h - 1, r) + 1),
-                                             np.arange(-min(w - 1, r), min(w - 1, r) + 1), indexing="ij"))
+    dy, dx = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.arange(-min(h - 1, r), min(h - 1, r) + 1), np.arange(-min(w - 1, r), min(w - 1, r) + 1), indexing="ij"
+        )
+    )
     order = np.lexsort((dx, dy, dy * dy + dx * dx))
     cand = np.stack([dy[order], dx[order]], axis=-1)  # [C, 2], tie-rule order
     ty, tx = np.divmod(np.arange(n), w)
@@ -96,9 +98,7 @@ def relative_position_features(offsets: Int[np.ndarray, "U 2"]) -> Float[np.ndar
     """
     offsets = np.asarray(offsets)
     if offsets.ndim != 2 or offsets.shape[1] != 2:
-        raise ValueError(
-            f"relative_position_features: offsets must be [k, 2] (dy, dx), got shape {offsets.shape}"
-        )
+        raise ValueError(f"relative_position_features: offsets must be [k, 2] (dy, dx), got shape {offsets.shape}")
     dy, dx = offsets[:, 0].astype(np.float64), offsets[:, 1].astype(np.float64)
     dist = np.hypot(dx, dy)
     safe = np.where(dist > 0, dist, 1.0)
@@ -211,9 +211,7 @@ def local_attention(
         raise ValueError(f"local_attention: index {index.shape} must be [L, kn] with L={length}")
     kn = index.shape[1]
     if bias.shape != (length, kn, nh):
-        raise ValueError(
-            f"local_attention: bias has shape {bias.shape}, expected [L, kn, nh] = {(length, kn, nh)}"
-        )
+        raise ValueError(f"local_attention: bias has shape {bias.shape}, expected [L, kn, nh] = {(length, kn, nh)}")
     batch = q.shape[:-3]
     flat = lambda a: a.reshape(-1, length, nh, hd)  # noqa: E731
     q, k, v, bias = common_variance(flat(q), flat(k), flat(v), bias)
@@ -238,9 +236,7 @@ class RelativePositionBias(nn.Module):
     def __call__(self, feats: Float[Array, "U 5"]) -> Float[Array, "U nh"]:
         y = nn.Dense(self.hidden, kernel_init=DENSE_INIT, dtype=self.dtype, name="fc1")(feats)
         y = nn.gelu(y, approximate=False)
-        return nn.Dense(
-            self.num_heads, use_bias=False, kernel_init=DENSE_INIT, dtype=self.dtype, name="fc2"
-        )(y)
+        return nn.Dense(self.num_heads, use_bias=False, kernel_init=DENSE_INIT, dtype=self.dtype, name="fc2")(y)
 
 
 class LocalAttention(nn.Module):

@@ -155,8 +155,14 @@ def mamba2_scan_direction(proj: InProj, params: dict[str, ArrayLike], cfg: Mamba
     dt = jax.nn.softplus(proj.dt.astype(acc) + params["dt_bias"].astype(acc).reshape(*lead1, nh))
     A = -jnp.exp(params["A_log"].astype(acc))
     y = ssd_scan(
-        x.reshape(*lead, L, nh, cfg.headdim), dt, A, B.reshape(*lead, L, g, n), C.reshape(*lead, L, g, n),
-        chunk_size=cfg.chunk_size, D=params["D"].astype(acc), inter_chunk=cfg.resolved_inter_chunk(),
+        x.reshape(*lead, L, nh, cfg.headdim),
+        dt,
+        A,
+        B.reshape(*lead, L, g, n),
+        C.reshape(*lead, L, g, n),
+        chunk_size=cfg.chunk_size,
+        D=params["D"].astype(acc),
+        inter_chunk=cfg.resolved_inter_chunk(),
     )
     return gated_rms_norm(y.reshape(*lead, L, d_inner), proj.z, params["norm_scale"], cfg.norm_eps)
 
@@ -183,8 +189,9 @@ def mamba2_block(params: Params, x: Float[Array, "... L D"], cfg: Mamba2Config) 
         flipped = InProj(*(jnp.flip(a, axis=-2) for a in proj))
         if cfg.remat_directions:  # a loop of two: the backward holds one direction at a time
             run = remat_after_cotangent(lambda p, w: mamba2_scan_direction(p, w, cfg))
-            pair = jax.tree.map(lambda *a: jnp.stack(a), (proj, params["mamba_scans_0"]),
-                                (flipped, params["mamba_scans_1"]))
+            pair = jax.tree.map(
+                lambda *a: jnp.stack(a), (proj, params["mamba_scans_0"]), (flipped, params["mamba_scans_1"])
+            )
             y0, y1 = jax.lax.map(lambda pw: run(*pw), pair)
         else:
             y0 = mamba2_scan_direction(proj, params["mamba_scans_0"], cfg)

@@ -22,18 +22,14 @@ def _lead(scale: ArrayLike, x: ArrayLike) -> ArrayLike:
     return scale.reshape((1,) * (x.ndim - 1) + scale.shape)
 
 
-def rms_norm(
-    x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5
-) -> Float[Array, "... C"]:
+def rms_norm(x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5) -> Float[Array, "... C"]:
     """``x / sqrt(mean(x**2) + eps) * scale`` over the last axis."""
     xf = x.astype(_compute_dtype(x))
     inv = jax.lax.rsqrt(jnp.mean(jnp.square(xf), axis=-1, keepdims=True) + eps)
     return (xf * inv * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)
 
 
-def layer_norm(
-    x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5
-) -> Float[Array, "... C"]:
+def layer_norm(x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5) -> Float[Array, "... C"]:
     """LayerNorm without bias over the last axis (biased variance, as PyTorch)."""
     xf = x.astype(_compute_dtype(x))
     mean = jnp.mean(xf, axis=-1, keepdims=True)

@@ -29,9 +29,7 @@ def patchify(x: Float[ArrayLike, "... V H W C"], p: int) -> Float[Array, "... L 
         raise ValueError(f"patchify: x must be [..., V, H, W, C], got shape {x.shape}")
     *lead, v, hh, ww, c = x.shape
     if hh % p or ww % p:
-        raise ValueError(
-            f"patchify: image size H={hh}, W={ww} (x shape {x.shape}) must be multiples of p={p}"
-        )
+        raise ValueError(f"patchify: image size H={hh}, W={ww} (x shape {x.shape}) must be multiples of p={p}")
     h, w = hh // p, ww // p
     n = len(lead)
     x = x.reshape(*lead, v, h, p, w, p, c)
@@ -40,9 +38,7 @@ def patchify(x: Float[ArrayLike, "... V H W C"], p: int) -> Float[Array, "... L 
     return jnp.transpose(x, perm).reshape(*lead, v * h * w, p * p * c)
 
 
-def unpatchify(
-    tokens: Float[ArrayLike, "... L pC"], p: int, v: int, h: int, w: int
-) -> Float[Array, "... V H W C"]:
+def unpatchify(tokens: Float[ArrayLike, "... L pC"], p: int, v: int, h: int, w: int) -> Float[Array, "... V H W C"]:
     """Exact inverse of :func:`patchify`: ``[..., V*h*w, p*p*C] -> [..., V, h*p, w*p, C]``.
 
     ``h, w`` is the token grid per view; ``C`` is inferred from the last axis.
@@ -57,13 +53,11 @@ def unpatchify(
     *lead, length, feat = tokens.shape
     if length != v * h * w:
         raise ValueError(
-            f"unpatchify: tokens shape {tokens.shape} has L={length} tokens, expected "
-            f"v*h*w = {v}*{h}*{w} = {v * h * w}"
+            f"unpatchify: tokens shape {tokens.shape} has L={length} tokens, expected v*h*w = {v}*{h}*{w} = {v * h * w}"
         )
     if feat % (p * p):
         raise ValueError(
-            f"unpatchify: tokens shape {tokens.shape} has {feat} features per token, "
-            f"not a multiple of p*p = {p * p}"
+            f"unpatchify: tokens shape {tokens.shape} has {feat} features per token, not a multiple of p*p = {p * p}"
         )
     c = feat // (p * p)
     n = len(lead)

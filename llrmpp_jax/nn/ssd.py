@@ -276,8 +276,9 @@ class _FusedMeta(NamedTuple):
 _Chunk = tuple
 
 
-def _fused_step(meta: _FusedMeta, choose_per_chunk: bool, state: Array, chunk: _Chunk, factored: Array,
-                skip: Array | None) -> tuple[Array, Array]:
+def _fused_step(
+    meta: _FusedMeta, choose_per_chunk: bool, state: Array, chunk: _Chunk, factored: Array, skip: Array | None
+) -> tuple[Array, Array]:
     """One chunk of :func:`_ssd_fused`: ``(state entering it, its inputs) -> (state leaving it, y)``.
 
     ``state`` is ``[b, g, n, hg, P]`` (``meta.acc``); ``y`` is ``[b, Q, g, hg, P]`` in
@@ -363,13 +364,11 @@ def _chunk_loop_bwd(meta, res, dy):
         def body(carry, inputs):
             d_state, d_skip = carry
             chunk, factored, state, dy_c = inputs
-            _, vjp = jax.vjp(lambda s, c, k: _fused_step(meta, choose_per_chunk, s, c, factored, k),
-                             state, chunk, skip)
+            _, vjp = jax.vjp(lambda s, c, k: _fused_step(meta, choose_per_chunk, s, c, factored, k), state, chunk, skip)
             d_state, d_chunk, d_k = vjp((d_state, dy_c))
             return (d_state, jax.tree.map(jnp.add, d_skip, d_k)), d_chunk
 
-        d0 = (full_like_varying(states, states.shape[1:], 0.0, states.dtype),
-              jax.tree.map(jnp.zeros_like, skip))
+        d0 = (full_like_varying(states, states.shape[1:], 0.0, states.dtype), jax.tree.map(jnp.zeros_like, skip))
         (_, d_skip), d_xs = jax.lax.scan(body, d0, (xs, factor, states, dy), reverse=True)
         return d_xs, d_skip
 
@@ -522,9 +521,7 @@ def ssd_scan(
       ``[..., L, nh, P]`` in the dtype of ``x``.
     """
     if inter_chunk not in ("associative", "sequential", "fused"):
-        raise ValueError(
-            f"ssd_scan: inter_chunk must be 'associative', 'sequential' or 'fused', got {inter_chunk!r}"
-        )
+        raise ValueError(f"ssd_scan: inter_chunk must be 'associative', 'sequential' or 'fused', got {inter_chunk!r}")
     if inter_chunk == "fused":
         return _ssd_fused(x, dt, A, B, C, chunk_size, D)
     return _ssd_chunked(x, dt, A, B, C, chunk_size, D, inter_chunk)

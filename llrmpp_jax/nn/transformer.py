@@ -61,20 +61,30 @@ class TransformerBlock(nn.Module):
         cfg = self.cfg
         if self.attention == "global":
             attn = Attention(
-                self.dim, cfg.head_dim, cfg.qk_norm, cfg.norm_eps, cfg.attention_impl, self.dtype,
-                block_sizes=(cfg.attention_block_q, cfg.attention_block_k), name="attn",
+                self.dim,
+                cfg.head_dim,
+                cfg.qk_norm,
+                cfg.norm_eps,
+                cfg.attention_impl,
+                self.dtype,
+                block_sizes=(cfg.attention_block_q, cfg.attention_block_k),
+                name="attn",
             )
         elif self.attention == "local":
             if self.grid is None:
                 raise ValueError("TransformerBlock: attention='local' needs grid=(h, w)")
             attn = LocalAttention(
-                self.dim, cfg.head_dim, cfg.qk_norm, tuple(self.grid), self.num_neighbours,
-                norm_eps=cfg.norm_eps, dtype=self.dtype, name="attn",
+                self.dim,
+                cfg.head_dim,
+                cfg.qk_norm,
+                tuple(self.grid),
+                self.num_neighbours,
+                norm_eps=cfg.norm_eps,
+                dtype=self.dtype,
+                name="attn",
             )
         else:
-            raise ValueError(
-                f"TransformerBlock: attention must be 'global' or 'local', got {self.attention!r}"
-            )
+            raise ValueError(f"TransformerBlock: attention must be 'global' or 'local', got {self.attention!r}")
         x = x + attn(LayerNorm(cfg.norm_eps, name="norm1")(x)).astype(x.dtype)
         mlp = Mlp(self.dim, cfg.mlp_ratio * self.dim, self.dtype, name="mlp")
         return x + mlp(LayerNorm(cfg.norm_eps, name="norm2")(x)).astype(x.dtype)

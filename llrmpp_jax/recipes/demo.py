@@ -44,19 +44,38 @@ def get_config() -> ExperimentConfig:
     model = replace(
         tiny,
         backbone=replace(tiny.backbone, pattern="{4T}x1"),
-        head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=3.0, scale_bias=-3.0,
-                                  init_std=None, anchors="grid"),
+        head=C.GaussianHeadConfig(
+            gaussians_per_token=4, feature_dim=16, max_dist=3.0, scale_bias=-3.0, init_std=None, anchors="grid"
+        ),
         decoder=replace(tiny.decoder, init_std=None),
     )
     stage = StageConfig(
-        name="demo", steps=1200, global_batch=2, num_inputs=4, num_targets=2, resize_h=64,
-        square_crop=True, lr=2e-3, warmup_steps=50, min_span=6, max_span=10,
+        name="demo",
+        steps=1200,
+        global_batch=2,
+        num_inputs=4,
+        num_targets=2,
+        resize_h=64,
+        square_crop=True,
+        lr=2e-3,
+        warmup_steps=50,
+        min_span=6,
+        max_span=10,
     )
     data = DataConfig(
         procedural=ProceduralConfig(height=64, width=64, num_frames=16),
-        num_eval_scenes=16, eval_span=8,
+        num_eval_scenes=16,
+        eval_span=8,
     )
     return ExperimentConfig(
-        name="demo", model=model, stages=(stage,), data=data, perceptual_weight=0.0,
-        log_every=10, eval_every=300, checkpoint_every=600, keep_checkpoints=2, max_minutes=6.0,
+        name="demo",
+        model=model,
+        stages=(stage,),
+        data=data,
+        perceptual_weight=0.0,
+        log_every=10,
+        eval_every=300,
+        checkpoint_every=600,
+        keep_checkpoints=2,
+        max_minutes=6.0,
     )

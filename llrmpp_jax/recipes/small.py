@@ -43,21 +43,42 @@ def get_config() -> ExperimentConfig:
     model = replace(
         tiny,
         backbone=replace(tiny.backbone, pattern="{4T}x1", dims=(128,)),
-        head=C.GaussianHeadConfig(gaussians_per_token=4, feature_dim=16, max_dist=3.0, scale_bias=-3.0,
-                                  init_std=None, anchors="grid"),
+        head=C.GaussianHeadConfig(
+            gaussians_per_token=4, feature_dim=16, max_dist=3.0, scale_bias=-3.0, init_std=None, anchors="grid"
+        ),
         decoder=replace(tiny.decoder, init_std=None, dim=128, token_stride=4),
     )
     accel = StageConfig(
-        name="accel", steps=2_000, global_batch=16, num_inputs=8, num_targets=2, resize_h=64,
-        square_crop=True, lr=2e-3, warmup_steps=200, min_span=12, max_span=20,
+        name="accel",
+        steps=2_000,
+        global_batch=16,
+        num_inputs=8,
+        num_targets=2,
+        resize_h=64,
+        square_crop=True,
+        lr=2e-3,
+        warmup_steps=200,
+        min_span=12,
+        max_span=20,
     )
-    sharpen = replace(accel, name="sharpen", steps=4_000, global_batch=2, lr=5e-4, warmup_steps=100,
-                      perceptual_weight=0.5)
+    sharpen = replace(
+        accel, name="sharpen", steps=4_000, global_batch=2, lr=5e-4, warmup_steps=100, perceptual_weight=0.5
+    )
     data = DataConfig(
         procedural=ProceduralConfig(height=64, width=64, num_frames=24),
-        num_eval_scenes=16, eval_span=16, workers=14, worker_processes=True,
+        num_eval_scenes=16,
+        eval_span=16,
+        workers=14,
+        worker_processes=True,
     )
     return ExperimentConfig(
-        name="small", model=model, stages=(accel, sharpen), data=data, perceptual_weight=0.0,
-        log_every=20, eval_every=1000, checkpoint_every=500, keep_checkpoints=2,
+        name="small",
+        model=model,
+        stages=(accel, sharpen),
+        data=data,
+        perceptual_weight=0.0,
+        log_every=20,
+        eval_every=1000,
+        checkpoint_every=500,
+        keep_checkpoints=2,
     )

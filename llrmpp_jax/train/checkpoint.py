@@ -119,15 +119,11 @@ def verify_checkpoint(directory: str | os.PathLike, step: int) -> None:
     step_dir = Path(directory) / str(step)
     manifest = step_dir / MANIFEST
     if not manifest.is_file():
-        raise CorruptCheckpointError(
-            f"checkpoint {step_dir} has no {MANIFEST}: the save did not complete"
-        )
+        raise CorruptCheckpointError(f"checkpoint {step_dir} has no {MANIFEST}: the save did not complete")
     try:
         files = json.loads(manifest.read_text())["files"]
     except (json.JSONDecodeError, KeyError) as err:
-        raise CorruptCheckpointError(
-            f"checkpoint {step_dir}: unreadable {MANIFEST} ({err})"
-        ) from None
+        raise CorruptCheckpointError(f"checkpoint {step_dir}: unreadable {MANIFEST} ({err})") from None
     for rel, expect in files.items():
         path = step_dir / rel
         if not path.is_file():
@@ -139,9 +135,7 @@ def verify_checkpoint(directory: str | os.PathLike, step: int) -> None:
                 f"{expect['size']} (truncated or overwritten)"
             )
         if _file_digest(path) != expect["sha256"]:
-            raise CorruptCheckpointError(
-                f"checkpoint {step_dir}: file {rel} fails its SHA-256 check (corrupted)"
-            )
+            raise CorruptCheckpointError(f"checkpoint {step_dir}: file {rel} fails its SHA-256 check (corrupted)")
 
 
 def _config_json(config: Any) -> Any:
@@ -197,9 +191,7 @@ def save_checkpoint(
             with _failed_writes_reported_once():
                 mngr.save(
                     step,
-                    args=ocp.args.Composite(
-                        state=ocp.args.StandardSave(items), meta=ocp.args.JsonSave(meta)
-                    ),
+                    args=ocp.args.Composite(state=ocp.args.StandardSave(items), meta=ocp.args.JsonSave(meta)),
                 )
                 mngr.wait_until_finished()
                 if jax.process_index() == 0:
@@ -210,7 +202,9 @@ def save_checkpoint(
                 raise
             _remove_unfinished(directory, step)
             earlier = sorted(s for s in mngr.all_steps() if s != step)
-            kept = f"the newest complete checkpoint (step {earlier[-1]}) is intact" if earlier else "no earlier checkpoint"
+            kept = (
+                f"the newest complete checkpoint (step {earlier[-1]}) is intact" if earlier else "no earlier checkpoint"
+            )
             raise OutOfSpaceError(
                 f"checkpoint step {step} not saved in {directory}: {os.strerror(code)} ({_SPACE[code]}); "
                 f"{kept}; free space and run the same command again to resume"
@@ -230,6 +224,7 @@ def _remove_unfinished(directory: Path, step: int, quiet_s: float = 0.5, limit_s
     rejects). Tensorstore's writer threads of the failed save can still be creating files
     there after the failure reached us (they are not Python threads to join), so removal
     repeats until nothing has reappeared for ``quiet_s`` seconds (at most ``limit_s``)."""
+
     def leftovers() -> list[Path]:
         found = list(directory.glob(f"{step}.orbax-checkpoint-tmp*"))
         step_dir = directory / str(step)
@@ -245,8 +240,11 @@ def _remove_unfinished(directory: Path, step: int, quiet_s: float = 0.5, limit_s
 
 
 # Write failures that mean the disk (or a limit on it) is full, and what to tell the user.
-_SPACE = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is used up",
-          errno.EFBIG: "a file-size limit was reached"}
+_SPACE = {
+    errno.ENOSPC: "the disk is full",
+    errno.EDQUOT: "the disk quota is used up",
+    errno.EFBIG: "a file-size limit was reached",
+}
 # Orbax writes through tensorstore, whose errors are ValueErrors with the OS error code in
 # their text.
 _TENSORSTORE_ERRNO = re.compile(r"os_error_code='(\d+)'")
@@ -317,8 +315,7 @@ def _check_compatible(step_dir: Path, saved: list, paths: list[str], leaves: lis
     problems = [f"{p} missing from the checkpoint" for p in ours if p not in theirs]
     problems += [f"{p} is in the checkpoint but not the model" for p in theirs if p not in ours]
     problems += [
-        f"{p} is {tuple(theirs[p][0])} {theirs[p][1]} in the checkpoint, "
-        f"{tuple(ours[p][0])} {ours[p][1]} in the model"
+        f"{p} is {tuple(theirs[p][0])} {theirs[p][1]} in the checkpoint, {tuple(ours[p][0])} {ours[p][1]} in the model"
         for p in ours
         if p in theirs and theirs[p] != ours[p]
     ]
@@ -334,14 +331,10 @@ def _restore_step(mngr: ocp.CheckpointManager, directory: Path, step: int, templ
     meta = mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
     _check_compatible(directory / str(step), meta["leaves"], paths, leaves)
     abstract = {
-        _leaf_name(i): jax.ShapeDtypeStruct(
-            np.shape(x), x.dtype, sharding=getattr(x, "sharding", None)
-        )
+        _leaf_name(i): jax.ShapeDtypeStruct(np.shape(x), x.dtype, sharding=getattr(x, "sharding", None))
         for i, x in enumerate(leaves)
     }
-    items = mngr.restore(
-        step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))
-    ).state
+    items = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
     restored = [items[_leaf_name(i)] for i in range(len(leaves))]
     return Restored(
         state=jax.tree_util.tree_unflatten(treedef, restored),
@@ -370,9 +363,7 @@ def restore_checkpoint(
         steps = sorted(mngr.all_steps(), reverse=True)
         if step is not None:
             if step not in steps:
-                raise UserError(
-                    f"restore_checkpoint: no step {step} in {directory} (steps: {sorted(steps)})"
-                )
+                raise UserError(f"restore_checkpoint: no step {step} in {directory} (steps: {sorted(steps)})")
             verify_checkpoint(directory, step)
             return _restore_step(mngr, directory, step, template)
         if not steps:
@@ -386,9 +377,7 @@ def restore_checkpoint(
                 warnings.warn(f"{err}; falling back to an earlier checkpoint", stacklevel=2)
                 continue
             return _restore_step(mngr, directory, candidate, template)
-    raise CorruptCheckpointError(
-        f"no valid checkpoint in {directory}: " + "; ".join(rejected)
-    )
+    raise CorruptCheckpointError(f"no valid checkpoint in {directory}: " + "; ".join(rejected))
 
 
 def recorded_config(directory: str | os.PathLike) -> Any:

@@ -28,8 +28,9 @@ from llrmpp_jax.array_typing import Array, ArrayLike, Bool, Float
 from llrmpp_jax.train.optimizer import advance_schedule
 
 
-def skip_reasons(loss: Float[ArrayLike, ""] | None, grad_norm: Float[ArrayLike, ""],
-                 max_norm: float | None) -> tuple[Bool[Array, ""], Bool[Array, ""]]:
+def skip_reasons(
+    loss: Float[ArrayLike, ""] | None, grad_norm: Float[ArrayLike, ""], max_norm: float | None
+) -> tuple[Bool[Array, ""], Bool[Array, ""]]:
     """``(nonfinite, too_large)`` of one step: the loss (None: not checked) or the gradient's
     global norm is not finite; the norm is finite and above ``max_norm`` (None: never).
     The test :func:`skip_nonfinite` and :func:`skip_large_gradients` apply."""
@@ -78,8 +79,9 @@ def skip_large_gradients(inner: optax.GradientTransformation, max_norm: float) -
     return optax.GradientTransformationExtraArgs(inner.init, update)
 
 
-def guard_steps(optimizer: optax.GradientTransformation,
-                skip_grad_norm_above: float | None = None) -> optax.GradientTransformationExtraArgs:
+def guard_steps(
+    optimizer: optax.GradientTransformation, skip_grad_norm_above: float | None = None
+) -> optax.GradientTransformationExtraArgs:
     """The train step's guards around ``optimizer``: :func:`skip_nonfinite` outside
     :func:`skip_large_gradients` (when ``skip_grad_norm_above`` is set), so a non-finite
     step never advances the schedule. The state is ``optimizer``'s."""

@@ -42,9 +42,16 @@ class StageRun:
     stopped: bool
 
 
-def run_stage(state: Any, step_fn: Callable[[Any, Any], tuple[Any, dict]], batches: Iterable[Any], *,
-              steps: int, start: int = 0, hooks: Sequence[Hook] = (),
-              stop: Callable[[], bool] | None = None) -> StageRun:
+def run_stage(
+    state: Any,
+    step_fn: Callable[[Any, Any], tuple[Any, dict]],
+    batches: Iterable[Any],
+    *,
+    steps: int,
+    start: int = 0,
+    hooks: Sequence[Hook] = (),
+    stop: Callable[[], bool] | None = None,
+) -> StageRun:
     """Run ``step_fn(state, batch) -> (state, metrics)`` on the next batch of ``batches``
     from step ``start`` until ``steps``, calling each hook in order after every step.
     ``stop()`` is asked after each step, before its hooks: True makes it the last one.

@@ -57,25 +57,19 @@ class OptimizerConfig:
             raise UserError(f"OptimizerConfig: warmup_steps={self.warmup_steps} must be >= 0")
         if self.total_steps < max(self.warmup_steps, 1):
             raise UserError(
-                f"OptimizerConfig: total_steps={self.total_steps} must be >= max(1, "
-                f"warmup_steps={self.warmup_steps})"
+                f"OptimizerConfig: total_steps={self.total_steps} must be >= max(1, warmup_steps={self.warmup_steps})"
             )
         if self.spike_factor is not None and self.spike_factor <= 1:
             raise UserError(f"OptimizerConfig: spike_factor={self.spike_factor} must be > 1 or None")
         if self.grad_clip_norm is not None and self.grad_clip_norm <= 0:
-            raise UserError(
-                f"OptimizerConfig: grad_clip_norm={self.grad_clip_norm} must be > 0 or None"
-            )
+            raise UserError(f"OptimizerConfig: grad_clip_norm={self.grad_clip_norm} must be > 0 or None")
         if isinstance(self.no_decay_names, str):
             raise UserError(
-                f"OptimizerConfig: no_decay_names must be a tuple of names, got the string "
-                f"{self.no_decay_names!r}"
+                f"OptimizerConfig: no_decay_names must be a tuple of names, got the string {self.no_decay_names!r}"
             )
 
 
-def warmup_cosine_schedule(
-    lr: float, warmup_steps: int, total_steps: int
-) -> optax.Schedule:
+def warmup_cosine_schedule(lr: float, warmup_steps: int, total_steps: int) -> optax.Schedule:
     """HF ``get_cosine_schedule_with_warmup`` as a function of the update count.
 
     ``count < warmup``: ``lr * count / warmup``; then ``lr * 0.5 * (1 + cos(pi * p))``
@@ -164,5 +158,6 @@ def advance_schedule(opt_state: optax.OptState) -> optax.OptState:
     which ``scheduler.step()`` still ran."""
     return jax.tree.map(
         lambda n: n._replace(count=optax.safe_increment(n.count)) if _is_schedule_state(n) else n,
-        opt_state, is_leaf=_is_schedule_state,
+        opt_state,
+        is_leaf=_is_schedule_state,
     )

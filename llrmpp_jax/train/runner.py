@@ -41,14 +41,29 @@ class Runner:
         """This process's rows ``[B_local, ...]`` of a batch as global arrays split over the mesh."""
         return shard_for_mesh(batch, self.mesh)
 
-    def run(self, state: TrainState, batches: Iterable[Any], *, steps: int, start: int = 0,
-            hooks: Sequence[Hook] = (), stop: Callable[[], bool] | None = None) -> StageRun:
+    def run(
+        self,
+        state: TrainState,
+        batches: Iterable[Any],
+        *,
+        steps: int,
+        start: int = 0,
+        hooks: Sequence[Hook] = (),
+        stop: Callable[[], bool] | None = None,
+    ) -> StageRun:
         """Train ``state`` (host or device arrays) on the next host batch of ``batches`` from
         step ``start`` to ``steps`` (:func:`~llrmpp_jax.train.loop.run_stage`: hooks after each
         step, ``stop`` ends the stage early). The returned state is on the mesh:
         :func:`~llrmpp_jax.train.sharding.host_copy` brings it to the host."""
-        return run_stage(self.place_state(state), self.step, map(self.place_batch, batches), steps=steps,
-                         start=start, hooks=hooks, stop=stop)
+        return run_stage(
+            self.place_state(state),
+            self.step,
+            map(self.place_batch, batches),
+            steps=steps,
+            start=start,
+            hooks=hooks,
+            stop=stop,
+        )
 
 
 def make_runner(step_fn: StepFn, mesh: Mesh | None = None, *, donate: bool = True) -> Runner:

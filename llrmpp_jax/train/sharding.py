@@ -27,14 +27,11 @@ def _batch_rows(batch: Any, n_shards: int, caller: str) -> int:
         raise ValueError(f"{caller}: batch has no arrays")
     sizes = {jax.tree_util.keystr(p): np.shape(x)[0] if np.ndim(x) else None for p, x in leaves}
     if len(set(sizes.values())) != 1 or None in sizes.values():
-        raise ValueError(
-            f"{caller}: batch leaves must share a leading batch axis, got leading sizes {sizes}"
-        )
+        raise ValueError(f"{caller}: batch leaves must share a leading batch axis, got leading sizes {sizes}")
     rows = next(iter(sizes.values()))
     if rows % n_shards:
         raise ValueError(
-            f"{caller}: batch size {rows} does not divide over {n_shards} devices; "
-            f"expected a multiple of {n_shards}"
+            f"{caller}: batch size {rows} does not divide over {n_shards} devices; expected a multiple of {n_shards}"
         )
     return rows
 
@@ -63,9 +60,7 @@ def shard_for_mesh(batch: Any, mesh: Mesh) -> Any:
     local = sum(d.process_index == jax.process_index() for d in mesh.devices.flat)
     _batch_rows(batch, local, "shard_for_mesh")
     sharding = batch_sharding(mesh)
-    return jax.tree.map(
-        lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch
-    )
+    return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), batch)
 
 
 def host_copy(tree: Any) -> Any:

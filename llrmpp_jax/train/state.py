@@ -49,9 +49,7 @@ def _check_float32(params) -> None:
             )
 
 
-def init_train_state(
-    params: Any, optimizer: optax.GradientTransformation, key: KeyArray
-) -> TrainState:
+def init_train_state(params: Any, optimizer: optax.GradientTransformation, key: KeyArray) -> TrainState:
     """Fresh state at step 0: ``optimizer.init(params)`` and ``key`` as the base key.
 
     ``key`` must be a typed key (``jax.random.key``) of the default implementation, not

@@ -36,15 +36,12 @@ from llrmpp_jax.train.state import TrainState, step_key
 AXIS = "batch"
 LossFn = Callable[[Any, Any, KeyArray], tuple[Float[Array, ""], dict[str, Array]]]
 StepFn = Callable[[TrainState, Any], tuple[TrainState, dict[str, Array]]]
-_RESERVED = ("loss", "grad_norm", "lr", "skipped", "skipped_total", "skipped_grad_norm",
-             "skipped_grad_norm_total")
+_RESERVED = ("loss", "grad_norm", "lr", "skipped", "skipped_total", "skipped_grad_norm", "skipped_grad_norm_total")
 
 
 def _cast_floating(tree, dtype: DTypeLike):
     """Cast every floating leaf of ``tree`` to ``dtype`` (integer leaves untouched)."""
-    return jax.tree.map(
-        lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree
-    )
+    return jax.tree.map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree)
 
 
 def make_train_step(
@@ -81,16 +78,12 @@ def make_train_step(
     """
     compute_dtype = jnp.dtype(compute_dtype)
     if compute_dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.bfloat16)):
-        raise ValueError(
-            f"make_train_step: compute_dtype={compute_dtype}, expected float32 or bfloat16"
-        )
+        raise ValueError(f"make_train_step: compute_dtype={compute_dtype}, expected float32 or bfloat16")
 
     def loss_and_metrics(params, batch, key):
         loss, metrics = loss_fn(_cast_floating(params, compute_dtype), batch, key)
         if jnp.shape(loss) != ():
-            raise ValueError(
-                f"loss_fn returned a loss of shape {jnp.shape(loss)}, expected a scalar ()"
-            )
+            raise ValueError(f"loss_fn returned a loss of shape {jnp.shape(loss)}, expected a scalar ()")
         clash = sorted(set(metrics) & set(_RESERVED))
         if clash:
             raise ValueError(f"loss_fn metrics use reserved names {clash}; rename them")
@@ -104,9 +97,7 @@ def make_train_step(
         # varying-axes typing, their gradient stays per device (its transpose would
         # otherwise psum it) and the pmean below is the only reduction, as under pmap.
         params = lax.pcast(state.params, AXIS, to="varying")
-        (loss, metrics), grads = jax.value_and_grad(loss_and_metrics, has_aux=True)(
-            params, batch, key
-        )
+        (loss, metrics), grads = jax.value_and_grad(loss_and_metrics, has_aux=True)(params, batch, key)
         grads = lax.pmean(grads, AXIS)
         loss = lax.pmean(loss, AXIS)
         metrics = lax.pmean(jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), metrics), AXIS)
@@ -167,9 +158,7 @@ def sharded_train_step(step_fn: StepFn, mesh: Mesh, *, donate: bool = False) -> 
     (compile-only devices of another platform included). Multi-host: every process calls it
     with global arrays built from its process-local rows (``sharding.shard_for_mesh``)."""
     if AXIS not in mesh.axis_names:
-        raise ValueError(
-            f"sharded_train_step: mesh axes {mesh.axis_names} lack the data axis {AXIS!r}"
-        )
+        raise ValueError(f"sharded_train_step: mesh axes {mesh.axis_names} lack the data axis {AXIS!r}")
     mapped = jax.shard_map(
         step_fn,
         mesh=mesh,
@@ -177,8 +166,12 @@ def sharded_train_step(step_fn: StepFn, mesh: Mesh, *, donate: bool = False) -> 
         out_specs=(PartitionSpec(), PartitionSpec()),
     )
     replicated, split = state_sharding(mesh), batch_sharding(mesh)
-    return jax.jit(mapped, in_shardings=(replicated, split), out_shardings=(replicated, replicated),
-                   donate_argnums=(0,) if donate else ())
+    return jax.jit(
+        mapped,
+        in_shardings=(replicated, split),
+        out_shardings=(replicated, replicated),
+        donate_argnums=(0,) if donate else (),
+    )
 
 
 def pmap_train_step(step_fn: StepFn, *, donate: bool = False) -> StepFn:

@@ -80,9 +80,16 @@ def run_supervised(command: list[str], resume_hint: str, log_path: str) -> int:
     stderr when it died after JAX reported its coordination service lost. The child's C++
     log from that point goes to ``log_path``. ``resume_hint`` completes "start every
     process again to ..."."""
-    child = subprocess.Popen(command, stderr=subprocess.PIPE, env=dict(os.environ, **{ENV: "1"}), process_group=0,
-                             preexec_fn=_term_with_parent if sys.platform == "linux" else None)
-    forward = {sig: signal.signal(sig, lambda s, _frame: child.send_signal(s)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    child = subprocess.Popen(
+        command,
+        stderr=subprocess.PIPE,
+        env=dict(os.environ, **{ENV: "1"}),
+        process_group=0,
+        preexec_fn=_term_with_parent if sys.platform == "linux" else None,
+    )
+    forward = {
+        sig: signal.signal(sig, lambda s, _frame: child.send_signal(s)) for sig in (signal.SIGINT, signal.SIGTERM)
+    }
     try:
         held = _relay(child.stderr, sys.stderr.buffer)
         status = child.wait()
@@ -93,9 +100,12 @@ def run_supervised(command: list[str], resume_hint: str, log_path: str) -> int:
         os.makedirs(os.path.dirname(os.path.abspath(log_path)), exist_ok=True)
         with open(log_path, "wb") as f:
             f.write(held)
-        print(f"llrmpp: error: lost the coordinator (process 0): JAX's distributed service stopped this process "
-              f"(pid {child.pid}); start every process again to {resume_hint} (JAX's log: {log_path})",
-              file=sys.stderr, flush=True)
+        print(
+            f"llrmpp: error: lost the coordinator (process 0): JAX's distributed service stopped this process "
+            f"(pid {child.pid}); start every process again to {resume_hint} (JAX's log: {log_path})",
+            file=sys.stderr,
+            flush=True,
+        )
         return PeerLostError.exit_status
     if held is not None:
         sys.stderr.buffer.write(held)

@@ -43,7 +43,8 @@ def workdir_lock(workdir: str) -> Iterator[str]:
             holder = os.pread(fd, 256, 0).decode(errors="replace").strip() or "unknown process"
             raise WorkdirBusyError(
                 f"{workdir}: another llrmpp train is using this workdir ({holder}); wait for it to finish or "
-                "stop it, or train in another --workdir") from None
+                "stop it, or train in another --workdir"
+            ) from None
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode(), 0)
         yield path

@@ -33,12 +33,16 @@ from llrmpp_jax.objective import make_loss_fn
         (["bench", "--scale", "huge"], "bench: unknown scale 'huge', expected one of ['cpu', 'paper']"),
         (["bench", "--scale", "cpu", "--only", "scan,attn"], "bench: unknown benchmark(s) ['attn']"),
         (["bench", "--scale", "paper", "--views", "16,0"], "bench: view counts must be >= 1, got [16, 0]"),
-        (["bench", "--scale", "paper", "--size", "540x960"],
-         "bench: size 540x960 is not a multiple of 8 (the model's size multiple); the nearest that is: 544x960"),
+        (
+            ["bench", "--scale", "paper", "--size", "540x960"],
+            "bench: size 540x960 is not a multiple of 8 (the model's size multiple); the nearest that is: 544x960",
+        ),
         (["bench", "--scale", "cpu", "--size", "64"], "bench: --size must be HxW (e.g. 544x960), got '64'"),
         (["bench", "--scale", "cpu", "--views", "2,x"], "bench: --views must be comma-separated integers"),
-        (["bench", "--scale", "cpu", "--only", "scan", "--views", "2"],
-         "bench: --views/--size set the model benchmark's cases, which --only scan leaves out"),
+        (
+            ["bench", "--scale", "cpu", "--only", "scan", "--views", "2"],
+            "bench: --views/--size set the model benchmark's cases, which --only scan leaves out",
+        ),
     ],
 )
 def test_bench_bad_input_is_one_line(args, message, capsys, tmp_path):
@@ -76,7 +80,8 @@ def test_flop_counts_of_known_programs_are_analytic():
 
     x, w = jax.ShapeDtypeStruct((2, 12, 10, 5), jnp.float32), jax.ShapeDtypeStruct((3, 3, 5, 7), jnp.float32)
     conv = lambda x, w: jax.lax.conv_general_dilated(  # noqa: E731
-        x, w, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+        x, w, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
     fwd = 2 * 2 * 10 * 8 * 7 * 3 * 3 * 5
     assert matmul_flops(conv, x, w) == xla_cost(jax.jit(conv).lower(x, w).compile())["flops"] == fwd
     # value and both gradients: the forward and two convolutions of the same size
@@ -102,20 +107,23 @@ def test_model_flops_at_paper_shapes_match_the_analytic_count():
     v, h, w, p, d = 32, 544, 960, 8, 768
     params = jax.eval_shape(lambda k: init_params(k, cfg, 2, 32, 32), jax.random.key(0))
     f32 = lambda *s: jax.ShapeDtypeStruct(s, jnp.float32)  # noqa: E731
-    counted = matmul_flops(lambda p_, i, c, k: reconstruct(p_, cfg, i, c, k), params,
-                           f32(1, v, h, w, 3), f32(1, v, 4, 4), f32(1, v, 4))
+    counted = matmul_flops(
+        lambda p_, i, c, k: reconstruct(p_, cfg, i, c, k), params, f32(1, v, h, w, 3), f32(1, v, 4, 4), f32(1, v, 4)
+    )
     tokens = v * (h // p) * (w // p)
     seq = tokens + cfg.backbone.num_global_tokens
     m = cfg.backbone.mamba
     di, n, nh, hd, q = 2 * d, m.d_state, 2 * d // m.headdim, m.headdim, m.chunk_size
     n_t, n_m = 3, 21  # {1T7M}x3
     ssd_chunk = 2 * q * q * n + 2 * q * q * nh * hd + 4 * q * n * nh * hd
-    analytic = (2.0 * tokens * p * p * 9 * d  # tokenizer
-                + n_t * 2.0 * seq * 12 * d * d  # qkv, out, MLP 4x
-                + n_t * 4.0 * seq * seq * d  # attention logits and values
-                + n_m * 2.0 * seq * d * (2 * di + 2 * n + nh + di)  # shared in/out projections
-                + n_m * 2 * math.ceil(seq / q) * ssd_chunk  # two directions
-                + 2.0 * tokens * d * 16 * (32 + 14))  # Gaussian head: K = 16, F = 32
+    analytic = (
+        2.0 * tokens * p * p * 9 * d  # tokenizer
+        + n_t * 2.0 * seq * 12 * d * d  # qkv, out, MLP 4x
+        + n_t * 4.0 * seq * seq * d  # attention logits and values
+        + n_m * 2.0 * seq * d * (2 * di + 2 * n + nh + di)  # shared in/out projections
+        + n_m * 2 * math.ceil(seq / q) * ssd_chunk  # two directions
+        + 2.0 * tokens * d * 16 * (32 + 14)
+    )  # Gaussian head: K = 16, F = 32
     assert counted == pytest.approx(analytic, rel=5e-3)
 
 
@@ -146,8 +154,16 @@ def test_table1_cases_at_cpu_scale():
         assert row["gaussians"] == row["views"] * 16 * C.tiny().head.gaussians_per_token
         assert row["size"] == [32, 32] and len(row["run_s_all"]) == 3
     for row in [*r["reconstruct"], r["render"]]:
-        for field in ("compile_s", "run_s_median", "run_s_min", "xla_flops", "xla_bytes_accessed", "model_flops",
-                      "tflops_per_s", "temp_bytes"):
+        for field in (
+            "compile_s",
+            "run_s_median",
+            "run_s_min",
+            "xla_flops",
+            "xla_bytes_accessed",
+            "model_flops",
+            "tflops_per_s",
+            "temp_bytes",
+        ):
             assert _positive(row[field]), (field, row[field])
         assert row["run_s_min"] <= row["run_s_median"] <= max(row["run_s_all"])
         assert row["tflops_per_s"] == pytest.approx(row["model_flops"] / row["run_s_median"] / 1e12)
@@ -194,10 +210,29 @@ def test_paper_step_at_cpu_scale(tmp_path):
     forward alone (a product's backward is one more product per operand that needs a
     gradient: 2x for the first layer, 3x for the rest; the targets' VGG pass has none)."""
     out = tmp_path / "step.json"
-    env = {**os.environ, "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
-           "JAX_PLATFORMS": "cpu"}
-    subprocess.run([sys.executable, "-m", "llrmpp_jax.benchmarks.paper_step", "--scale", "cpu",
-                    "--steps", "1", "--size", "32x32", "--out", str(out)], check=True, env=env, capture_output=True)
+    env = {
+        **os.environ,
+        "XLA_FLAGS": "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true",
+        "JAX_PLATFORMS": "cpu",
+    }
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "llrmpp_jax.benchmarks.paper_step",
+            "--scale",
+            "cpu",
+            "--steps",
+            "1",
+            "--size",
+            "32x32",
+            "--out",
+            str(out),
+        ],
+        check=True,
+        env=env,
+        capture_output=True,
+    )
     case = json.loads(out.read_text())["cases"]["blockwise"]
     assert "failed" not in case, case
     for field in ("first_call_s", "compile_s", "step_s_median", "xla_flops", "model_flops", "tflops_per_s", "loss"):
@@ -210,8 +245,14 @@ def test_paper_step_at_cpu_scale(tmp_path):
     exp, _ = paper_stage4_experiment()
     exp = replace(exp, model=counting_config(C.tiny()))
     f32 = lambda *s: jax.ShapeDtypeStruct(s, jnp.float32)  # noqa: E731
-    batch = {"input_images": f32(1, 2, 32, 32, 3), "input_c2w": f32(1, 2, 4, 4), "input_intrinsics": f32(1, 2, 4),
-             "target_images": f32(1, 1, 32, 32, 3), "target_c2w": f32(1, 1, 4, 4), "target_intrinsics": f32(1, 1, 4)}
+    batch = {
+        "input_images": f32(1, 2, 32, 32, 3),
+        "input_c2w": f32(1, 2, 4, 4),
+        "input_intrinsics": f32(1, 2, 4),
+        "target_images": f32(1, 1, 32, 32, 3),
+        "target_c2w": f32(1, 1, 4, 4),
+        "target_intrinsics": f32(1, 1, 4),
+    }
     params = jax.eval_shape(lambda k: init_params(k, exp.model, 2, 32, 32), jax.random.key(0))
     loss = lambda p, b, vgg: make_loss_fn(exp, vgg)(p, b, jax.random.key(0))[0]  # noqa: E731
     forward = matmul_flops(loss, params, batch, perceptual_for_compile(exp))
@@ -221,8 +262,11 @@ def test_paper_step_at_cpu_scale(tmp_path):
 def test_paper_comparison_ratios_and_goals():
     """Times against the paper's A100 figures (4.7 s, 14 FPS, 27.4 s) and the issue's goals
     (1.5 s, 45 FPS, 9 s); results of another scale or stage are left out."""
-    table1 = {"scale": "paper", "reconstruct": [{"views": 32, "run_s_median": 2.35}, {"views": 8, "run_s_median": 1.0}],
-              "render": {"fps": 56.0}}
+    table1 = {
+        "scale": "paper",
+        "reconstruct": [{"views": 32, "run_s_median": 2.35}, {"views": 8, "run_s_median": 1.0}],
+        "render": {"fps": 56.0},
+    }
     step = {"model": "paper_dl3dv", "inputs": 32, "step_s_median": 27.8}
     lines = paper_comparison(table1, step).splitlines()
     assert lines[2] == "| reconstruct 32 views | 2.35 s | 4.7 s | 0.50 | 1.5 s | not met |"
@@ -235,9 +279,11 @@ def test_paper_comparison_ratios_and_goals():
 def test_splat_benchmark_keeps_each_rows_median_over_rounds():
     from llrmpp_jax.benchmarks.splat import median_rows
 
-    runs = [[{"n": 10, "fwd_s": 3.0, "fwd_bwd_s": 9.0, "capacity": 7}, {"n": 20, "fwd_s": 1.0, "fwd_bwd_s": 2.0}],
-            [{"n": 10, "fwd_s": 1.0, "fwd_bwd_s": 8.0, "capacity": 7}, {"n": 20, "fwd_s": 5.0, "fwd_bwd_s": 4.0}],
-            [{"n": 10, "fwd_s": 2.0, "fwd_bwd_s": 7.5, "capacity": 7}, {"n": 20, "fwd_s": 4.0, "fwd_bwd_s": 3.0}]]
+    runs = [
+        [{"n": 10, "fwd_s": 3.0, "fwd_bwd_s": 9.0, "capacity": 7}, {"n": 20, "fwd_s": 1.0, "fwd_bwd_s": 2.0}],
+        [{"n": 10, "fwd_s": 1.0, "fwd_bwd_s": 8.0, "capacity": 7}, {"n": 20, "fwd_s": 5.0, "fwd_bwd_s": 4.0}],
+        [{"n": 10, "fwd_s": 2.0, "fwd_bwd_s": 7.5, "capacity": 7}, {"n": 20, "fwd_s": 4.0, "fwd_bwd_s": 3.0}],
+    ]
     got = median_rows(runs)
     assert [(r["n"], r["fwd_s"], r["fwd_bwd_s"]) for r in got] == [(10, 2.0, 8.0), (20, 4.0, 3.0)]
     assert got[0]["fwd_s_rounds"] == [3.0, 1.0, 2.0] and got[0]["capacity"] == 7

@@ -29,9 +29,14 @@ def test_layout_and_values():
         b = next(it)
     shapes = {k: v.shape for k, v in b.items()}
     assert shapes == {
-        "input_images": (4, 3, 24, 32, 3), "input_c2w": (4, 3, 4, 4), "input_intrinsics": (4, 3, 4),
-        "target_images": (4, 2, 24, 32, 3), "target_c2w": (4, 2, 4, 4), "target_intrinsics": (4, 2, 4),
-        "target_depth": (4, 2, 24, 32), "scene_scale": (4,),
+        "input_images": (4, 3, 24, 32, 3),
+        "input_c2w": (4, 3, 4, 4),
+        "input_intrinsics": (4, 3, 4),
+        "target_images": (4, 2, 24, 32, 3),
+        "target_c2w": (4, 2, 4, 4),
+        "target_intrinsics": (4, 2, 4),
+        "target_depth": (4, 2, 24, 32),
+        "scene_scale": (4,),
     }
     assert all(v.dtype == np.float32 for v in b.values())
     assert b["input_images"].min() >= 0 and b["input_images"].max() <= 1
@@ -190,8 +195,10 @@ def test_worker_processes_give_the_threads_batches_and_report_skips():
     with BatchIterator(src, CFG, seed=0, num_workers=1) as it, warnings.catch_warnings(record=True) as w_threads:
         warnings.simplefilter("always")
         want = it.batch_at(1)
-    with BatchIterator(src, CFG, seed=0, num_workers=2, worker_processes=True) as it, \
-            warnings.catch_warnings(record=True) as w_procs:
+    with (
+        BatchIterator(src, CFG, seed=0, num_workers=2, worker_processes=True) as it,
+        warnings.catch_warnings(record=True) as w_procs,
+    ):
         warnings.simplefilter("always")
         got = it.batch_at(1)
         assert it.skipped == len(w_procs) == len(w_threads) > 0

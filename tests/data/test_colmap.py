@@ -53,8 +53,10 @@ def model(rng):
         xys = rng.uniform(0.0, 60.0, (6, 2))
         cid = 1 + (iid % len(MODELS))
         name = f"views/{stem:03d}.png"
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, keypoints=xys, camera_id=cid, image_id=iid),
-                                         pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t))
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, keypoints=xys, camera_id=cid, image_id=iid),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t),
+        )
         c2w = np.eye(4)
         c2w[:3, :3], c2w[:3, 3] = rot.T, -rot.T @ t
         images[iid] = dict(name=name, camera_id=cid, c2w=c2w, xys=xys, point3d_ids=np.full(6, -1))
@@ -69,7 +71,9 @@ def model(rng):
         rec.point3D(pid).error = float(rng.uniform(0.1, 2.0))
         for iid in seen:
             images[int(iid)]["point3d_ids"][j] = pid
-        points[pid] = dict(xyz=xyz, rgb=rgb, error=rec.point3D(pid).error, image_ids=seen, point2d_idxs=np.full(len(seen), j))
+        points[pid] = dict(
+            xyz=xyz, rgb=rgb, error=rec.point3D(pid).error, image_ids=seen, point2d_idxs=np.full(len(seen), j)
+        )
     return rec, cams, images, points
 
 
@@ -139,11 +143,13 @@ def test_damaged_binary_files_are_one_line_naming_the_file(tmp_path, model):
     """Cut short at the end (COLMAP reads such a file without complaint), emptied (COLMAP
     would loop on the garbage count), or with a count beyond the file's size."""
     rec = model[0]
-    cases = [("images.bin", lambda p: _cut(p, -5), r"images.bin: \d+ bytes, but the images it lists take \d+"),
-             ("cameras.bin", lambda p: _cut(p, -3), r"cameras.bin: \d+ bytes, but the cameras it lists take \d+"),
-             ("points3D.bin", lambda p: _cut(p, -1), r"points3D.bin: \d+ bytes, but the points3D it lists take"),
-             ("points3D.bin", lambda p: _cut(p, 0), r"points3D.bin: file is truncated \(0 bytes; needs an 8-byte"),
-             ("images.bin", lambda p: _cut(p, 50), r"images.bin: file is truncated \(50 bytes; needs at least \d+ for 7")]
+    cases = [
+        ("images.bin", lambda p: _cut(p, -5), r"images.bin: \d+ bytes, but the images it lists take \d+"),
+        ("cameras.bin", lambda p: _cut(p, -3), r"cameras.bin: \d+ bytes, but the cameras it lists take \d+"),
+        ("points3D.bin", lambda p: _cut(p, -1), r"points3D.bin: \d+ bytes, but the points3D it lists take"),
+        ("points3D.bin", lambda p: _cut(p, 0), r"points3D.bin: file is truncated \(0 bytes; needs an 8-byte"),
+        ("images.bin", lambda p: _cut(p, 50), r"images.bin: file is truncated \(50 bytes; needs at least \d+ for 7"),
+    ]
     for k, (name, damage, message) in enumerate(cases):
         sparse = _write(rec, str(tmp_path / str(k)), binary=True)
         damage(os.path.join(sparse, name))
@@ -167,12 +173,20 @@ def test_bad_text_files_are_one_line_naming_the_file(tmp_path, model):
     and ones pycolmap rejects (an unknown model, a pose that is not a number, an image on a
     camera the model lacks): each names the file at fault."""
     rec = model[0]
-    cases = [("cameras.txt", "2", 1, "FISHEYE", r"cameras.txt: camera 2 has unsupported model 'FISHEYE'"),
-             ("cameras.txt", "5", 11, "", r"cameras.txt: not a valid COLMAP text cameras file \(.*VerifyParams.*\); "
-                                          r"expected .* as many PARAMS as the model has"),
-             ("cameras.txt", "3", 1, "BOGUS", r"cameras.txt: not a valid COLMAP text cameras file \(Camera model"),
-             ("images.txt", "4", 2, "abc", r"images.txt: not a valid COLMAP text images file"),
-             ("images.txt", "4", 8, "99", r"images.txt: not a valid COLMAP text images file")]
+    cases = [
+        ("cameras.txt", "2", 1, "FISHEYE", r"cameras.txt: camera 2 has unsupported model 'FISHEYE'"),
+        (
+            "cameras.txt",
+            "5",
+            11,
+            "",
+            r"cameras.txt: not a valid COLMAP text cameras file \(.*VerifyParams.*\); "
+            r"expected .* as many PARAMS as the model has",
+        ),
+        ("cameras.txt", "3", 1, "BOGUS", r"cameras.txt: not a valid COLMAP text cameras file \(Camera model"),
+        ("images.txt", "4", 2, "abc", r"images.txt: not a valid COLMAP text images file"),
+        ("images.txt", "4", 8, "99", r"images.txt: not a valid COLMAP text images file"),
+    ]
     for k, (name, first, field, value, message) in enumerate(cases):
         sparse = _write(rec, str(tmp_path / str(k)), binary=False)
         path = os.path.join(sparse, name)

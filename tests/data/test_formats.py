@@ -77,7 +77,9 @@ def test_long_lrm_reads_the_upstream_layout(tmp_path, source):
     write_image(str(tmp_path / "images" / "a.png"), source.image(0), bits=16)
     fx, fy, cx, cy = source.intrinsics[0]
     w2c = np.linalg.inv(source.c2w[0])
-    frames = [{"file_path": "images/a.png", "w2c": w2c.tolist(), "h": H, "w": W, "fx": fx, "fy": fy, "cx": cx, "cy": cy}]
+    frames = [
+        {"file_path": "images/a.png", "w2c": w2c.tolist(), "h": H, "w": W, "fx": fx, "fy": fy, "cx": cx, "cy": cy}
+    ]
     with open(tmp_path / "opencv_cameras.json", "w") as f:
         json.dump({"scene_name": "up", "frames": frames, "fold_8_kmeans_32_input": [0]}, f)
     s = read_long_lrm_scene(str(tmp_path / "opencv_cameras.json"))
@@ -102,7 +104,9 @@ def test_nerfstudio_shared_intrinsics_downscaled_folder_and_dl3dv_remap(tmp_path
         write_image(str(tmp_path / "images_2" / f"{i}.png"), small, bits=8)
         frames.append({"file_path": f"./images/{i}.png", "transform_matrix": opencv_to_opengl(source.c2w[i]).tolist()})
     with open(tmp_path / "transforms.json", "w") as f:
-        json.dump({"fl_x": fx * 2, "fl_y": fy * 2, "cx": cx * 2, "cy": cy * 2, "w": W * 2, "h": H * 2, "frames": frames}, f)
+        json.dump(
+            {"fl_x": fx * 2, "fl_y": fy * 2, "cx": cx * 2, "cy": cy * 2, "w": W * 2, "h": H * 2, "frames": frames}, f
+        )
     s = read_nerfstudio_scene(str(tmp_path), image_dir="images_2", dl3dv_world_remap=True)
     # declared for 2x the source size, files at half the source size: a quarter of declared
     np.testing.assert_allclose(s.intrinsics, source.intrinsics / 2, atol=1e-12)
@@ -229,7 +233,9 @@ def test_bad_files_fail_at_load_naming_the_file(tmp_path, source):
     with pytest.raises(ValueError, match="00001.png"):
         s.image(1)
     write_image(str(tmp_path / "images" / "00002.png"), np.zeros((H + 2, W, 3), np.float32))
-    with pytest.raises(ValueError, match=r"frame 2 \(.*00002.png\): image has shape \(22, 28, 3\), expected \[20, 28, 3\]"):
+    with pytest.raises(
+        ValueError, match=r"frame 2 \(.*00002.png\): image has shape \(22, 28, 3\), expected \[20, 28, 3\]"
+    ):
         s.image(2)
     from llrmpp_jax.data.image_io import write_depth
 
@@ -263,13 +269,16 @@ def test_colmap_truncated_and_unsupported(tmp_path, source):
         read_colmap_model(sparse)
 
 
-@pytest.mark.parametrize("model,params", [
-    ("SIMPLE_PINHOLE", [100.0, 30.0, 20.0]),
-    ("PINHOLE", [100.0, 90.0, 30.0, 20.0]),
-    ("SIMPLE_RADIAL", [100.0, 30.0, 20.0, 0.08]),
-    ("RADIAL", [100.0, 30.0, 20.0, 0.08, -0.03]),
-    ("OPENCV", [100.0, 90.0, 30.0, 20.0, 0.08, -0.03, 0.002, -0.001]),
-])
+@pytest.mark.parametrize(
+    "model,params",
+    [
+        ("SIMPLE_PINHOLE", [100.0, 30.0, 20.0]),
+        ("PINHOLE", [100.0, 90.0, 30.0, 20.0]),
+        ("SIMPLE_RADIAL", [100.0, 30.0, 20.0, 0.08]),
+        ("RADIAL", [100.0, 30.0, 20.0, 0.08, -0.03]),
+        ("OPENCV", [100.0, 90.0, 30.0, 20.0, 0.08, -0.03, 0.002, -0.001]),
+    ],
+)
 def test_colmap_camera_models_match_colmap_equations(rng, model, params):
     """Projection of normalised points with COLMAP's own model equations (written out
     here) equals pinhole intrinsics + OpenCV distortion from ``pinhole_and_distortion``."""

@@ -31,8 +31,14 @@ def long_lrm_size(h, w, resize_h, resize_w, patch):
 
 
 @pytest.mark.parametrize(
-    "hw,rh,rw,m", [((540, 960), 540, None, 16), ((1920, 1080), 256, None, 8), ((968, 1296), None, 448, 8),
-                   ((1080, 1920), None, None, 16), ((480, 640), 336, 448, 8)]
+    "hw,rh,rw,m",
+    [
+        ((540, 960), 540, None, 16),
+        ((1920, 1080), 256, None, 8),
+        ((968, 1296), None, 448, 8),
+        ((1080, 1920), None, None, 16),
+        ((480, 640), 336, 448, 8),
+    ],
 )
 def test_resized_size_matches_long_lrm(hw, rh, rw, m):
     got = resized_size(hw, ViewGeometry(resize_h=rh, resize_w=rw, multiple=m))
@@ -49,7 +55,12 @@ def ramp_scene(rng, n, h, w):
     depth = 1.0 + np.floor(xx) * 0.01 + np.floor(yy) * 0.001
     angles = rng.uniform(0, 2 * np.pi, n)
     c2w = np.tile(np.eye(4), (n, 1, 1))
-    c2w[:, 0, 0], c2w[:, 0, 2], c2w[:, 2, 0], c2w[:, 2, 2] = np.cos(angles), np.sin(angles), -np.sin(angles), np.cos(angles)
+    c2w[:, 0, 0], c2w[:, 0, 2], c2w[:, 2, 0], c2w[:, 2, 2] = (
+        np.cos(angles),
+        np.sin(angles),
+        -np.sin(angles),
+        np.cos(angles),
+    )
     c2w[:, :3, 3] = rng.normal(size=(n, 3))
     k = np.tile([[0.9 * w, 0.95 * w, 0.52 * w, 0.47 * h]], (n, 1))
     scene = in_memory_scene("ramp", np.tile(img[None], (n, 1, 1, 1)), c2w, k, np.tile(depth[None], (n, 1, 1)))
@@ -167,12 +178,17 @@ def test_sample_is_normalised_and_depth_consistent():
     for v, f in enumerate(targets):
         world = unproject_depth(scene.depth(f).astype(np.float64), scene.c2w[f], scene.intrinsics[f])
         expect = world @ transform[:3, :3].T + transform[:3, 3]
-        got = unproject_depth(s["target_depth"][v].astype(np.float64), s["target_c2w"][v].astype(np.float64),
-                              s["target_intrinsics"][v].astype(np.float64))
+        got = unproject_depth(
+            s["target_depth"][v].astype(np.float64),
+            s["target_c2w"][v].astype(np.float64),
+            s["target_intrinsics"][v].astype(np.float64),
+        )
         np.testing.assert_allclose(got, expect, atol=2e-4)
 
 
 def test_depth_requested_without_depth():
-    scene = in_memory_scene("nodepth", np.zeros((3, 8, 8, 3)), np.tile(np.eye(4), (3, 1, 1)), np.tile([[8.0, 8, 4, 4]], (3, 1)))
+    scene = in_memory_scene(
+        "nodepth", np.zeros((3, 8, 8, 3)), np.tile(np.eye(4), (3, 1, 1)), np.tile([[8.0, 8, 4, 4]], (3, 1))
+    )
     with pytest.raises(ValueError, match="'nodepth': depth requested but the scene has no depth"):
         make_sample(scene, np.array([0, 1]), np.array([2]), ViewGeometry(), with_depth=True)

@@ -75,8 +75,11 @@ def test_beer_colmap_reprojection(beer):
     scene, (cams, imgs, pts) = beer
     assert len(scene) == 71 and {c.model for c in cams.values()} == {"SIMPLE_RADIAL"} and len(pts) == 4414
     frame = {name.rsplit("/", 1)[-1]: i for i, name in enumerate(scene.frame_names)}
-    rows = [(pi, frame[imgs[iid].name], iid, k) for pi, p in enumerate(pts.values())
-            for iid, k in zip(p.image_ids, p.point2d_idxs)]
+    rows = [
+        (pi, frame[imgs[iid].name], iid, k)
+        for pi, p in enumerate(pts.values())
+        for iid, k in zip(p.image_ids, p.point2d_idxs)
+    ]
     point_of, frame_of = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
     xyz = np.stack([p.xyz for p in pts.values()])[point_of]
     obs = np.stack([imgs[r[2]].xys[r[3]] for r in rows])

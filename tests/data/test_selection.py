@@ -42,7 +42,9 @@ def fox_cameras():
     the frames whose image exists, plus the same scene through the reader."""
     root = shared_path("data", "fox")
     meta = json.load(open(os.path.join(root, "transforms.json")))
-    mats = np.array([f["transform_matrix"] for f in meta["frames"] if os.path.exists(os.path.join(root, f["file_path"]))])
+    mats = np.array(
+        [f["transform_matrix"] for f in meta["frames"] if os.path.exists(os.path.join(root, f["file_path"]))]
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # 17 images are missing on purpose
         scene = read_nerfstudio_scene(root)
@@ -65,7 +67,8 @@ def random_path_cameras(seed, n=120):
 @pytest.mark.parametrize("num_inputs", [4, 16, 32])
 def test_kmeans_inputs_equal_official_sklearn(cameras, num_inputs):
     pos, fwd, c2w = {"fox": fox_cameras, "beer": beer_cameras}.get(
-        cameras, lambda: random_path_cameras(int(cameras[-1])))()
+        cameras, lambda: random_path_cameras(int(cameras[-1]))
+    )()
     if num_inputs > len(pos) - len(range(0, len(pos), 8)):
         pytest.skip("fewer candidate frames than inputs")
     want_inputs, want_targets = official_kmeans_split(pos, fwd, num_inputs)
@@ -143,8 +146,10 @@ def test_scannet_split_of_a_short_scene_says_what_it_uses(rng):
     want_inputs, want_targets = long_lrm_uniform_rule(900)
     np.testing.assert_array_equal(inputs, want_inputs)
     np.testing.assert_array_equal(targets, want_targets)
-    assert how == ("only 900 frames, fewer than 1280: targets every 8th of all 900 frames, "
-                   "128 inputs spread uniformly over the other 787")
+    assert how == (
+        "only 900 frames, fewer than 1280: targets every 8th of all 900 frames, "
+        "128 inputs spread uniformly over the other 787"
+    )
 
 
 def test_cached_kmeans_indices_are_used_and_checked(tmp_path, rng):
@@ -165,7 +170,9 @@ def test_cached_kmeans_indices_are_used_and_checked(tmp_path, rng):
     assert how == "inputs: the scene JSON's cached 'fold_8_kmeans_4_input'"
     meta["fold_8_kmeans_4_input"] = [1, 2, 40, 9]
     json.dump(meta, open(path, "w"))
-    with pytest.raises(ValueError, match=r"'fold_8_kmeans_4_input' holds frame index 40, out of range for a scene of 40"):
+    with pytest.raises(
+        ValueError, match=r"'fold_8_kmeans_4_input' holds frame index 40, out of range for a scene of 40"
+    ):
         eval_split(read, 4, json_path=path)
 
 
@@ -216,8 +223,13 @@ def test_long_lrm_kmeans_index_file(tmp_path, rng):
 
     scene = synthetic_scene(40, rng)
     index_path = str(tmp_path / "idx.json")
-    json.dump([{"scene_name": "seq", "fold_8_kmeans_4_input": [30, 3, 12, 20], "fold_8_kmeans_2_input": [1, 2]},
-               {"scene_name": "other", "fold_8_kmeans_4_input": [1, 2, 3, 4]}], open(index_path, "w"))
+    json.dump(
+        [
+            {"scene_name": "seq", "fold_8_kmeans_4_input": [30, 3, 12, 20], "fold_8_kmeans_2_input": [1, 2]},
+            {"scene_name": "other", "fold_8_kmeans_4_input": [1, 2, 3, 4]},
+        ],
+        open(index_path, "w"),
+    )
     index = read_kmeans_index(index_path)
     inputs, targets, how = eval_split(scene, 4, index=index, index_name=index_path)
     np.testing.assert_array_equal(inputs, [3, 12, 20, 30])
@@ -226,6 +238,9 @@ def test_long_lrm_kmeans_index_file(tmp_path, rng):
     inputs, _, how = eval_split(scene, 3, index=index, index_name=index_path)  # no 3-input entry: computed
     assert "k-means" in how
     np.testing.assert_array_equal(inputs, official_kmeans_split(scene.c2w[:, :3, 3], scene.c2w[:, :3, 2], 3)[0])
-    with pytest.raises(ValueError, match=r"seq 'fold_8_kmeans_4_input' holds frame index 45, out of range for a scene "
-                                         r"of 40 frames"):
+    with pytest.raises(
+        ValueError,
+        match=r"seq 'fold_8_kmeans_4_input' holds frame index 45, out of range for a scene "
+        r"of 40 frames",
+    ):
         eval_split(scene, 4, index={"seq": {"fold_8_kmeans_4_input": [1, 45, 2, 3]}}, index_name=index_path)

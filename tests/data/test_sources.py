@@ -37,7 +37,8 @@ def test_a_split_reads_the_rooms_its_list_names_in_its_order(scannet_root):
     val = scene_source(split_data(scannet_root, "val"), held_out=True)
     assert val.paths == [os.path.join(scannet_root, "val", "scene0011_00")]
     assert held_out_description(split_data(scannet_root, "val")) == (
-        f"split val: the first 100 scenes named in {scannet_root}/scannetv2_val.txt in {scannet_root}/val")
+        f"split val: the first 100 scenes named in {scannet_root}/scannetv2_val.txt in {scannet_root}/val"
+    )
     # without a list: every room of the split's folder, sorted
     unlisted = scene_source(split_data(scannet_root, "test", scene_list=None), held_out=True)
     assert [os.path.basename(p) for p in unlisted.paths] == ROOMS["test"]
@@ -57,8 +58,10 @@ def test_bad_splits_and_lists_are_one_line(tmp_path, scannet_root):
     data = split_data(scannet_root, "test", scene_list=str(lists / "scannetv2_{split}.txt"))
     with pytest.raises(MissingInputError) as err:
         scene_source(data, held_out=True)
-    assert str(err.value) == (f"scene list {lists}/scannetv2_test.txt: 2 of its 3 scenes are not folders of "
-                              f"{scannet_root}/test, the first: scene0710_00")
+    assert str(err.value) == (
+        f"scene list {lists}/scannetv2_test.txt: 2 of its 3 scenes are not folders of "
+        f"{scannet_root}/test, the first: scene0710_00"
+    )
     with pytest.raises(UserError, match=r"scannetv2_val.txt names no scenes$"):
         scene_source(dataclasses.replace(data, eval_split="val"), held_out=True)
     with pytest.raises(MissingInputError, match=r"^scene list not found: .*/scannetv2_train.txt$"):

@@ -14,17 +14,27 @@ def simple_layout(hx=3.0, hy=2.0, hz=1.5, sphere=((1.5, 0.0, 1.5), 0.4)):
     """A room (6 tiled quads) with one sphere; materials all 'brick'."""
     ex, ey, ez = np.eye(3)
     quads = [
-        (np.zeros(3), ex, ey, [hx, hy]), (2 * hz * ez, ex, -ey, [hx, hy]),
-        (hx * ex + hz * ez, -ey, ez, [hy, hz]), (-hx * ex + hz * ez, ey, ez, [hy, hz]),
-        (hy * ey + hz * ez, ex, ez, [hx, hz]), (-hy * ey + hz * ez, -ex, ez, [hx, hz]),
+        (np.zeros(3), ex, ey, [hx, hy]),
+        (2 * hz * ez, ex, -ey, [hx, hy]),
+        (hx * ex + hz * ez, -ey, ez, [hy, hz]),
+        (-hx * ex + hz * ez, ey, ez, [hy, hz]),
+        (hy * ey + hz * ez, ex, ez, [hx, hz]),
+        (-hy * ey + hz * ez, -ex, ez, [hx, hz]),
     ]
     m = 1 + len(quads)
     return Layout(
-        box_center=np.zeros((0, 3)), box_rot=np.zeros((0, 3, 3)), box_half=np.zeros((0, 3)),
-        sphere_center=np.array([sphere[0]]), sphere_radius=np.array([sphere[1]]),
-        quad_center=np.array([q[0] for q in quads]), quad_u=np.array([q[1] for q in quads]),
-        quad_v=np.array([q[2] for q in quads]), quad_half=np.array([q[3] for q in quads], dtype=float),
-        texture=np.full(m, texture_index("brick")), tint=np.ones((m, 3)), texels_per_m=np.full(m, 300.0),
+        box_center=np.zeros((0, 3)),
+        box_rot=np.zeros((0, 3, 3)),
+        box_half=np.zeros((0, 3)),
+        sphere_center=np.array([sphere[0]]),
+        sphere_radius=np.array([sphere[1]]),
+        quad_center=np.array([q[0] for q in quads]),
+        quad_u=np.array([q[1] for q in quads]),
+        quad_v=np.array([q[2] for q in quads]),
+        quad_half=np.array([q[3] for q in quads], dtype=float),
+        texture=np.full(m, texture_index("brick")),
+        tint=np.ones((m, 3)),
+        texels_per_m=np.full(m, 300.0),
     )
 
 
@@ -58,8 +68,12 @@ def bilinear(img, x, y):
     fx, fy = x - x0, y - y0
     if img.ndim == 3:
         fx, fy = fx[:, None], fy[:, None]
-    return (img[y0, x0] * (1 - fx) * (1 - fy) + img[y0, x0 + 1] * fx * (1 - fy)
-            + img[y0 + 1, x0] * (1 - fx) * fy + img[y0 + 1, x0 + 1] * fx * fy)
+    return (
+        img[y0, x0] * (1 - fx) * (1 - fy)
+        + img[y0, x0 + 1] * fx * (1 - fy)
+        + img[y0 + 1, x0] * (1 - fx) * fy
+        + img[y0 + 1, x0 + 1] * fx * fy
+    )
 
 
 @pytest.mark.parametrize("seed", [3, 11, 2])  # orbit, walk and sweep scenes
@@ -100,6 +114,7 @@ def test_views_are_geometrically_consistent(seed):
     assert ok.sum() > 1500, f"too little overlap between views ({kind}): {ok.sum()} pixels"
     inv = bilinear(inv_b, px[ok, 0], px[ok, 1])
     np.testing.assert_allclose(1.0 / inv, z[ok], rtol=1e-3)
+
     # colour: compare where both images are nearly flat around the corresponding pixels
     def flatness(img):
         pad = np.pad(img.astype(np.float64), ((1, 1), (1, 1), (0, 0)), mode="edge")

@@ -13,6 +13,8 @@ def orbit_scene(key, b, v, h, w):
     zero, one = jnp.zeros_like(c), jnp.ones_like(c)
     rot = jnp.stack([jnp.stack([c, zero, -s], -1), jnp.stack([zero, one, zero], -1), jnp.stack([s, zero, c], -1)], -2)
     centre = jnp.stack([2.0 * s, zero, -2.0 * c], -1)
-    c2w = jnp.zeros((b, v, 4, 4), jnp.float32).at[..., :3, :3].set(rot).at[..., :3, 3].set(centre).at[..., 3, 3].set(1.0)
+    c2w = (
+        jnp.zeros((b, v, 4, 4), jnp.float32).at[..., :3, :3].set(rot).at[..., :3, 3].set(centre).at[..., 3, 3].set(1.0)
+    )
     intr = jnp.broadcast_to(jnp.array([w, w, w / 2, h / 2], jnp.float32), (b, v, 4))
     return images, c2w, intr

@@ -33,8 +33,7 @@ def toy_loss(params, batch, key):
     """Mean squared error of the MLP on ``batch = {"image": [B, 3], "target": [B]}``."""
     del key
     dtype = params["dense1"]["kernel"].dtype
-    h = jnp.tanh(batch["image"].astype(dtype) @ params["dense1"]["kernel"]
-                 + params["dense1"]["bias"][None, :])
+    h = jnp.tanh(batch["image"].astype(dtype) @ params["dense1"]["kernel"] + params["dense1"]["bias"][None, :])
     pred = (h @ params["dense2"]["kernel"] + params["dense2"]["bias"][None, :])[:, 0]
     err = pred.astype(jnp.float32) - batch["target"]
     return jnp.mean(jnp.square(err)), {"mae": jnp.mean(jnp.abs(err))}
@@ -70,8 +69,7 @@ def oracle_steps(params, tx, batches, loss=toy_loss):
 
 def assert_tree_close(a, b, atol):
     for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(a), jax.tree.leaves(b)):
-        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=atol,
-                                   err_msg=jax.tree_util.keystr(path))
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=atol, err_msg=jax.tree_util.keystr(path))
 
 
 def assert_tree_equal(a, b):

@@ -20,9 +20,13 @@ def wide_colour_scene(rng: np.random.Generator, n: int = 300) -> tuple[Gaussians
     cameras' intrinsics are :data:`INTRINSICS` at :data:`SIZE`."""
     z = rng.uniform(1.5, 4.0, n)
     means = np.stack([rng.uniform(-0.6, 0.6, n) * z, rng.uniform(-0.6, 0.6, n) * z, z], -1)
-    g = Gaussians(means.astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-                  rng.uniform(0.1, 0.3, (n, 3)).astype(np.float32), rng.uniform(0.05, 0.6, n).astype(np.float32),
-                  rng.normal(0.0, 0.5, (n, 3)).astype(np.float32))
+    g = Gaussians(
+        means.astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        rng.uniform(0.1, 0.3, (n, 3)).astype(np.float32),
+        rng.uniform(0.05, 0.6, n).astype(np.float32),
+        rng.normal(0.0, 0.5, (n, 3)).astype(np.float32),
+    )
     c2w = np.tile(np.eye(4), (2, 1, 1))
     c2w[1, :3, 3] = [0.2, -0.1, 0.1]
     return g, colour_config(C.tiny(), 0), c2w

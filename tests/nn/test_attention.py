@@ -30,7 +30,9 @@ def test_multi_head_attention_matches_dense_oracle(rng, with_bias):
     got = multi_head_attention(q, k, v, bias=bias, mask=mask)
     f = lambda a: a.astype(np.float64).reshape(6, *a.shape[2:])  # noqa: E731
     want = dense_attention(
-        f(q), f(k), f(v),
+        f(q),
+        f(k),
+        f(v),
         None if bias is None else bias[None].astype(np.float64),
         None if mask is None else mask.reshape(6, 1, 5, 7),
     ).reshape(shape_q)
@@ -75,7 +77,10 @@ def test_multi_head_attention_errors():
         multi_head_attention(q, np.zeros((2, 5, 3, 4), np.float32), np.zeros((2, 5, 3, 4), np.float32))
     with pytest.raises(ValueError, match=r"k\.shape == v\.shape"), unchecked():
         multi_head_attention(q, q, np.zeros((2, 6, 2, 4), np.float32))
-    with pytest.raises(ValueError, match=r"bias has shape \(2, 5, 4\), expected \[nh, Lq, Lk\] = \(2, 5, 5\)"), unchecked():
+    with (
+        pytest.raises(ValueError, match=r"bias has shape \(2, 5, 4\), expected \[nh, Lq, Lk\] = \(2, 5, 5\)"),
+        unchecked(),
+    ):
         multi_head_attention(q, q, q, bias=np.zeros((2, 5, 4), np.float32))
     with pytest.raises(ValueError, match=r"mask has shape \(3, 2, 5, 5\)"), unchecked():
         multi_head_attention(q, q, q, mask=np.ones((3, 2, 5, 5), bool))

@@ -116,11 +116,23 @@ def test_block_runs_and_period():
 @pytest.mark.parametrize(
     "cfg, size, calls",
     [
-        pytest.param(replace(golden_backbone_config(), mamba=C.Mamba2Config(d_state=16, headdim=16, chunk_size=4)),
-                     (32, 48), ["MMT", "MM", "M", "T"] * 2, marks=pytest.mark.slow),
-        (C.BackboneConfig(dims=(32,), pattern="{1T2M}x2", num_layers=6,
-                          mamba=C.Mamba2Config(d_state=8, headdim=16, chunk_size=4),
-                          transformer=C.TransformerConfig(head_dim=16)), (16, 24), ["TMMTMM", "TMM", "T", "MM", "M"]),
+        pytest.param(
+            replace(golden_backbone_config(), mamba=C.Mamba2Config(d_state=16, headdim=16, chunk_size=4)),
+            (32, 48),
+            ["MMT", "MM", "M", "T"] * 2,
+            marks=pytest.mark.slow,
+        ),
+        (
+            C.BackboneConfig(
+                dims=(32,),
+                pattern="{1T2M}x2",
+                num_layers=6,
+                mamba=C.Mamba2Config(d_state=8, headdim=16, chunk_size=4),
+                transformer=C.TransformerConfig(head_dim=16),
+            ),
+            (16, 24),
+            ["TMMTMM", "TMM", "T", "MM", "M"],
+        ),
     ],
     ids=["merge_mmt", "1T2Mx2"],
 )

@@ -55,11 +55,16 @@ def random_inputs(rng, b, lq, lk, with_bias, dtype=np.float32):
 # (L, block_q, block_k): every L in {1, 7, 128, 1000, 4097} with blocks that divide L
 # (4097 = 17 * 241) and blocks that do not (including one larger than L).
 CASES = [
-    (1, 1, 1), (1, 4, 8),
-    (7, 7, 1), (7, 3, 2),
-    (128, 32, 64), (128, 48, 100),
-    (1000, 250, 200), (1000, 256, 333),
-    (4097, 241, 241), (4097, 512, 1024),
+    (1, 1, 1),
+    (1, 4, 8),
+    (7, 7, 1),
+    (7, 3, 2),
+    (128, 32, 64),
+    (128, 48, 100),
+    (1000, 250, 200),
+    (1000, 256, 333),
+    (4097, 241, 241),
+    (4097, 512, 1024),
 ]
 
 
@@ -179,11 +184,15 @@ def test_bad_input_one_line():
     cases = [
         (lambda: blockwise_attention(q, q, q, block_q=0), r"block sizes must be >= 1, got block_q=0"),
         (lambda: multi_head_attention(q, q, q, block_k=-1), r"block sizes must be >= 1"),
-        (lambda: blockwise_attention(q, q, q, mask=jnp.ones((1, NH, 5, 4), bool)),
-         r"mask has shape \(1, 2, 5, 4\), expected \[B\|1, nh\|1, Lq\|1, Lk\]"),
+        (
+            lambda: blockwise_attention(q, q, q, mask=jnp.ones((1, NH, 5, 4), bool)),
+            r"mask has shape \(1, 2, 5, 4\), expected \[B\|1, nh\|1, Lq\|1, Lk\]",
+        ),
         (lambda: multi_head_attention(q, q, q, mask=jnp.ones((NH, 5, 6), bool)), r"mask has shape \(2, 5, 6\)"),
-        (lambda: multi_head_attention(q, q, q, implementation="flash"),
-         r"implementation must be one of \('xla', 'cudnn', 'blockwise'\), got 'flash'"),
+        (
+            lambda: multi_head_attention(q, q, q, implementation="flash"),
+            r"implementation must be one of \('xla', 'cudnn', 'blockwise'\), got 'flash'",
+        ),
         (lambda: TransformerConfig(attention_impl="pallas"), r"attention_impl must be .* got 'pallas'"),
         (lambda: TransformerConfig(attention_block_q=0), r"attention block sizes must be >= 1"),
     ]

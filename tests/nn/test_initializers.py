@@ -15,8 +15,11 @@ from llrmpp_jax.model import init_params
 
 def _kernels(params: dict) -> dict[str, np.ndarray]:
     dec = params["decoder"]
-    return {"head": params["head"]["proj"]["kernel"], "tokenizer": dec["tokenizer"]["kernel"],
-            "head_rgb": dec["head_rgb"]["kernel"]}
+    return {
+        "head": params["head"]["proj"]["kernel"],
+        "tokenizer": dec["tokenizer"]["kernel"],
+        "head_rgb": dec["head_rgb"]["kernel"],
+    }
 
 
 @pytest.mark.parametrize("std", [0.02, None])

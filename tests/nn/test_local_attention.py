@@ -50,7 +50,7 @@ def test_neighbour_table_interior_offsets_are_shared():
     _, offset_id, offsets = neighbour_table(h, w, k)
     r = int(np.abs(offsets[:k]).max())  # 4 for k = 64
     ids = offset_id.reshape(h, w, k)
-    interior = ids[r:h - r, r:w - r]
+    interior = ids[r : h - r, r : w - r]
     assert interior.size and (interior == np.arange(k)).all()
     assert tuple(offsets[0]) == (0, 0)
     assert (ids[0, 0] != np.arange(k)).any()  # a corner token gets other (in-grid) offsets
@@ -144,8 +144,9 @@ def test_local_attention_has_no_full_neighbour_gather():
     bias = jax.ShapeDtypeStruct((h * w, k, nh), jnp.float32)
 
     def step(q, kk, v, b):
-        return jax.grad(lambda *a: jnp.sum(local_attention(*a[:3], jnp.asarray(index), a[3]) ** 2),
-                        argnums=(0, 1, 2, 3))(q, kk, v, b)
+        return jax.grad(
+            lambda *a: jnp.sum(local_attention(*a[:3], jnp.asarray(index), a[3]) ** 2), argnums=(0, 1, 2, 3)
+        )(q, kk, v, b)
 
     mem = jax.jit(step).lower(shape, shape, shape, bias).compile().memory_analysis()
     one_gather = h * w * k * nh * hd * 4  # 16.8 MB
@@ -156,7 +157,10 @@ def test_local_attention_errors():
     index, _, _ = neighbour_table(2, 3, 4)
     q = jnp.zeros((6, 2, 4), jnp.float32)
     idx = jnp.asarray(index)
-    with pytest.raises(ValueError, match=r"bias has shape \(6, 4, 3\), expected \[L, kn, nh\] = \(6, 4, 2\)"), unchecked():
+    with (
+        pytest.raises(ValueError, match=r"bias has shape \(6, 4, 3\), expected \[L, kn, nh\] = \(6, 4, 2\)"),
+        unchecked(),
+    ):
         local_attention(q, q, q, idx, jnp.zeros((6, 4, 3), jnp.float32))
     with pytest.raises(ValueError, match=r"must be \[L, kn\] with L=5"), unchecked():
         local_attention(q[:5], q[:5], q[:5], idx, jnp.zeros((5, 4, 2), jnp.float32))
@@ -205,5 +209,7 @@ def test_local_attention_translation_invariance(key, rng, k):
 
 def test_local_attention_module_errors(key):
     m = LocalAttention(dim=16, head_dim=8, qk_norm=False, grid=(3, 4), num_neighbours=9)
-    with pytest.raises(ValueError, match=r"x has shape \(1, 11, 16\), expected \[\.\.\., h\*w, D\] with h\*w = 3\*4 = 12"):
+    with pytest.raises(
+        ValueError, match=r"x has shape \(1, 11, 16\), expected \[\.\.\., h\*w, D\] with h\*w = 3\*4 = 12"
+    ):
         m.init(key, jnp.zeros((1, 11, 16), jnp.float32))

@@ -96,9 +96,13 @@ def test_causal_conv_matches_torch(rng):
     x = rng.standard_normal((2, 11, 6)).astype(np.float32)
     w = rng.standard_normal((6, 1, 4)).astype(np.float32)
     b = rng.standard_normal(6).astype(np.float32)
-    want = torch.nn.functional.conv1d(
-        torch.from_numpy(x).transpose(1, 2), torch.from_numpy(w), torch.from_numpy(b), padding=3, groups=6
-    )[..., :11].transpose(1, 2).numpy()
+    want = (
+        torch.nn.functional.conv1d(
+            torch.from_numpy(x).transpose(1, 2), torch.from_numpy(w), torch.from_numpy(b), padding=3, groups=6
+        )[..., :11]
+        .transpose(1, 2)
+        .numpy()
+    )
     got = causal_depthwise_conv1d(jnp.asarray(x), jnp.asarray(conv1d_depthwise(w)), jnp.asarray(b))
     np.testing.assert_allclose(np.asarray(got), want, rtol=1e-6, atol=1e-6)
 
@@ -194,10 +198,12 @@ def test_remat_directions_matches_plain_block(key):
     k_p, k_n, k_x, k_ct = jax.random.split(key, 4)
     params = init_mamba2_params(k_p, 16, cfg)
     leaves, tree = jax.tree.flatten(params)
-    params = tree.unflatten([p + 0.1 * jax.random.normal(k, p.shape, p.dtype)
-                             for p, k in zip(leaves, jax.random.split(k_n, len(leaves)))])
+    params = tree.unflatten(
+        [p + 0.1 * jax.random.normal(k, p.shape, p.dtype) for p, k in zip(leaves, jax.random.split(k_n, len(leaves)))]
+    )
     x = jax.random.normal(k_x, (2, 11, 16), jnp.float32)
     ct = jax.random.normal(k_ct, x.shape, jnp.float32)
+
     @functools.partial(jax.jit, static_argnums=0)
     def value_and_vjp(c, p, h):
         y, vjp = jax.vjp(lambda p, h: mamba2_block(p, h, c), p, h)
@@ -230,9 +236,7 @@ def test_unidirectional_block_is_forward_half_of_golden():
     """bidirectional=False: x + out_proj(scan0), with scan0 and out_proj from the golden fixture."""
     z = np.load(shared_path("golden", "long_lrm_tiny", "mamba2_block.npz"))
     cfg = Mamba2Config(d_state=16, headdim=64, chunk_size=8, bidirectional=False)
-    forward_only = {
-        k: z[k] for k in z.files if "mamba_scans.1." not in k and k.startswith(("norm.", "mamba."))
-    }
+    forward_only = {k: z[k] for k in z.files if "mamba_scans.1." not in k and k.startswith(("norm.", "mamba."))}
     module = Mamba2Block(d_model=64, cfg=cfg)
     x = jnp.asarray(z["input"], jnp.float32)
     expected = jax.eval_shape(module.init, jax.random.key(0), x)["params"]

@@ -114,8 +114,12 @@ def test_ssd_scan_groups_and_batch_dims(rng, batch, chunk_size, inter_chunk):
     x, dt, A, B, C, _ = _inputs(rng, batch, 19, 6, 4, 2, 3)
     got = jax.jit(functools.partial(ssd_scan, chunk_size=chunk_size, inter_chunk=inter_chunk))(x, dt, A, B, C)
     want = _numpy_recurrence(
-        x.reshape(-1, *x.shape[-3:]), dt.reshape(-1, *dt.shape[-2:]), A,
-        B.reshape(-1, *B.shape[-3:]), C.reshape(-1, *C.shape[-3:]), np.zeros(6),
+        x.reshape(-1, *x.shape[-3:]),
+        dt.reshape(-1, *dt.shape[-2:]),
+        A,
+        B.reshape(-1, *B.shape[-3:]),
+        C.reshape(-1, *C.shape[-3:]),
+        np.zeros(6),
     ).reshape(x.shape)
     assert _rel(got, want) <= 1e-5
 
@@ -187,10 +191,12 @@ def test_fused_scan_both_diagonal_forms(rng, monkeypatch, forms):
         return y, vjp(cot.astype(y.dtype))
 
     fused = functools.partial(ssd_scan, chunk_size=32, inter_chunk="fused")
-    got_y, got = jax.jit(value_and_vjp, static_argnums=0)(lambda *a: fused(*a[:5], D=a[5]),
-                                                          tuple(jnp.asarray(a) for a in (x, dt, A, B, C, D)))
-    want_y, want = jax.jit(value_and_vjp, static_argnums=0)(lambda *a: ssd_sequential(*a[:5], D=a[5]),
-                                                            _f64(x, dt, A, B, C, D))
+    got_y, got = jax.jit(value_and_vjp, static_argnums=0)(
+        lambda *a: fused(*a[:5], D=a[5]), tuple(jnp.asarray(a) for a in (x, dt, A, B, C, D))
+    )
+    want_y, want = jax.jit(value_and_vjp, static_argnums=0)(
+        lambda *a: ssd_sequential(*a[:5], D=a[5]), _f64(x, dt, A, B, C, D)
+    )
     assert _rel(got_y, want_y) <= 1e-5
     for name, g, w in zip("x dt A B C D".split(), got, want):
         assert _rel(g, w) <= 1e-4, name

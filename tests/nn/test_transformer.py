@@ -26,8 +26,12 @@ def block_oracle(p, x, cfg: TransformerConfig, grid=None, num_neighbours=None):
     f = lambda a: np.asarray(a, np.float64)  # noqa: E731
     x = f(x)
     x = x + attention_module_oracle(
-        p["attn"], layer_norm(x, f(p["norm1"]["scale"]), cfg.norm_eps), cfg.head_dim, cfg.qk_norm,
-        None if grid is None else module_mask_bias(grid, num_neighbours), eps=cfg.norm_eps,
+        p["attn"],
+        layer_norm(x, f(p["norm1"]["scale"]), cfg.norm_eps),
+        cfg.head_dim,
+        cfg.qk_norm,
+        None if grid is None else module_mask_bias(grid, num_neighbours),
+        eps=cfg.norm_eps,
     )
     y = layer_norm(x, f(p["norm2"]["scale"]), cfg.norm_eps)
     return x + gelu(y @ f(p["mlp"]["fc1"]["kernel"])) @ f(p["mlp"]["fc2"]["kernel"])
@@ -119,7 +123,8 @@ def test_long_lrm_golden_block(key, block_idx, prev):
         Rule(pre + r"mlp\.fc2\.weight", "mlp/fc2/kernel", linear),
     ]
     params = convert_state_dict(
-        state, rules,
+        state,
+        rules,
         expected=jax.eval_shape(block.init, key, x32)["params"],
         keep_prefixes=(f"processor.blocks.{block_idx}.",),
     )

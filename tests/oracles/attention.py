@@ -71,4 +71,3 @@ def randomize(params, rng, std=0.3):
 
 def rel_err(got, want) -> float:
     return float(np.max(np.abs(np.asarray(got, np.float64) - want)) / np.max(np.abs(want)))
-

@@ -54,4 +54,3 @@ def module_mask_bias(grid, k):
         return dense_mask_bias(*grid, k, pair)
 
     return fn
-

@@ -58,8 +58,9 @@ def oracle_project(means, quats, scales, c2w, intr, height, width, eps2d=0.3, ne
         visible = (det > 0) & (tz > near) & (tz < far)
         visible &= (means2d[:, 0] + radius > 0) & (means2d[:, 0] - radius < width)
         visible &= (means2d[:, 1] + radius > 0) & (means2d[:, 1] - radius < height)
-    return dict(means2d=means2d, conics=conics, cov2d=cov2d, depths=tz, radii=np.where(visible, radius, 0.0),
-                visible=visible)
+    return dict(
+        means2d=means2d, conics=conics, cov2d=cov2d, depths=tz, radii=np.where(visible, radius, 0.0), visible=visible
+    )
 
 
 def oracle_tile_boxes(proj, height, width, opacities=None, block=TILE):
@@ -188,9 +189,7 @@ def assert_render_close(got, expected, atol):
         np.testing.assert_allclose(np.asarray(g), np.asarray(e), rtol=0, atol=atol)
 
 
-def random_scene(
-    rng: np.random.Generator, n: int, f: int, height: int, width: int, conditioned: bool = False
-):
+def random_scene(rng: np.random.Generator, n: int, f: int, height: int, width: int, conditioned: bool = False):
     """A hard random scene: in front / behind / beside the camera, tiny and huge scales,
     opacities at and near 0 and 1, centres on tile and image borders, unnormalised quats,
     a random rigid camera.

@@ -43,8 +43,9 @@ def test_tpu_path_picks_the_blockwise_kernel_and_sequential_scan():
 
 def test_a_program_over_the_chips_hbm_is_a_row_saying_what_it_needs():
     def build(mesh, backend):
-        x = jax.ShapeDtypeStruct((2**20,), jnp.float32,
-                                 sharding=jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+        x = jax.ShapeDtypeStruct(
+            (2**20,), jnp.float32, sharding=jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        )
         return jax.jit(lambda x: jnp.broadcast_to(x[None], (5 * 2**10, 2**20)) * 2.0), (x,)  # 20 GiB out
 
     row = compile_row(Program("big", "20 GiB result", build), V5E)
@@ -53,10 +54,13 @@ def test_a_program_over_the_chips_hbm_is_a_row_saying_what_it_needs():
     assert 15 * 2**30 < row["hbm_available_bytes"] <= 16 * 2**30
 
 
-@pytest.mark.parametrize(("programs", "targets", "known"), [
-    (["no_such_program"], ["v5e"], "reconstruct_32"),
-    (["tiny"], ["v9z"], "v5p"),
-])
+@pytest.mark.parametrize(
+    ("programs", "targets", "known"),
+    [
+        (["no_such_program"], ["v5e"], "reconstruct_32"),
+        (["tiny"], ["v9z"], "v5p"),
+    ],
+)
 def test_unknown_names_are_one_line_listing_the_known_ones(programs, targets, known):
     with pytest.raises(UserError) as e:
         plan(programs, targets, log=lambda _: None)

@@ -31,8 +31,9 @@ def test_each_recipe_loads_by_name_and_stands_alone(name):
     assert isinstance(exp, ExperimentConfig) and exp.stages
     assert load_experiment(recipe_path(name)) == exp  # by path, the same
     tree = ast.parse(open(recipe_path(name)).read())
-    imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names} | \
-               {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names} | {
+        n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
+    }
     assert not any(m.startswith("llrmpp_jax.recipes") for m in imported), imported
     calls = [n.func for n in ast.walk(tree) if isinstance(n, ast.Call)]
     assert not any(isinstance(f, ast.Name) and f.id == "load_experiment" for f in calls), "a recipe loads another"
@@ -52,8 +53,9 @@ def test_the_paper_recipes_take_long_lrm_s_learning_rate_schedule():
             cfg = optimizer_config(stage)
             assert stage.lr_schedule == "long_lrm" and cfg.total_steps == 1_000_000, (name, stage.name)
             assert 0.99 * stage.lr <= float(make_schedule(cfg)(stage.steps)) <= stage.lr, (name, stage.name)
-    own = StageConfig("s", steps=100, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, warmup_steps=10,
-                      lr_schedule="stage")
+    own = StageConfig(
+        "s", steps=100, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, warmup_steps=10, lr_schedule="stage"
+    )
     assert optimizer_config(own).total_steps == 100 and float(make_schedule(optimizer_config(own))(100)) == 0.0
     with pytest.raises(UserError, match="lr_schedule must be 'long_lrm' or 'stage', got 'constant'"), unchecked():
         StageConfig("s", steps=1, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, lr_schedule="constant")
@@ -71,13 +73,31 @@ def test_the_long_lrm_recipe_is_long_lrm_s_training_recipe():
     assert exp.model == C.long_lrm()
     assert (exp.perceptual_weight, exp.perceptual_net, exp.opacity_weight) == (1.0, "vgg19", 0.1)
     assert exp.skip_grad_norm_above == 50.0 and exp.bf16 and exp.gaussian_depth_weight == 0.0
-    got = [(s.resize_h, s.square_crop, s.num_inputs, s.num_targets, s.lr, s.warmup_steps, s.min_span, s.max_span,
-            s.zoom_min, exp.model_of(s).head.prune_ratio, exp.model_of(s).head.prune_random_ratio) for s in exp.stages]
-    assert got == [(256, True, 32, 8, 4e-4, 2000, 64, 128, 1.0, 0.0, 0.0),
-                   (512, True, 32, 8, 4e-5, 0, 64, 128, 1.0, 0.0, 0.0),
-                   (540, False, 32, 8, 4e-5, 0, None, None, 0.77, 0.6, 0.1)]
-    assert all((s.input_weight, s.reverse_prob, s.shuffle_prob, s.lr_schedule) == (1.0, 0.5, 0.5, "long_lrm")
-               for s in exp.stages)
+    got = [
+        (
+            s.resize_h,
+            s.square_crop,
+            s.num_inputs,
+            s.num_targets,
+            s.lr,
+            s.warmup_steps,
+            s.min_span,
+            s.max_span,
+            s.zoom_min,
+            exp.model_of(s).head.prune_ratio,
+            exp.model_of(s).head.prune_random_ratio,
+        )
+        for s in exp.stages
+    ]
+    assert got == [
+        (256, True, 32, 8, 4e-4, 2000, 64, 128, 1.0, 0.0, 0.0),
+        (512, True, 32, 8, 4e-5, 0, 64, 128, 1.0, 0.0, 0.0),
+        (540, False, 32, 8, 4e-5, 0, None, None, 0.77, 0.6, 0.1),
+    ]
+    assert all(
+        (s.input_weight, s.reverse_prob, s.shuffle_prob, s.lr_schedule) == (1.0, 0.5, 0.5, "long_lrm")
+        for s in exp.stages
+    )
 
 
 def test_the_small_recipe_is_the_shipped_model_s():
@@ -142,7 +162,12 @@ def test_no_module_reaches_for_the_experiments_folder():
                     found += [(rel, a.name) for a in node.names if _imports_experiments(a.name)]
                 elif isinstance(node, ast.ImportFrom) and node.module and _imports_experiments(node.module):
                     found.append((rel, node.module))
-                elif (isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs
-                      and _names_experiments(node.value) and (rel, node.value) not in ALLOWED):
+                elif (
+                    isinstance(node, ast.Constant)
+                    and isinstance(node.value, str)
+                    and id(node) not in docs
+                    and _names_experiments(node.value)
+                    and (rel, node.value) not in ALLOWED
+                ):
                     found.append((rel, node.value))
     assert not found, found

@@ -22,7 +22,7 @@ def expand_braces(pattern: str) -> list[str]:
     brace = re.search(r"\{([^{}]*)\}", pattern)
     if brace is None:
         return [pattern]
-    head, tail = pattern[:brace.start()], pattern[brace.end():]
+    head, tail = pattern[: brace.start()], pattern[brace.end() :]
     return [p for alt in brace.group(1).split(",") for p in expand_braces(head + alt + tail)]
 
 
@@ -53,16 +53,20 @@ def result_files() -> list[str]:
     """The files under ``experiments/results/`` relative to it: git's tracked ones in a
     checkout, else what is on disk (an unpacked source tree)."""
     try:
-        res = subprocess.run(["git", "ls-files", "-z", "--", "."], cwd=RESULTS, capture_output=True,
-                             text=True, timeout=60)
+        res = subprocess.run(
+            ["git", "ls-files", "-z", "--", "."], cwd=RESULTS, capture_output=True, text=True, timeout=60
+        )
         if res.returncode == 0:
             return sorted(filter(None, res.stdout.split("\0")))
     except (FileNotFoundError, NotADirectoryError):  # no git, or no folder
         pass
     if not os.path.isdir(RESULTS):
         pytest.skip(f"neither a git checkout nor a folder {RESULTS} to list")
-    return sorted(os.path.relpath(os.path.join(d, f), RESULTS).replace(os.sep, "/")
-                  for d, _, names in os.walk(RESULTS) for f in names)
+    return sorted(
+        os.path.relpath(os.path.join(d, f), RESULTS).replace(os.sep, "/")
+        for d, _, names in os.walk(RESULTS)
+        for f in names
+    )
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +96,10 @@ def test_brace_patterns_and_folders():
     assert expand_braces("t{4,5}_*.{json,png}") == ["t4_*.json", "t4_*.png", "t5_*.json", "t5_*.png"]
     assert expand_braces("a_{,2}.json") == ["a_.json", "a_2.json"]
     row = "| `a/{x,y}.json`, `b/` | made by `c.py` | cited in `d.md` |"
-    assert index_patterns(f"| files | by | in |\n|---|---|---|\n{row}\n`e.json` outside a table") == \
-        ["a/{x,y}.json", "b/"]
+    assert index_patterns(f"| files | by | in |\n|---|---|---|\n{row}\n`e.json` outside a table") == [
+        "a/{x,y}.json",
+        "b/",
+    ]
     files = ["README.md", "a/x.json", "a/y.json", "b/c/d.txt", "z.json"]
     assert unindexed(files, ["a/{x,y}.json", "b/"]) == ["z.json"]
     assert unmatched(["a/{x,y}.json", "b/", "a/w*.json", "c/"], files) == ["a/w*.json", "c/"]

@@ -46,13 +46,20 @@ def test_a_module_needing_missing_data_is_skipped_or_under_ci_an_error(tmp_path,
     its own pytest outside the suite: skipped whole without CI, a collection error under it."""
     (tmp_path / "test_needs_shared.py").write_text(
         "from tests.helpers.environment import shared_path\n"
-        f"DATA = shared_path(*{MISSING!r})\n\n\ndef test_reads_it():\n    pass\n")
+        f"DATA = shared_path(*{MISSING!r})\n\n\ndef test_reads_it():\n    pass\n"
+    )
     env = {k: v for k, v in os.environ.items() if k != "CI"}
     env["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [env.get("PYTHONPATH")])])
     if ci is not None:
         env["CI"] = ci
-    res = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", "-rs", str(tmp_path)],
-                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", "-rs", str(tmp_path)],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     out = res.stdout + res.stderr
     path = os.path.join(environment.SHARED, *MISSING)
     assert outcome in out.splitlines()[-1], out

@@ -75,8 +75,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     template, run 3 more: bitwise equal to 6 uninterrupted steps (incl. a skipped one)."""
     k = 3
     mesh = make_data_mesh()
-    step = sharded_train_step(
-        make_train_step(noisy_loss, make_optimizer(CFG), make_schedule(CFG)), mesh)
+    step = sharded_train_step(make_train_step(noisy_loss, make_optimizer(CFG), make_schedule(CFG)), mesh)
 
     def run(state, start, stop):
         for position in range(start, stop):
@@ -104,7 +103,10 @@ def test_resume_after_sigkill(tmp_path):
     resuming from whatever survives and training to 2j reproduces an uninterrupted run."""
     proc = subprocess.Popen(
         [sys.executable, "-m", __name__, str(tmp_path)],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        cwd=ROOT,
     )
     try:
         for line in proc.stdout:
@@ -165,11 +167,14 @@ def _drop_manifest(step_dir):
     (step_dir / MANIFEST).unlink()
 
 
-@pytest.mark.parametrize("damage,message", [
-    (_flip_byte, "fails its SHA-256 check"),
-    (_truncate, "truncated"),
-    (_drop_manifest, "save did not complete"),
-])
+@pytest.mark.parametrize(
+    "damage,message",
+    [
+        (_flip_byte, "fails its SHA-256 check"),
+        (_truncate, "truncated"),
+        (_drop_manifest, "save did not complete"),
+    ],
+)
 def test_damaged_checkpoint_falls_back(tmp_path, three_states, damage, message):
     for i, state in enumerate(three_states):
         save_checkpoint(tmp_path, state, data_state={"position": i + 1})
@@ -192,8 +197,7 @@ def test_no_good_checkpoint(tmp_path, three_states):
     assert restore_checkpoint(tmp_path / "absent", three_states[0]) is None
     save_checkpoint(tmp_path, three_states[0])
     _truncate(tmp_path / "1")
-    with pytest.warns(UserWarning), pytest.raises(CorruptCheckpointError,
-                                                 match="no valid checkpoint"):
+    with pytest.warns(UserWarning), pytest.raises(CorruptCheckpointError, match="no valid checkpoint"):
         restore_checkpoint(tmp_path, three_states[0])
 
 
@@ -237,8 +241,17 @@ def test_a_stage_resumes_across_a_change_of_lr_schedule(tmp_path, before, after)
     mesh = make_data_mesh()
 
     def optimizer(schedule):
-        stage = StageConfig("s", steps=steps, global_batch=8, num_inputs=1, num_targets=1, resize_h=None,
-                            lr=lr, warmup_steps=warmup, lr_schedule=schedule)
+        stage = StageConfig(
+            "s",
+            steps=steps,
+            global_batch=8,
+            num_inputs=1,
+            num_targets=1,
+            resize_h=None,
+            lr=lr,
+            warmup_steps=warmup,
+            lr_schedule=schedule,
+        )
         return optimizer_config(stage)
 
     def hf_rate(schedule, count):
@@ -257,8 +270,9 @@ def test_a_stage_resumes_across_a_change_of_lr_schedule(tmp_path, before, after)
         return state, rates
 
     def init(schedule, seed):
-        state = init_train_state(toy_params(jax.random.key(seed)), make_optimizer(optimizer(schedule)),
-                                 jax.random.key(seed + 1))
+        state = init_train_state(
+            toy_params(jax.random.key(seed)), make_optimizer(optimizer(schedule)), jax.random.key(seed + 1)
+        )
         return replicate_on_mesh(state, mesh)
 
     half, rates_before = run(before, init(before, SEED), 0, 3)

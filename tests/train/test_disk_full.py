@@ -48,12 +48,21 @@ def _train(tmp_path, workdir, steps: int, file_size_limit: int | None = None) ->
             resource.setrlimit(resource.RLIMIT_FSIZE, (file_size_limit, file_size_limit))
 
     # The runs share XLA's persistent cache: the three runs of 4 steps compile once.
-    env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_COMPILATION_CACHE_DIR=str(tmp_path / "xla_cache"),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    env = dict(
+        os.environ,
+        JAX_PLATFORMS="cpu",
+        JAX_COMPILATION_CACHE_DIR=str(tmp_path / "xla_cache"),
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+    )
     # Output through pipes: a file-size limit does not apply to them.
-    return subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", str(config),
-                           "--workdir", str(workdir)], capture_output=True, text=True, env=env,
-                          preexec_fn=limit, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", str(config), "--workdir", str(workdir)],
+        capture_output=True,
+        text=True,
+        env=env,
+        preexec_fn=limit,
+        timeout=600,
+    )
 
 
 def _file_size_limit(workdir) -> int:

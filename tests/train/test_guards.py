@@ -111,8 +111,14 @@ def test_guards_around_the_spike_guard_keep_its_running_mean(key, rng):
 
 def test_skip_reasons():
     nan, inf = jnp.float32(jnp.nan), jnp.float32(jnp.inf)
-    cases = [((1.0, 2.0, None), (False, False)), ((1.0, 2.0, 1.5), (False, True)), ((1.0, 2.0, 2.5), (False, False)),
-             ((nan, 2.0, 1.5), (True, False)), ((1.0, inf, 1.5), (True, False)), ((None, nan, None), (True, False))]
+    cases = [
+        ((1.0, 2.0, None), (False, False)),
+        ((1.0, 2.0, 1.5), (False, True)),
+        ((1.0, 2.0, 2.5), (False, False)),
+        ((nan, 2.0, 1.5), (True, False)),
+        ((1.0, inf, 1.5), (True, False)),
+        ((None, nan, None), (True, False)),
+    ]
     for (loss, norm, limit), want in cases:
         got = skip_reasons(None if loss is None else jnp.float32(loss), jnp.float32(norm), limit)
         assert tuple(bool(x) for x in got) == want, (loss, norm, limit)

@@ -32,9 +32,14 @@ def test_runs_from_start_to_steps_calling_each_hook_in_order():
     done = run_stage(100, _step, batches(), steps=5, start=2, hooks=[first, second])
     assert done == StageRun(state=100 + 10 + 11 + 12, step=5, stopped=False)
     assert pulled == [10, 11, 12]  # one batch per step, none read ahead
-    assert calls == [("first", 3, 110, 10.0, False, False), ("second", 3),
-                     ("first", 4, 121, 11.0, False, False), ("second", 4),
-                     ("first", 5, 133, 12.0, True, False), ("second", 5)]
+    assert calls == [
+        ("first", 3, 110, 10.0, False, False),
+        ("second", 3),
+        ("first", 4, 121, 11.0, False, False),
+        ("second", 4),
+        ("first", 5, 133, 12.0, True, False),
+        ("second", 5),
+    ]
 
 
 def test_stop_ends_the_stage_after_the_step_and_its_hooks():
@@ -44,8 +49,9 @@ def test_stop_ends_the_stage_after_the_step_and_its_hooks():
         asked.append(len(seen))
         return len(asked) == 2  # asked before the hooks of each step
 
-    done = run_stage(0, _step, itertools.count(1), steps=10,
-                     hooks=[lambda i: seen.append((i.step, i.last, i.stopping))], stop=stop)
+    done = run_stage(
+        0, _step, itertools.count(1), steps=10, hooks=[lambda i: seen.append((i.step, i.last, i.stopping))], stop=stop
+    )
     assert done == StageRun(state=1 + 2, step=2, stopped=True)
     assert asked == [0, 1] and seen == [(1, False, False), (2, True, True)]
 

@@ -59,12 +59,18 @@ def _free_port() -> int:
 
 # ``python -c SUPERVISE HINT LOG COMMAND...``: COMMAND under run_supervised, as
 # ``llrmpp train --distributed`` runs every process.
-SUPERVISE = ("import sys; from llrmpp_jax.train.supervise import run_supervised; "
-             "sys.exit(run_supervised(sys.argv[3:], sys.argv[1], sys.argv[2]))")
+SUPERVISE = (
+    "import sys; from llrmpp_jax.train.supervise import run_supervised; "
+    "sys.exit(run_supervised(sys.argv[3:], sys.argv[1], sys.argv[2]))"
+)
 
 
-def _start(mode: str, directory, stderr=subprocess.STDOUT, supervised: tuple[bool, ...] = (False,) * N_PROCESSES,
-           ) -> list[subprocess.Popen]:
+def _start(
+    mode: str,
+    directory,
+    stderr=subprocess.STDOUT,
+    supervised: tuple[bool, ...] = (False,) * N_PROCESSES,
+) -> list[subprocess.Popen]:
     port = _free_port()
     procs = []
     for i, wrap in enumerate(supervised):
@@ -125,8 +131,7 @@ def _assert_both_resume(directory) -> None:
 def test_two_processes_equal_one_device(tmp_path):
     _run_to_end("steps", tmp_path)
     state0 = initial_state()
-    want, _ = oracle_steps(state0.params, make_optimizer(CFG),
-                           [global_batch(s) for s in range(STEPS)])
+    want, _ = oracle_steps(state0.params, make_optimizer(CFG), [global_batch(s) for s in range(STEPS)])
     restored = restore_checkpoint(tmp_path / "ckpt", state0)
     assert restored.step == STEPS and restored.data_state == {"position": STEPS}
     assert_tree_close(restored.state.params, want, atol=1e-5)
@@ -176,23 +181,28 @@ def _run_process(mode: str, process_id: int, port: str, directory: str) -> None:
     """One host: its own rows of each global batch, a step over the global mesh. ``steps``:
     STEPS steps, then one checkpoint. ``long``: resume from ``directory/ckpt`` if it holds
     one and run to LONG_STEPS, a checkpoint after every step, under the peer watchdog."""
-    jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=N_PROCESSES,
-                               process_id=process_id, heartbeat_timeout_seconds=jax_heartbeat_timeout(PEER_TIMEOUT_S))
+    jax.distributed.initialize(
+        coordinator_address=f"127.0.0.1:{port}",
+        num_processes=N_PROCESSES,
+        process_id=process_id,
+        heartbeat_timeout_seconds=jax_heartbeat_timeout(PEER_TIMEOUT_S),
+    )
     assert jax.process_count() == N_PROCESSES and jax.device_count() == 2 * N_PROCESSES
     mesh = make_data_mesh()
-    step = sharded_train_step(make_train_step(toy_loss, make_optimizer(CFG), make_schedule(CFG)),
-                              mesh)
+    step = sharded_train_step(make_train_step(toy_loss, make_optimizer(CFG), make_schedule(CFG)), mesh)
     state = replicate_on_mesh(initial_state(), mesh)
     rows = GLOBAL_BATCH // N_PROCESSES
 
     def local(s):
-        return shard_for_mesh(jax.tree.map(lambda x: x[process_id * rows:(process_id + 1) * rows], global_batch(s)),
-                              mesh)
+        return shard_for_mesh(
+            jax.tree.map(lambda x: x[process_id * rows : (process_id + 1) * rows], global_batch(s)), mesh
+        )
 
     ckpt = os.path.join(directory, "ckpt")
     if mode == "long":
-        with watch_peers(PEER_TIMEOUT_S, interval_s=0.5,
-                         resume_hint=lambda: "resume from the last complete checkpoint in " + ckpt):
+        with watch_peers(
+            PEER_TIMEOUT_S, interval_s=0.5, resume_hint=lambda: "resume from the last complete checkpoint in " + ckpt
+        ):
             restored = restore_checkpoint(ckpt, state)
             start = 0 if restored is None else restored.step
             if restored is not None:
@@ -209,8 +219,10 @@ def _run_process(mode: str, process_id: int, port: str, directory: str) -> None:
     save_checkpoint(ckpt, state, data_state={"position": STEPS})
     if process_id == 0:
         leaves = jax.tree_util.tree_leaves_with_path(state.params)
-        np.savez(os.path.join(directory, "params_process0.npz"),
-                 **{jax.tree_util.keystr(p): np.asarray(x.addressable_data(0)) for p, x in leaves})
+        np.savez(
+            os.path.join(directory, "params_process0.npz"),
+            **{jax.tree_util.keystr(p): np.asarray(x.addressable_data(0)) for p, x in leaves},
+        )
 
 
 if __name__ == "__main__":

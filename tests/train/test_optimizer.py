@@ -59,15 +59,16 @@ def test_weight_decay_mask():
 def test_matches_torch_adamw(rng):
     """30 steps of clip + AdamW (two param groups) + HF schedule vs torch, in float64."""
     cfg = OptimizerConfig(
-        lr=3e-2, warmup_steps=4, total_steps=30, weight_decay=0.05, grad_clip_norm=10.0,
+        lr=3e-2,
+        warmup_steps=4,
+        total_steps=30,
+        weight_decay=0.05,
+        grad_clip_norm=10.0,
         no_decay_names=("nodecay",),
     )
     shapes = {"a": (4, 3), "b": (3,), "nodecay": (2, 2), "c": (2, 3, 2)}
     init = {k: rng.normal(size=s) for k, s in shapes.items()}
-    grads_seq = [
-        {k: rng.normal(size=s) * (30.0 if i % 3 == 0 else 0.5) for k, s in shapes.items()}
-        for i in range(30)
-    ]
+    grads_seq = [{k: rng.normal(size=s) * (30.0 if i % 3 == 0 else 0.5) for k, s in shapes.items()} for i in range(30)]
 
     tx = make_optimizer(cfg)
     params = {k: jnp.asarray(v, jnp.float64) for k, v in init.items()}
@@ -82,9 +83,10 @@ def test_matches_torch_adamw(rng):
     decay = [tp[k] for k in ("a", "c")]
     no_decay = [tp[k] for k in ("b", "nodecay")]
     opt = torch.optim.AdamW(
-        [{"params": decay, "weight_decay": cfg.weight_decay},
-         {"params": no_decay, "weight_decay": 0.0}],
-        lr=cfg.lr, betas=(cfg.b1, cfg.b2), eps=cfg.eps,
+        [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+        lr=cfg.lr,
+        betas=(cfg.b1, cfg.b2),
+        eps=cfg.eps,
     )
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: hf_cosine_with_warmup(s, cfg.warmup_steps, cfg.total_steps)

@@ -33,6 +33,5 @@ def test_llrmpp_train_and_an_ablation_row_give_the_same_losses(tmp_path):
     assert [h["step"] for h in result["history"]] == [1, 2, 3, 4]
     assert np.all(np.isfinite(row.losses)) and len(set(row.losses.tolist())) == 4  # a real, moving curve
     np.testing.assert_array_equal(losses, row.losses)
-    np.testing.assert_array_equal(np.asarray([h["grad_norm"] for h in result["history"]], np.float32),
-                                  row.grad_norms)
+    np.testing.assert_array_equal(np.asarray([h["grad_norm"] for h in result["history"]], np.float32), row.grad_norms)
     assert_tree_equal(result["params"], row.params)

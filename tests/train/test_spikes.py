@@ -60,10 +60,13 @@ def test_a_lasting_rise_is_accepted_after_the_predicted_steps(rng):
     assert int(state.spikes) == len(zero)
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"factor": 1.0}, "skip_gradient_spikes: factor=1.0 must be > 1"),
-    ({"decay": 1.0}, "skip_gradient_spikes: decay=1.0 must be in (0, 1)"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"factor": 1.0}, "skip_gradient_spikes: factor=1.0 must be > 1"),
+        ({"decay": 1.0}, "skip_gradient_spikes: decay=1.0 must be in (0, 1)"),
+    ],
+)
 def test_bad_settings_are_one_line(kwargs, message):
     with pytest.raises(ValueError) as err:
         skip_gradient_spikes(optax.sgd(1.0), **kwargs)

@@ -138,16 +138,23 @@ def test_large_grad_norm_skip_advances_the_schedule(key, rng):
     state0 = init_train_state(toy_params(key), tx, key)
     huge, good = toy_batch(rng), toy_batch(rng)
     huge["target"] = huge["target"] * 1e4
-    norm = lambda b: float(jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, b, None)[0])(p)))(  # noqa: E731
-        state0.params))
+    norm = lambda b: float(
+        jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, b, None)[0])(p)))(  # noqa: E731
+            state0.params
+        )
+    )
     threshold = 5 * CFG.grad_clip_norm
     assert norm(huge) > threshold > norm(good)
     runner = make_runner(make_train_step(toy_loss, tx, schedule, skip_grad_norm_above=threshold), donate=False)
     state1, m = runner.step(runner.place_state(state0), runner.place_batch(huge))
     assert float(m["grad_norm"]) == pytest.approx(norm(huge), rel=1e-5)
     assert (int(state1.step), int(state1.skipped)) == (1, 1)
-    assert [float(m[k]) for k in ("skipped", "skipped_total", "skipped_grad_norm", "skipped_grad_norm_total")] \
-        == [1.0, 1.0, 1.0, 1.0]
+    assert [float(m[k]) for k in ("skipped", "skipped_total", "skipped_grad_norm", "skipped_grad_norm_total")] == [
+        1.0,
+        1.0,
+        1.0,
+        1.0,
+    ]
     assert_tree_equal(state1.params, state0.params)
     adam0, adam1 = state0.opt_state[1][0], state1.opt_state[1][0]
     assert_tree_equal((adam1.mu, adam1.nu, adam1.count), (adam0.mu, adam0.nu, adam0.count))
@@ -175,8 +182,12 @@ def test_step_key_per_device(key, rng):
     state = runner.place_state(state0)
     for s in range(2):
         state, m = runner.step(state, runner.place_batch(toy_batch(rng)))
-        want = np.mean([float(jax.random.uniform(
-            jax.random.fold_in(jax.random.fold_in(base, s), d), (), jnp.float32)) for d in (0, 1)])
+        want = np.mean(
+            [
+                float(jax.random.uniform(jax.random.fold_in(jax.random.fold_in(base, s), d), (), jnp.float32))
+                for d in (0, 1)
+            ]
+        )
         assert float(m["u"]) == pytest.approx(want, rel=1e-6)
 
 
@@ -194,11 +205,12 @@ def test_bf16_compute(key, rng):
 
     step = make_train_step(loss, tx, make_schedule(CFG), compute_dtype=jnp.bfloat16)
     mesh = make_data_mesh()
-    state1, m = sharded_train_step(step, mesh)(replicate_on_mesh(state0, mesh),
-                                                shard_for_mesh(batch, mesh))
+    state1, m = sharded_train_step(step, mesh)(replicate_on_mesh(state0, mesh), shard_for_mesh(batch, mesh))
     assert seen and all(s == {jnp.dtype(jnp.bfloat16)} for s in seen)
     assert {x.dtype for x in jax.tree.leaves((state1.params, state1.opt_state))} <= {
-        jnp.dtype(jnp.float32), jnp.dtype(jnp.int32)}
+        jnp.dtype(jnp.float32),
+        jnp.dtype(jnp.int32),
+    }
 
     def bf16_loss(p, b, k):
         return toy_loss(jax.tree.map(lambda x: x.astype(jnp.bfloat16), p), b, k)
@@ -212,8 +224,7 @@ def test_bad_inputs(key, rng):
     tx = make_optimizer(CFG)
     params = toy_params(key)
     with pytest.raises(ValueError, match=r"params\['dense1'\]\['bias'\] has dtype bfloat16"):
-        bad = {**params, "dense1": {**params["dense1"],
-                                    "bias": params["dense1"]["bias"].astype(jnp.bfloat16)}}
+        bad = {**params, "dense1": {**params["dense1"], "bias": params["dense1"]["bias"].astype(jnp.bfloat16)}}
         init_train_state(bad, tx, key)
     with pytest.raises(ValueError, match="typed PRNG key"), unchecked():
         init_train_state(params, tx, jax.random.PRNGKey(0))
@@ -227,12 +238,10 @@ def test_bad_inputs(key, rng):
     mesh = make_data_mesh()
     state = replicate_on_mesh(init_train_state(params, tx, key), mesh)
     batch = shard_for_mesh(toy_batch(rng), mesh)
-    vector_loss = make_train_step(lambda p, b, k: (jnp.zeros((2,), jnp.float32), {}), tx,
-                                  make_schedule(CFG))
+    vector_loss = make_train_step(lambda p, b, k: (jnp.zeros((2,), jnp.float32), {}), tx, make_schedule(CFG))
     with pytest.raises(ValueError, match=r"loss of shape \(2,\), expected a scalar"):
         sharded_train_step(vector_loss, mesh)(state, batch)
-    reserved = make_train_step(lambda p, b, k: (toy_loss(p, b, k)[0], {"lr": jnp.zeros(())}),
-                               tx, make_schedule(CFG))
+    reserved = make_train_step(lambda p, b, k: (toy_loss(p, b, k)[0], {"lr": jnp.zeros(())}), tx, make_schedule(CFG))
     with pytest.raises(ValueError, match=r"reserved names \['lr'\]"):
         sharded_train_step(reserved, mesh)(state, batch)
     with pytest.raises(ValueError, match="lack the data axis 'batch'"):
@@ -254,16 +263,27 @@ def test_model_step_sharded_over_two_devices_equals_one_device(key):
 
     cfg, res = C.tiny(), 64
     geom = ViewGeometry(resize_h=res, multiple=cfg.size_multiple, square_crop=True)
-    samples = [make_sample(procedural_scene(s, ProceduralConfig(height=res, width=res, num_frames=6)),
-                           np.array([0, 4]), np.array([2]), geom) for s in (5, 6)]
+    samples = [
+        make_sample(
+            procedural_scene(s, ProceduralConfig(height=res, width=res, num_frames=6)),
+            np.array([0, 4]),
+            np.array([2]),
+            geom,
+        )
+        for s in (5, 6)
+    ]
     batch = {k: np.stack([s[k] for s in samples]) for k in samples[0]}
 
     def loss_fn(params, b, key):
         del key
         g = reconstruct(params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"])
         out = render(params, cfg, g, b["target_c2w"], b["target_intrinsics"], res, res)
-        return rgb_loss(out.images["rgb"].reshape(-1, res, res, 3),
-                        b["target_images"].reshape(-1, res, res, 3), None, perceptual_weight=0.0)
+        return rgb_loss(
+            out.images["rgb"].reshape(-1, res, res, 3),
+            b["target_images"].reshape(-1, res, res, 3),
+            None,
+            perceptual_weight=0.0,
+        )
 
     params = init_params(key, cfg, 2, res, res)
     grads = jax.jit(jax.grad(lambda p: loss_fn(p, batch, None)[0]))(params)

@@ -49,14 +49,19 @@ def test_llrmpp_train_on_a_busy_workdir_is_one_line(tmp_path):
     proc = _holder(work)
     try:
         t0 = time.time()
-        res = subprocess.run([sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", "demo",
-                              "--workdir", work], capture_output=True, text=True, timeout=300,
-                             cwd=ROOT)
+        res = subprocess.run(
+            [sys.executable, "-m", "llrmpp_jax.cli", "train", "--config", "demo", "--workdir", work],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=ROOT,
+        )
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
     assert res.returncode == 2, res.stderr
     assert res.stderr.strip().splitlines() == [
         f"llrmpp: error: {work}: another llrmpp train is using this workdir (pid {proc.pid} on "
-        f"{os.uname().nodename}); wait for it to finish or stop it, or train in another --workdir"]
+        f"{os.uname().nodename}); wait for it to finish or stop it, or train in another --workdir"
+    ]
     assert time.time() - t0 < 120  # refused at the door, before any compile

@@ -43,7 +43,7 @@ _MIN_RECORD = {"cameras": 4 + 4 + 8 + 8 + 3 * 8, "images": 4 + 7 * 8 + 4 + 2 + 8
 _TEXT_LAYOUT = {
     "cameras": "a line per camera: CAMERA_ID MODEL WIDTH HEIGHT and as many PARAMS as the model has",
     "images": "two lines per image: IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME (a camera in cameras.txt), "
-              "then X Y POINT3D_ID triples",
+    "then X Y POINT3D_ID triples",
     "points3D": "a line per point: POINT3D_ID X Y Z R G B ERROR, then IMAGE_ID POINT2D_IDX pairs of images in images.txt",
 }
 # glog's failure handler, which pycolmap installs when it is imported.
@@ -160,7 +160,9 @@ def _culprit(sparse_dir: str, paths: dict[str, str], binary: bool, error: Except
             part = parts[k - 1]
             expected = f"; expected {_TEXT_LAYOUT[part]}" if not binary else ""
             return UserError(f"{paths[part]}: not a valid COLMAP {kind} {part} file ({_message(e)}){expected}")
-    return UserError(f"{sparse_dir}: COLMAP's rigs and frames files do not fit its cameras and images ({_message(error)})")
+    return UserError(
+        f"{sparse_dir}: COLMAP's rigs and frames files do not fit its cameras and images ({_message(error)})"
+    )
 
 
 def _check_count(path: str, part: str) -> None:
@@ -168,7 +170,11 @@ def _check_count(path: str, part: str) -> None:
     size = os.path.getsize(path)
     count = int(np.fromfile(path, "<u8", count=1)[0]) if size >= 8 else None
     if count is None or 8 + count * _MIN_RECORD[part] > size:
-        needs = "an 8-byte record count" if count is None else f"at least {8 + count * _MIN_RECORD[part]} for {count} {part}"
+        needs = (
+            "an 8-byte record count"
+            if count is None
+            else f"at least {8 + count * _MIN_RECORD[part]} for {count} {part}"
+        )
         raise UserError(f"{path}: file is truncated ({size} bytes; needs {needs})")
 
 
@@ -203,8 +209,14 @@ def _image(im: Any) -> ColmapImage:
 
 def _point(pid: int, p: Any) -> ColmapPoint3D:
     track = np.array([(e.image_id, e.point2D_idx) for e in p.track.elements], dtype=np.int64).reshape(-1, 2)
-    return ColmapPoint3D(int(pid), np.array(p.xyz, dtype=np.float64), np.array(p.color, dtype=np.int64),
-                         float(p.error), track[:, 0], track[:, 1])
+    return ColmapPoint3D(
+        int(pid),
+        np.array(p.xyz, dtype=np.float64),
+        np.array(p.color, dtype=np.int64),
+        float(p.error),
+        track[:, 0],
+        track[:, 1],
+    )
 
 
 def _read_checked(sparse_dir: str, with_points: bool) -> tuple[Any, dict[int, ColmapCamera]]:
@@ -225,8 +237,10 @@ def _read_checked(sparse_dir: str, with_points: bool) -> tuple[Any, dict[int, Co
         raise _culprit(sparse_dir, paths, binary, e) from None
     for part, path in paths.items():
         if binary and (size := os.path.getsize(path)) != (expected := _binary_bytes(rec, part)):
-            raise UserError(f"{path}: {size} bytes, but the {part} it lists take {expected} "
-                            "(the file is cut short or not in COLMAP's binary format)")
+            raise UserError(
+                f"{path}: {size} bytes, but the {part} it lists take {expected} "
+                "(the file is cut short or not in COLMAP's binary format)"
+            )
     return rec, {int(cid): _camera(paths["cameras"], c) for cid, c in rec.cameras.items()}
 
 
@@ -242,9 +256,7 @@ def read_colmap_model(
     return cams, imgs, pts
 
 
-def read_colmap_scene(
-    sparse_dir: str, image_dir: str, undistort: bool = True, missing: Missing = "skip"
-) -> Scene:
+def read_colmap_scene(sparse_dir: str, image_dir: str, undistort: bool = True, missing: Missing = "skip") -> Scene:
     """A :class:`Scene` over the registered images of a COLMAP model, ordered by image
     name (the path under ``image_dir``), with each image's own camera (intrinsics and
     distortion)."""
@@ -253,7 +265,9 @@ def read_colmap_scene(
     intr, dist, hw = [], [], []
     for im in order:
         if im.camera_id not in cams:
-            raise UserError(f"{sparse_dir}: image {im.name!r} refers to camera {im.camera_id}, which is not in the model")
+            raise UserError(
+                f"{sparse_dir}: image {im.name!r} refers to camera {im.camera_id}, which is not in the model"
+            )
         cam = cams[im.camera_id]
         k, d = cam.pinhole_and_distortion()
         intr.append(k)
@@ -286,10 +300,14 @@ def write_colmap_scene(scene: Scene, out_dir: str, binary: bool = True, image_ex
     rec = pycolmap.Reconstruction()
     for i in range(n):
         h, w = scene.hw[i].tolist()
-        rec.add_camera_with_trivial_rig(pycolmap.Camera(
-            model="PINHOLE", width=w, height=h, params=np.asarray(scene.intrinsics[i], np.float64), camera_id=i + 1))
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(
+                model="PINHOLE", width=w, height=h, params=np.asarray(scene.intrinsics[i], np.float64), camera_id=i + 1
+            )
+        )
         rec.add_image_with_trivial_frame(
             pycolmap.Image(name=names[i], camera_id=i + 1, image_id=i + 1),
-            pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[i, :3, :3]), w2c[i, :3, 3]))
+            pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[i, :3, :3]), w2c[i, :3, 3]),
+        )
     (rec.write_binary if binary else rec.write_text)(sparse)
     return sparse

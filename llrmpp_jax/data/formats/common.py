@@ -40,9 +40,7 @@ def present_mask(paths: Sequence[str], what: str, source: str, missing: Missing)
     return keep
 
 
-def check_frames(
-    source: str, c2w: np.ndarray, intrinsics: np.ndarray, frame_names: Sequence[str]
-) -> None:
+def check_frames(source: str, c2w: np.ndarray, intrinsics: np.ndarray, frame_names: Sequence[str]) -> None:
     """``validate_cameras`` with the source file in the message (before any image is read)."""
     if len(frame_names) == 0:
         raise UserError(f"{source}: empty scene (no frames with an image on disk)")

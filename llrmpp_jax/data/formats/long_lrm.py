@@ -78,7 +78,9 @@ def read_long_lrm_scene(json_path: str, missing: Missing = "skip", depth_scale: 
             field = e.args[0] if isinstance(e, KeyError) else "w2c/intrinsics"
             raise UserError(f"{json_path}, frame {k}: bad or missing field {field!r}: {e}") from None
     if depths and len(depths) != len(images):
-        raise UserError(f"{json_path}: 'depth_path' is given for {len(depths)} of {len(images)} frames; expected all or none")
+        raise UserError(
+            f"{json_path}: 'depth_path' is given for {len(depths)} of {len(images)} frames; expected all or none"
+        )
     return files_scene(
         name=str(data.get("scene_name", os.path.basename(base))),
         source=json_path,

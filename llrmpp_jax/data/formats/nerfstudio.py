@@ -150,8 +150,16 @@ def write_nerfstudio_scene(
     for i in range(n):
         fx, fy, cx, cy = scene.intrinsics[i].tolist()
         h, w = scene.hw[i].tolist()
-        frame = {"file_path": image_names[i], "transform_matrix": gl[i].tolist(),
-                 "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": w, "h": h}
+        frame = {
+            "file_path": image_names[i],
+            "transform_matrix": gl[i].tolist(),
+            "fl_x": fx,
+            "fl_y": fy,
+            "cx": cx,
+            "cy": cy,
+            "w": w,
+            "h": h,
+        }
         if depth_names is not None:
             frame["depth_file_path"] = depth_names[i]
         frames.append(frame)

@@ -48,8 +48,11 @@ def colmap_model_dir(path: str) -> str | None:
 
 def _colmap_image_dir(path: str, model_dir: str) -> str:
     """``path/images``, else ``images`` beside the ``sparse`` folder."""
-    for d in (os.path.join(path, "images"), os.path.join(model_dir, "..", "..", "images"),
-              os.path.join(model_dir, "..", "images")):
+    for d in (
+        os.path.join(path, "images"),
+        os.path.join(model_dir, "..", "..", "images"),
+        os.path.join(model_dir, "..", "images"),
+    ):
         if os.path.isdir(d):
             return os.path.normpath(d)
     return os.path.join(path, "images")
@@ -141,8 +144,11 @@ def dataset_scenes(path: str, kind: Format = "auto") -> list[str]:
         found = None
     if found is not None and kind in ("auto", found):
         return [path]
-    subs = sorted(os.path.join(path, d) for d in os.listdir(path) if os.path.isdir(os.path.join(path, d))) \
-        if os.path.isdir(path) else []
+    subs = (
+        sorted(os.path.join(path, d) for d in os.listdir(path) if os.path.isdir(os.path.join(path, d)))
+        if os.path.isdir(path)
+        else []
+    )
     if not subs and kind == "auto":
         raise UserError(f"dataset {path} holds no scenes (looked for {LOOKED_FOR}, in it or its sub-folders)")
     return subs or [path]
@@ -166,6 +172,8 @@ def listed_scenes(root: str, scene_list: str) -> list[str]:
         raise UserError(f"scene list {scene_list} names no scenes")
     missing = [n for n in names if not os.path.isdir(os.path.join(root, n))]
     if missing:
-        raise MissingInputError(f"scene list {scene_list}: {len(missing)} of its {len(names)} scenes are not "
-                                f"folders of {root}, the first: {missing[0]}")
+        raise MissingInputError(
+            f"scene list {scene_list}: {len(missing)} of its {len(names)} scenes are not "
+            f"folders of {root}, the first: {missing[0]}"
+        )
     return [os.path.join(root, n) for n in names]

@@ -79,11 +79,19 @@ def read_scannet_scene(
 
     color_paths = [color_path(s) for s in stems]
     depth_paths = [os.path.join(scene_dir, "depth", s + ".png") for s in stems]
-    keep = present_mask(color_paths, "color", scene_dir, missing) & present_mask(depth_paths, "depth", scene_dir, missing)
-    poses = np.stack([_read_matrix(os.path.join(pose_dir, s + ".txt"), "pose") for s in stems]) if stems else np.zeros((0, 4, 4))
+    keep = present_mask(color_paths, "color", scene_dir, missing) & present_mask(
+        depth_paths, "depth", scene_dir, missing
+    )
+    poses = (
+        np.stack([_read_matrix(os.path.join(pose_dir, s + ".txt"), "pose") for s in stems])
+        if stems
+        else np.zeros((0, 4, 4))
+    )
     finite = np.isfinite(poses).reshape(len(stems), -1).all(axis=1)
     if not finite[keep].all():
-        warnings.warn(f"{scene_dir}: skipped {int((~finite[keep]).sum())} frames with invalid (non-finite) poses", stacklevel=2)
+        warnings.warn(
+            f"{scene_dir}: skipped {int((~finite[keep]).sum())} frames with invalid (non-finite) poses", stacklevel=2
+        )
     idx = np.flatnonzero(keep & finite)
     color_paths = [color_paths[i] for i in idx]
     depth_paths = [depth_paths[i] for i in idx]
@@ -107,13 +115,17 @@ def read_scannet_scene(
     def load_color(i: int) -> np.ndarray:
         img = read_image(color_paths[i])
         if img.shape[:2] != color_hw:
-            raise UserError(f"ScanNet colour image {color_paths[i]} is {img.shape[:2]}, expected {color_hw} like the first frame")
+            raise UserError(
+                f"ScanNet colour image {color_paths[i]} is {img.shape[:2]}, expected {color_hw} like the first frame"
+            )
         return resize_image(img, out_hw)
 
     def load_depth(i: int) -> np.ndarray:
         d = read_depth(depth_paths[i], 1e-3)
         if d.shape != depth_hw:
-            raise UserError(f"ScanNet depth map {depth_paths[i]} is {d.shape}, expected {depth_hw} like the first frame")
+            raise UserError(
+                f"ScanNet depth map {depth_paths[i]} is {d.shape}, expected {depth_hw} like the first frame"
+            )
         return remap(d, src, nearest=True)
 
     return Scene(
@@ -136,8 +148,14 @@ def write_scannet_scene(scene: Scene, out_dir: str, image_ext: str = ".png", bit
     if (scene.hw != scene.hw[:1]).any() or (scene.intrinsics != scene.intrinsics[:1]).any():
         raise UserError(f"write_scannet_scene: scene {scene.name!r} must have one image size and one set of intrinsics")
     n = len(scene)
-    write_frames(scene, out_dir, [f"color/{i}{image_ext}" for i in range(n)], [f"depth/{i}.png" for i in range(n)],
-                 bits=bits, depth_scale=1e-3)
+    write_frames(
+        scene,
+        out_dir,
+        [f"color/{i}{image_ext}" for i in range(n)],
+        [f"depth/{i}.png" for i in range(n)],
+        bits=bits,
+        depth_scale=1e-3,
+    )
     os.makedirs(os.path.join(out_dir, "pose"), exist_ok=True)
     os.makedirs(os.path.join(out_dir, "intrinsic"), exist_ok=True)
     for i in range(n):
