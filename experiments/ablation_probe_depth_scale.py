@@ -53,10 +53,10 @@ def main() -> None:
     )
     import jax.numpy as jnp
     import numpy as np
+    from git_worktree import revision
 
     import llrmpp_jax.ablation.scoring as scoring
     import llrmpp_jax.data.batching as batching
-    from git_worktree import revision
     from llrmpp_jax import ablation as A
     from llrmpp_jax.metrics import depth_metrics
 

@@ -1,11 +1,12 @@
 """Can the model re-render the view it was given? One input view, the target is that view.
 
-Run:  PYTHONPATH=. python experiments/bench_autoencoder.py --steps 1000
-      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 1000 --init-std lecun
-      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 600 --mode color
-      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 4000 --init-std lecun --k 16 --feature-dim 32
-      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 2000 --init-std lecun --anchors grid --scale-bias -3.0
-      PYTHONPATH=. python experiments/bench_autoencoder.py --steps 2000 --init-std lecun --k 16 --feature-dim 32 --canvas ideal
+Run (PYTHONPATH=. python experiments/bench_autoencoder.py ...):
+      --steps 1000
+      --steps 1000 --init-std lecun
+      --steps 600 --mode color
+      --steps 4000 --init-std lecun --k 16 --feature-dim 32
+      --steps 2000 --init-std lecun --anchors grid --scale-bias -3.0
+      --steps 2000 --init-std lecun --k 16 --feature-dim 32 --canvas ideal
 
 With one input view every Gaussian projects back onto the pixels it came from, whatever its
 depth, so geometry plays no part: the score measures only the path that carries a patch's

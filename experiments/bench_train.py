@@ -43,8 +43,8 @@ stage-4 step, written as JSON.
 2. **Paper stage 4** (the ``dl3dv`` recipe's stage 4: 32 inputs + 8 targets at 544x960,
    the paper's global batch 64 on 64 GPUs, so 1 scene per device; bf16 compute and
    backbone remat as the experiment file sets; the perceptual term as the file sets it,
-   Long-LRM's VGG19, with random weights of its shapes unless the file names weights): the per-device step is lowered from
-   ``jax.ShapeDtypeStruct``s (nothing allocated) and compiled for CPU in a subprocess
+   Long-LRM's VGG19, with random weights of its shapes unless the file names weights): the per-device step is
+   lowered from ``jax.ShapeDtypeStruct``s (nothing allocated) and compiled for CPU in a subprocess
    with a time limit (``--paper-timeout``, default 600 s: lowering + compiling took 2-5
    min on the busy 2-core box) and an RSS guard
    (``--paper-max-rss-gb``). If it compiles, XLA's memory analysis is reported

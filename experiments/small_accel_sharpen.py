@@ -35,7 +35,8 @@ from llrmpp_jax.experiment import load_experiment
 
 
 def get_config():
-    """``small.py``'s ``sharpen`` at batch 16 for 2,500 steps (start: ``--init pretrained:small``), 7 minutes per run."""
+    """``small.py``'s ``sharpen`` at batch 16 for 2,500 steps (start: ``--init pretrained:small``), 7 minutes
+    per run."""
     small = load_experiment("small")
     stage = replace(small.stages[-1], name="accel_sharpen", steps=2_500, global_batch=16)
     return replace(

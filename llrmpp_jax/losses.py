@@ -1,4 +1,5 @@
-"""Training losses (paper, "Training objectives"): RGB = MSE + 0.5 * perceptual; depth = log smooth-L1 + gradient + normal.
+"""Training losses (paper, "Training objectives"): RGB = MSE + 0.5 * perceptual;
+depth = log smooth-L1 + gradient + normal.
 
 RGB (:func:`rgb_loss`). The perceptual term is Long-LRM's (reference facts §2.2): the
 image is mapped to ``x' = (x - [0.485, 0.456, 0.406]) * 255`` (no std division), run

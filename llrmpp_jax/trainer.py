@@ -169,8 +169,8 @@ def _train_stages(
     if exp.eval_every and exp.data.eval_reads_training_scenes and jax.process_index() == 0:
         print(
             f"note: the held-out evaluation reads the training data ({exp.data.path}): the frames it targets "
-            f"(every {EVAL_EVERY}th) are left out of training; its scenes' other frames are trained on (set data.eval_path "
-            "to other scenes for held-out scenes)"
+            f"(every {EVAL_EVERY}th) are left out of training; its scenes' other frames are trained on "
+            "(set data.eval_path to other scenes for held-out scenes)"
         )
     os.makedirs(workdir, exist_ok=True)
     budget = max_minutes if max_minutes is not None else exp.max_minutes

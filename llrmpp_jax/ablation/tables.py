@@ -215,8 +215,8 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
     labels, ``paper`` numbers, ``status``, ``seeds`` (how many it ran), and for run rows
     ``params``, ``decoder_params``, ``decoder_dim`` (None in colour mode), ``train_s`` (per
     seed, mean), ``final_loss``, ``train_dropped``, the
-    :func:`~llrmpp_jax.ablation.scoring.row_scores` summarised over seeds and the :func:`time_model` timings (seed 0's params, timed in this process
-    after every training has finished, so no worker competes with them).
+    :func:`~llrmpp_jax.ablation.scoring.row_scores` summarised over seeds and the :func:`time_model` timings (seed
+    0's params, timed in this process after every training has finished, so no worker competes with them).
 
     Every row runs ``scale.seeds`` seeds; seed ``s`` gives every row the same training
     batches and every row is scored on the same held-out scenes, so two rows' difference at

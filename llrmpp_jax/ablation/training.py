@@ -3,8 +3,8 @@ stage machinery (:mod:`llrmpp_jax.trainer`: its optimizer, initial parameters, o
 batches and runner) on the one-stage experiment :func:`row_experiment`; :func:`init_model`.
 
 A row is :func:`row_experiment` plus the one setting an experiment config does not hold:
-the spike guard (``Scale.spike_factor``). Without it, :func:`train` and :func:`llrmpp_jax.trainer.train` of the row's experiment give the
-same losses step for step (``tests/train/test_runner.py``).
+the spike guard (``Scale.spike_factor``). Without it, :func:`train` and :func:`llrmpp_jax.trainer.train` of the
+row's experiment give the same losses step for step (``tests/train/test_runner.py``).
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ bf16 peak, as JSON (:mod:`llrmpp_jax.benchmarks.paper`); or a profile of one rec
 render (``--profile``).
 
 Run:
-    python -m llrmpp_jax.benchmarks.model --scale paper --out runs/bench_model.json    # one GPU: V = 16/32/64 at 544x960
-    python -m llrmpp_jax.benchmarks.model --scale cpu                                  # config.tiny(), seconds
+    python -m llrmpp_jax.benchmarks.model --scale paper --out runs/bench_model.json  # one GPU: V = 16/32/64 at 544x960
+    python -m llrmpp_jax.benchmarks.model --scale cpu  # config.tiny(), seconds
     python -m llrmpp_jax.benchmarks.model --scale paper --profile --out runs/profile_model.json   # 8 inputs, one render
 
 ``llrmpp bench --scale cpu|paper --only model`` runs the first two. ``--views`` (e.g.

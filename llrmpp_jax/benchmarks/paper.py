@@ -193,8 +193,8 @@ def reconstruct_case(
     params: dict, cfg: C.ModelConfig, batch: dict[str, np.ndarray], repeats: int, device_kind: str
 ) -> tuple[dict, object]:
     """Time ``reconstruct`` of ``batch``'s inputs (one scene, ``[1, V, H, W, 3]``; median of
-    ``repeats`` calls) and count its FLOPs. Returns the row (:func:`llrmpp_jax.benchmarks.measure.timed`'s fields, ``views``,
-    ``size``, ``gaussians``, ``model_flops``, ``tflops_per_s``, ``peak_fraction``) and the Gaussians."""
+    ``repeats`` calls) and count its FLOPs. Returns the row (:func:`llrmpp_jax.benchmarks.measure.timed`'s fields,
+    ``views``, ``size``, ``gaussians``, ``model_flops``, ``tflops_per_s``, ``peak_fraction``) and the Gaussians."""
     args = (params, *(jnp.asarray(batch[k]) for k in ("input_images", "input_c2w", "input_intrinsics")))
     # No untimed call: the median of the calls discards a slow first one.
     timing, g = timed_with_output(lambda p, i, c, k: reconstruct(p, cfg, i, c, k), *args, repeats=repeats, warmup=0)

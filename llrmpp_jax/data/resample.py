@@ -7,7 +7,8 @@ the new extent, so pixel centre ``x`` moves to ``x * W'/W``.
 * :func:`resize_image` -- separable: when shrinking a lot, first averages of whole groups
   of k pixels (k dividing the side); then a Gaussian anti-aliasing prefilter
   (``sigma = (scale - 1) / 2``, scikit-image's choice) centred on the pixels, then linear
-  interpolation at the mapped centres. Every step reproduces linear functions exactly, so image content moves exactly as the intrinsics say (OpenImageIO's and
+  interpolation at the mapped centres. Every step reproduces linear functions exactly, so image content moves
+  exactly as the intrinsics say (OpenImageIO's and
   similar windowed filters shift content by up to ~0.4 px when the scale is not an integer).
 * :func:`resize_depth` -- nearest sample (never blends depths across an occlusion edge).
 * :func:`remap` -- sample at arbitrary continuous coordinates (SciPy ``map_coordinates``),

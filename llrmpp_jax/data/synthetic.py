@@ -1,7 +1,8 @@
 """Procedural multi-view scenes with exact ground truth, made on the CPU on the fly.
 
 A seed fixes everything: a room (z up, floor at z = 0; floor, ceiling and four walls each
-with its own tiled texture) furnished with boxes, spheres and posters, a camera path (orbit / walk / sweep, :mod:`camera_paths`) and one
+with its own tiled texture) furnished with boxes, spheres and posters, a camera path (orbit / walk / sweep,
+:mod:`camera_paths`) and one
 pinhole camera. Views are rendered by analytic ray casting in NumPy: every pixel centre's
 ray is intersected with every primitive, the nearest hit gives the exact z-depth, and the
 colour is a mip-mapped texture lookup at the surface UV times a view-independent

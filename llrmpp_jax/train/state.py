@@ -28,7 +28,8 @@ class TrainState:
     ``step``: train steps taken, applied or skipped (int32 ``[]``).
     ``params``: float32 parameter pytree. ``opt_state``: optax state (float32 moments).
     ``skipped``: steps whose update was skipped because the loss or gradient norm was
-    not finite or the norm exceeded the step's guard (int32 ``[]``). ``rng``: base key data (uint32 ``[2]`` for threefry).
+    not finite or the norm exceeded the step's guard (int32 ``[]``). ``rng``: base key data (uint32 ``[2]`` for
+    threefry).
     """
 
     step: Int[Array, ""]

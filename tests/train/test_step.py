@@ -138,10 +138,8 @@ def test_large_grad_norm_skip_advances_the_schedule(key, rng):
     state0 = init_train_state(toy_params(key), tx, key)
     huge, good = toy_batch(rng), toy_batch(rng)
     huge["target"] = huge["target"] * 1e4
-    norm = lambda b: float(
-        jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, b, None)[0])(p)))(  # noqa: E731
-            state0.params
-        )
+    norm = lambda b: float(  # noqa: E731
+        jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, b, None)[0])(p)))(state0.params)
     )
     threshold = 5 * CFG.grad_clip_norm
     assert norm(huge) > threshold > norm(good)

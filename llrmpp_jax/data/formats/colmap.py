@@ -44,7 +44,8 @@ _TEXT_LAYOUT = {
     "cameras": "a line per camera: CAMERA_ID MODEL WIDTH HEIGHT and as many PARAMS as the model has",
     "images": "two lines per image: IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME (a camera in cameras.txt), "
     "then X Y POINT3D_ID triples",
-    "points3D": "a line per point: POINT3D_ID X Y Z R G B ERROR, then IMAGE_ID POINT2D_IDX pairs of images in images.txt",
+    "points3D": "a line per point: POINT3D_ID X Y Z R G B ERROR, "
+    "then IMAGE_ID POINT2D_IDX pairs of images in images.txt",
 }
 # glog's failure handler, which pycolmap installs when it is imported.
 _GLOG_SIGNALS = (signal.SIGILL, signal.SIGABRT, signal.SIGBUS, signal.SIGFPE, signal.SIGSEGV, signal.SIGTERM)
