@@ -317,7 +317,7 @@ def _eval_experiment(args):
 
 
 def cmd_eval(args) -> int:
-    from llrmpp_jax.evaluate import evaluate, format_table
+    from llrmpp_jax.evaluate import evaluate, summary_table
     from llrmpp_jax.metrics import load_lpips_params
     from llrmpp_jax.experiment_data import eval_samples, held_out_description, scene_source
 
@@ -340,7 +340,7 @@ def cmd_eval(args) -> int:
         writer.writeheader()
         writer.writerows(rows)
     _write_json(os.path.join(args.out, "metrics.json"), summary)
-    print(format_table(summary))
+    print(summary_table(summary))
     return 0
 
 

@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from llrmpp_jax.data.image_io import write_image
-from llrmpp_jax.evaluate import evaluate, format_table, scene_picture
+from llrmpp_jax.evaluate import evaluate, scene_picture, summary_table
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.experiment_data import eval_samples
 from dataclasses import replace
@@ -89,7 +89,7 @@ def run_demo(out: str, steps: int | None = None, minutes: float | None = None) -
     r = shipped["refine"]
     print("\n1. Reconstruct: the shipped model (pretrained:small) on "
           f"{len(shipped['per_scene']) // 3} held-out procedural scenes, 8 inputs -> 2 targets:")
-    print(format_table(shipped["summary"]))
+    print(summary_table(shipped["summary"]))
     m, f = r["model"], r["refined"]
     print(f"the first {r['scenes']} scenes refined {r['steps']} steps against their inputs: held-out PSNR "
           f"{m['psnr']:.2f} -> {f['psnr']:.2f} dB, LPIPS {m['lpips']:.3f} -> {f['lpips']:.3f}, input views "
@@ -98,7 +98,7 @@ def run_demo(out: str, steps: int | None = None, minutes: float | None = None) -
     print("\n2. Train from scratch: the tiny demo model, 4 inputs -> 2 targets:")
     for e in scratch["evals"]:
         print(f"   step {e['step']:5d}: held-out PSNR {e['psnr']:.2f} dB")
-    print(format_table(scratch["summary"]))
+    print(summary_table(scratch["summary"]))
     curve = scratch["loss_curve"]
     first, last = np.mean([c[1] for c in curve[:3]]), np.mean([c[1] for c in curve[-3:]])
     total = time.time() - t0

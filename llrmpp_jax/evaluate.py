@@ -20,7 +20,6 @@ scores Long-LRM this way after 10 steps), with the same diagnostics.
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Sequence
 
 import jax
@@ -37,6 +36,7 @@ from llrmpp_jax.model import reconstruct, render
 from llrmpp_jax.perceptual import VGGParams
 from llrmpp_jax.pruning import gaussian_usage, prune_gaussians
 from llrmpp_jax.refine import RefineConfig, refine
+from llrmpp_jax.tables import Column, format_table
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -244,14 +244,10 @@ def scene_picture(params: dict, cfg: ModelConfig, sample: dict[str, np.ndarray])
                         depth=np.asarray(depth[0]))
 
 
-def format_table(summary: dict[str, dict[str, float]]) -> str:
-    """A fixed-width table of the summary (methods as rows; ``nan`` where a method has no
-    such value, e.g. the baselines' diagnostics)."""
+def summary_table(summary: dict[str, dict[str, float]]) -> str:
+    """The summary as a :func:`llrmpp_jax.tables.format_table`: a line per method, a column
+    per value of the first method (the model's), 4 decimals; ``-`` where a method has no
+    such value (the baselines' diagnostics and depth metrics)."""
     keys = list(next(iter(summary.values())))
-    widths = [max(10, len(k) + 2) for k in keys]  # long names (opaque_fraction) keep a gap
-    head = f"{'method':<14}" + "".join(f"{k:>{w}}" for k, w in zip(keys, widths))
-    lines = [head, "-" * len(head)]
-    for method, vals in summary.items():
-        # the baselines lack the model-only columns (diagnostics, depth metrics): nan
-        lines.append(f"{method:<14}" + "".join(f"{vals.get(k, math.nan):>{w}.4f}" for k, w in zip(keys, widths)))
-    return "\n".join(lines)
+    return format_table([{"method": method, **vals} for method, vals in summary.items()],
+                        [Column("method"), *(Column(k, digits=4) for k in keys)])

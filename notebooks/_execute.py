@@ -5,7 +5,9 @@ Run:  python notebooks/_execute.py [--scale cpu] [table6_partitions ...]
 
 Each ``notebooks/NAME.py`` (jupytext percent format, the source of truth) is read with
 jupytext, run top to bottom by nbclient in a fresh ``python3`` kernel whose working folder is
-``notebooks/`` and whose environment carries ``LLRMPP_NOTEBOOK_SCALE``, then written to
+``notebooks/`` and whose environment carries ``LLRMPP_NOTEBOOK_SCALE`` and the checkout's
+``LLRMPP_NOTEBOOK_REVISION`` (``experiments/git_worktree.py``: the short commit, ``+dirty``
+with uncommitted changes; the notebooks record it), then written to
 ``notebooks/NAME.ipynb`` with its outputs (tables, figures). The notebooks themselves write
 their JSON and PNG results (``llrmpp_jax.ablation.save``). A cell that raises stops that notebook,
 reports the cell and leaves its .ipynb untouched.
@@ -35,6 +37,7 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
     nb = jupytext.read(source, fmt="py:percent")
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     os.environ["LLRMPP_NOTEBOOK_SCALE"] = scale  # the kernel inherits this process's environment
+    os.environ["LLRMPP_NOTEBOOK_REVISION"] = checkout_revision()
     os.environ.setdefault("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     # The notebooks' tables and figures go to the repository's results (cited by notebooks/README.md).
     os.environ.setdefault("LLRMPP_NOTEBOOK_OUT", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
@@ -48,6 +51,17 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
                             resources={"metadata": {"path": HERE}}).execute()
     nbformat.write(nb, os.path.join(HERE, name + ".ipynb"))
     return time.perf_counter() - t0
+
+
+def checkout_revision() -> str:
+    """``experiments/git_worktree.revision`` of this checkout (the scripts there may run git;
+    the package does not)."""
+    experiments = os.path.join(os.path.dirname(HERE), "experiments")
+    if experiments not in sys.path:
+        sys.path.append(experiments)
+    from git_worktree import revision
+
+    return revision()
 
 
 def notebook_names() -> list[str]:

@@ -21,7 +21,7 @@ from llrmpp_jax import ablation as A
 
 scale = A.make_scale(A.scale_name(), paper_views=4)
 print(scale)
-print(f"commit {A.commit()} | {A.machine()}")
+print(f"commit {A.revision()} | {A.machine()}")
 
 # %% [markdown]
 # One config per row: the scale's base model with an `LLG` decoder (E = 256, divided by
@@ -73,7 +73,7 @@ results = run.results
 # untrained chosen row and the two baselines on the same scenes.
 
 # %%
-print(A.format_table(run, ["K", "F", "canvas"], [
+print(A.format_run(run, ["K", "F", "canvas"], [
     A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
     A.Column("ssim", "SSIM", 3), A.Column("lpips", "LPIPS", 3),
     A.Column("gaussians", "Gaussians"), A.Column("params", "params"),

@@ -22,7 +22,7 @@ from llrmpp_jax import config as C
 
 scale = A.make_scale(A.scale_name(), paper_views=4)
 print(scale)
-print(f"commit {A.commit()} | {A.machine()}")
+print(f"commit {A.revision()} | {A.machine()}")
 
 # %% [markdown]
 # One config per row. Colour: Long-LRM's head (one Gaussian per pixel, SH degree 3) on the
@@ -74,7 +74,7 @@ results = run.results
 # decode per target frame), then the untrained chosen row and the two baselines.
 
 # %%
-print(A.format_table(run, ["splat", "blocks", "dim"], [
+print(A.format_run(run, ["splat", "blocks", "dim"], [
     A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
     A.Column("ssim", "SSIM", 3), A.Column("lpips", "LPIPS", 3),
     A.Column("decoder_dim", "E here"), A.Column("decoder_params", "decoder params"), A.Column("params", "params"),

@@ -21,7 +21,7 @@ from llrmpp_jax import ablation as A
 
 scale = A.make_scale(A.scale_name(), paper_views=8)
 print(scale)
-print(f"commit {A.commit()} | {A.machine()}")
+print(f"commit {A.revision()} | {A.machine()}")
 
 # %% [markdown]
 # One config per row: the scale's base model with decoder `LLGGG`, E = 256 (divided by
@@ -63,7 +63,7 @@ results = run.results
 # 32-view 960x540 A100 timings.
 
 # %%
-print(A.format_table(run, ["S"], [
+print(A.format_run(run, ["S"], [
     A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
     A.Column("ssim", "SSIM", 3), A.Column("paper:SSIM", "paper SSIM"),
     A.Column("lpips", "LPIPS", 3), A.Column("paper:LPIPS", "paper LPIPS"),

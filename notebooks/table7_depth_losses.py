@@ -30,7 +30,7 @@ from llrmpp_jax import config as C
 # 2 cores (a colour-row training alone: ~19.5 min on one core, the others ~9 min).
 scale = A.make_scale(A.scale_name(), paper_views=8, depth=True, cpu_steps=800)
 print(scale)
-print(f"commit {A.commit()} | {A.machine()}")
+print(f"commit {A.revision()} | {A.machine()}")
 
 # %% [markdown]
 # Long-LRM 3DGS: Long-LRM's colour head (one Gaussian per pixel, SH degree 3) on the same
@@ -82,7 +82,7 @@ results = run.results
 # own units) next to the paper's numbers (ScanNetv2, metres).
 
 # %%
-print(A.format_table(run, ["method"], [
+print(A.format_run(run, ["method"], [
     A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
     A.Column("ssim", "SSIM", 3), A.Column("paper:SSIM", "paper SSIM"),
     A.Column("lpips", "LPIPS", 3), A.Column("paper:LPIPS", "paper LPIPS"),

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from llrmpp_jax import config as C
-from llrmpp_jax.evaluate import evaluate, format_table
+from llrmpp_jax.evaluate import evaluate, summary_table
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.model import init_params, reconstruct, render
 from llrmpp_jax.refine import RefineConfig, refine
@@ -67,9 +67,11 @@ def test_model_row_diagnostics_match_numpy():
     np.testing.assert_allclose(model["opaque_fraction"], np.mean(opac > 0.01), atol=1e-6)
     assert 0.05 < model["opaque_fraction"] < 0.95
     assert summary["model"]["input_psnr"] == model["input_psnr"]
-    # The baselines have no diagnostics: the table shows nan there instead of failing.
+    # The baselines have no diagnostics: the table shows "-" there instead of failing.
     assert "input_psnr" not in summary["nearest_view"]
-    assert "nan" in format_table(summary).splitlines()[-1]
+    head, _, *lines = [[c.strip() for c in ln.strip("|").split("|")] for ln in summary_table(summary).splitlines()]
+    table = {ln[0]: dict(zip(head, ln)) for ln in lines}
+    assert table["nearest_view"]["input_psnr"] == "-" and table["model"]["input_psnr"] == f"{model['input_psnr']:.4f}"
 
 
 def test_refined_rows_are_refine_then_render():

@@ -132,6 +132,7 @@ def _run_notebook(name: str, tmp_path, rows: str, **env: str) -> tuple[subproces
         LLRMPP_NOTEBOOK_ROWS=rows,
         LLRMPP_NOTEBOOK_SEEDS="2",
         LLRMPP_NOTEBOOK_OUT=str(tmp_path / "saved"),
+        LLRMPP_NOTEBOOK_REVISION="abc1234+dirty",  # what notebooks/_execute.py passes in
         MPLBACKEND="Agg",
         JAX_PLATFORMS="cpu",
         JAX_NUMPY_DTYPE_PROMOTION="strict",
@@ -181,9 +182,10 @@ def test_smoke_run(name, tmp_path):
             assert _finite(r["abs_diff"]) and 0.0 <= r["delta_1_25"] <= 1.0
     record = json.loads((saved / f"{name}_smoke.json").read_text())
     assert [r["row"] for r in record["results"]] == wanted and record["seeds"] == 2
-    assert record["commit"] and record["wall_s"] > 0 and len(record["orderings"]) == len(data["orderings"])
+    assert record["commit"] == "abc1234+dirty"  # the revision the runner passed in
+    assert record["wall_s"] > 0 and len(record["orderings"]) == len(data["orderings"])
     assert (saved / f"{name}_smoke.png").stat().st_size > 0
-    assert "| paper ordering |" in proc.stdout
+    assert "| paper ordering " in proc.stdout
 
 
 @pytest.mark.slow
@@ -195,7 +197,7 @@ def test_workers_give_the_same_numbers(tmp_path):
     runs = {w: _run_notebook("table6_partitions", tmp_path / f"w{w}", "0", LLRMPP_NOTEBOOK_WORKERS=str(w))
             for w in (1, 2)}
     (_, one), (proc, two) = runs[1], runs[2]
-    assert proc.stdout.count("| paper ordering |") == 1 and "2 worker(s)" in proc.stdout
+    assert proc.stdout.count("| paper ordering ") == 1 and "2 worker(s)" in proc.stdout
     a, b = one["results"][0], two["results"][0]
     assert b["psnr_seeds"] == pytest.approx(a["psnr_seeds"], abs=1e-4)
     assert b["final_loss_seeds"] == pytest.approx(a["final_loss_seeds"], rel=1e-5)
@@ -260,7 +262,9 @@ def test_compare_verdicts(ablation):
     assert got[1]["diff"] == pytest.approx(-0.3) and got[0]["diff_ci"] == pytest.approx(got[1]["diff_ci"])
     assert got[2]["diff"] == pytest.approx(0.1037, abs=1e-3) and got[2]["paper_diff"] == pytest.approx(0.02)
     table = ablation.format_orderings(got)
-    assert "| 2 > 0 | psnr | +0.900 | -0.200 ± " in table and "| 3 | not resolved |" in table
+    cells = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]] for ln in table.splitlines()[2:-2]}
+    assert cells["2 > 0"][:2] == ["psnr", "+0.900"] and cells["2 > 0"][2].startswith("-0.200 ± ")
+    assert cells["2 > 0"][3:] == ["3", "not resolved"] and cells["3 > 0"][1:] == ["-", "-", "-", "not run"]
     assert table.splitlines()[-1] == "Intervals: paired differences over seeds, Student-t, 95% two-sided."
     # Rows that ran different numbers of seeds are paired over the seeds both ran.
     results[1] = _row(1, [20.3, 20.9, 21.2, 30.0], [0.40, 0.30, 0.34, 0.1], "28.5", "0.08")
@@ -302,7 +306,7 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     assert by["1 > 0"]["verdict"] == "reproduced" and by["1 > 0"]["stopped"] == "resolved at 3 seeds"
     assert by["1 > 0"]["confidence"] == 0.99
     assert by["2 > 0"]["seeds"] == 6 and by["2 > 0"]["stopped"] == "the cap of 6 seeds"
-    assert "3-6 seeds per row" in ablation.format_table(run, ["x"])
+    assert "3-6 seeds per row" in ablation.format_run(run, ["x"])
     # Out of time after the first round: no seed is added, and the reason is given.
     calls.clear()
     run = ablation.run_table(variants, dataclasses.replace(scale, budget_min=0.0), orderings)
@@ -490,7 +494,7 @@ def test_table_reports_splat_overflow(ablation):
              "eval_dropped": 8.0},
             {"row": 1, "x": "b", "chosen": True, "paper": {}, "status": "ok", "train_dropped": 0.0,
              "eval_dropped": 0.0}]
-    text = ablation.format_table(ablation.TableRun(scale, rows, [], {}, 60.0), ["x"])
+    text = ablation.format_run(ablation.TableRun(scale, rows, [], {}, 60.0), ["x"])
     assert ("row 0: the splat buffer overflowed: 200 intersections dropped per training step, "
             "2 per held-out scene (mean over seeds)") in text.splitlines()
     assert "row 1:" not in text

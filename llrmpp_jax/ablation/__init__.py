@@ -10,8 +10,8 @@ train``'s own :func:`llrmpp_jax.evaluate.evaluate` on :func:`held_out_samples`, 
 :func:`time_model`; :func:`references` scores the untrained chosen row and the two
 baselines (mean colour, nearest input view) on the same scenes. :func:`compare` turns the
 per-seed scores into paired differences with 95% intervals and a verdict per ordering,
-:func:`format_table` / :func:`format_orderings` print them next to the paper's numbers,
-:func:`plot` draws them and :func:`save` writes everything as JSON with the commit.
+:func:`format_run` / :func:`format_orderings` print them next to the paper's numbers,
+:func:`plot` draws them and :func:`save` writes everything as JSON with the :func:`revision`.
 
 Modules: :mod:`.scales` (the scales, base models, environment), :mod:`.rows` (rows and
 orderings), :mod:`.training`, :mod:`.scoring`, :mod:`.stats`, :mod:`.tables`
@@ -43,17 +43,17 @@ Environment overrides: ``LLRMPP_NOTEBOOK_SCALE`` (smoke / cpu / paper),
 per row, ``LLRMPP_NOTEBOOK_WORKERS`` the trainings run at once (:attr:`Scale.workers`),
 ``LLRMPP_NOTEBOOK_ROWS`` a comma-separated list of row indices to run (the others
 are left out of the results; ``none`` runs no row), ``LLRMPP_NOTEBOOK_OUT`` the folder
-:func:`save` writes to (default ``runs/ablations``; ``make notebooks`` sets the repository's results).
+:func:`save` writes to (default ``runs/ablations``; ``make notebooks`` sets the repository's results),
+``LLRMPP_NOTEBOOK_REVISION`` the code's revision that :func:`save` records (``make notebooks`` sets it).
 """
 
 from llrmpp_jax.ablation.report import (
-    Column,
-    commit,
     format_orderings,
-    format_table,
+    format_run,
     machine,
     ordering_cells,
     plot,
+    revision,
     save,
 )
 from llrmpp_jax.ablation.rows import METRICS, Ordering, Variant, selected
@@ -75,12 +75,13 @@ from llrmpp_jax.ablation.scoring import held_out_experiment, held_out_samples, r
 from llrmpp_jax.ablation.stats import compare, interval, seeds_to_resolve, summarise
 from llrmpp_jax.ablation.tables import SeedRun, TableRun, progress, run_seed, run_table
 from llrmpp_jax.ablation.training import Trained, init_model, row_experiment, row_objective, train
+from llrmpp_jax.tables import Column
 
 __all__ = [
     "CPU_STEPS", "CPU_WORKERS", "Column", "EVAL_SEED", "METRICS", "Ordering", "PROCEDURAL_DEPTH_BIAS",
     "PROCEDURAL_MAX_DIST", "SCALES", "Scale", "SeedRun", "TRAIN_SCENES", "TableRun", "Trained", "Variant",
-    "commit", "compare", "cpu_base", "format_orderings", "format_table", "held_out_experiment", "held_out_samples",
+    "compare", "cpu_base", "format_orderings", "format_run", "held_out_experiment", "held_out_samples",
     "init_model", "interval", "machine", "make_scale", "ordering_cells", "plot", "progress", "references",
-    "row_experiment", "row_objective", "row_scores", "run_seed", "run_table", "save", "scale_name", "seeds_to_resolve",
-    "selected", "smoke_base", "summarise", "time_model", "train",
+    "revision", "row_experiment", "row_objective", "row_scores", "run_seed", "run_table", "save", "scale_name",
+    "seeds_to_resolve", "selected", "smoke_base", "summarise", "time_model", "train",
 ]

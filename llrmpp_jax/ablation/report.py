@@ -1,75 +1,48 @@
-"""Showing and keeping a table: :func:`format_table` and :func:`format_orderings`
+"""Showing and keeping a table: :func:`format_run` and :func:`format_orderings`
 (Markdown next to the paper's numbers), :func:`plot`, :func:`save` (JSON and PNG with the
-commit and machine)."""
+revision and machine)."""
 
 from __future__ import annotations
 
 import json
 import os
 import platform
-import subprocess
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import jax
 import numpy as np
 
 from llrmpp_jax.ablation.tables import TableRun
-
-def _fmt(x: Any, digits: int) -> str:
-    if x is None:
-        return "-"
-    if isinstance(x, str):
-        return x
-    if isinstance(x, (int, np.integer)):
-        return f"{int(x):,}"
-    return f"{x:.{digits}f}" if np.isfinite(x) else "nan"
+from llrmpp_jax.tables import Column, format_table
 
 
-@dataclass(frozen=True)
-class Column:
-    """A column of :func:`format_table`: ``key`` in a result (``"paper:NAME"`` reads the
-    paper's number), its ``title``, decimal ``digits`` and a ``scale`` factor (e.g. 1000
-    for ms). A key with a ``_ci`` companion is printed as ``mean ± half-width``."""
-
-    key: str
-    title: str
-    digits: int = 2
-    scale: float = 1.0
+def _row_record(r: dict[str, Any], label_keys: Sequence[str], columns: Sequence[Column]) -> dict[str, Any]:
+    """A result as a record of :func:`format_run`'s table: ``*`` for the chosen row, its
+    labels, the paper's numbers under the ``paper:NAME`` keys and, for a row that ran, its
+    scores."""
+    paper = {c.key: r["paper"].get(c.key[6:], "-") for c in columns if c.key.startswith("paper:")}
+    scores = r if r["status"] == "ok" else {}
+    return {**scores, **paper, "": "*" if r["chosen"] else "", **{k: str(r[k]) for k in label_keys}}
 
 
-def _cell(r: dict[str, Any], c: Column) -> str:
-    if c.key.startswith("paper:"):
-        return r["paper"].get(c.key[6:], "-")
-    if r.get("status", "ok") != "ok":
-        return "-"
-    value = r.get(c.key)
-    if isinstance(value, float):
-        value = value * c.scale
-    text = _fmt(value, c.digits)
-    ci = r.get(f"{c.key}_ci")
-    if isinstance(ci, float) and np.isfinite(ci):
-        text += f" ± {_fmt(ci * c.scale, c.digits)}"
-    return text
+def _reference_record(ref: dict[str, Any], label_keys: Sequence[str], columns: Sequence[Column]) -> dict[str, Any]:
+    """A reference (untrained row, baseline) as a record: its name under the first label,
+    its own scores, blank elsewhere."""
+    blank = {c.key: "" for c in columns if c.key.startswith("paper:") or c.key not in ref}
+    return {**ref, **blank, "": "", **{k: "" for k in label_keys}, label_keys[0]: ref["name"]}
 
 
-def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Column] = ()) -> str:
-    """A Markdown table: one line per result, the label columns, then ``columns``; ``*``
-    marks the paper's chosen row; then the references (untrained, baselines); rows that did
-    not run show their status, rows whose splat buffer overflowed say by how much; a last
-    line gives the scale, seeds, wall time and commit.
+def format_run(run: TableRun, label_keys: Sequence[str], columns: Sequence[Column] = ()) -> str:
+    """The run as a :func:`llrmpp_jax.tables.format_table`: one line per result, the label
+    columns, then ``columns`` (``"paper:NAME"`` reads the paper's number); ``*`` marks the
+    paper's chosen row; then the references (untrained, baselines); rows that did not run
+    show their status, rows whose splat buffer overflowed say by how much; a last line gives
+    the scale, seeds, wall time and :func:`revision`.
     ``±``: half-width of the 95% interval over seeds."""
-    head = ["", *label_keys, *[c.title for c in columns]]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in run.results:
-        cells = ["*" if r["chosen"] else "", *[str(r[k]) for k in label_keys]]
-        lines.append("| " + " | ".join(cells + [_cell(r, c) for c in columns]) + " |")
-    for ref in run.references:
-        cells = ["", ref["name"], *[""] * (len(label_keys) - 1)]
-        own = [c for c in columns if not c.key.startswith("paper:")]
-        lines.append("| " + " | ".join(cells + [_cell({"paper": {}, **ref}, c) if c in own and c.key in ref
-                                                else "" for c in columns]) + " |")
+    records = ([_row_record(r, label_keys, columns) for r in run.results]
+               + [_reference_record(ref, label_keys, columns) for ref in run.references])
+    table = format_table(records, [Column(""), *(Column(k) for k in label_keys), *columns])
     notes = [f"row {r['row']}: {r['status']}" for r in run.results if r["status"] != "ok"]
     # Splat capacity overflow (SplatConfig.max_intersections) loses Gaussians: say so by row.
     notes += [f"row {r['row']}: the splat buffer overflowed: {r['train_dropped'] / max(run.scale.steps, 1):,.0f} "
@@ -80,8 +53,8 @@ def format_table(run: TableRun, label_keys: Sequence[str], columns: Sequence[Col
     seeds = (f"{counts[0]} seed(s) per row" if len(counts) == 1 else
              f"{counts[0]}-{counts[-1]} seeds per row (added while an ordering was unresolved)")
     footer = (f"{run.scale.name} scale, {seeds}, {run.scale.steps} steps, "
-              f"wall time {run.seconds / 60:.1f} min, commit {commit()}")
-    return "\n".join(lines + [""] + notes + ([""] if notes else []) + [footer])
+              f"wall time {run.seconds / 60:.1f} min, commit {revision()}")
+    return "\n".join([table, ""] + notes + ([""] if notes else []) + [footer])
 
 
 def ordering_cells(c: dict[str, Any]) -> tuple[str, str]:
@@ -98,13 +71,14 @@ def format_orderings(comparisons: Sequence[dict[str, Any]]) -> str:
     """A Markdown table of :func:`compare`'s verdicts: the paper's difference, ours
     (:func:`ordering_cells`; > 0 = the paper's ordering holds), the seeds paired and, for a
     :func:`run_table` result, what stopped them; a last line gives the interval's level."""
-    stopped = any("stopped" in c for c in comparisons)
-    lines = ["| paper ordering | metric | paper diff | our diff (± interval) | seeds | verdict |"
-             + (" stopped by |" if stopped else ""), "|---|---|---|---|---|---|" + ("---|" if stopped else "")]
-    for c in comparisons:
-        paper, ours = ordering_cells(c)
-        lines.append(f"| {c['ordering']} | {c['metric']} | {paper} | {ours} | {c.get('seeds', '-')} | {c['verdict']} |"
-                     + (f" {c.get('stopped', '')} |" if stopped else ""))
+    records = [{"ordering": c["ordering"], "metric": c["metric"], "paper_diff": paper, "diff": ours,
+                "seeds": c.get("seeds", "-"), "verdict": c["verdict"], "stopped": c.get("stopped", "")}
+               for c, (paper, ours) in zip(comparisons, map(ordering_cells, comparisons))]
+    columns = [Column("ordering", "paper ordering"), Column("metric"), Column("paper_diff", "paper diff"),
+               Column("diff", "our diff (± interval)"), Column("seeds"), Column("verdict")]
+    if any("stopped" in c for c in comparisons):
+        columns.append(Column("stopped", "stopped by"))
+    lines = [format_table(records, columns)]
     levels = sorted({c["confidence"] for c in comparisons if "confidence" in c})
     if levels:
         lines += ["", "Intervals: paired differences over seeds, Student-t, "
@@ -152,12 +126,11 @@ def plot(run: TableRun, label_keys: Sequence[str], metric: str = "psnr", title: 
     return fig
 
 
-def commit() -> str:
-    """The repository's short commit, with ``+dirty`` when tracked files differ from it."""
-    def git(*args: str) -> str:
-        return subprocess.run(["git", *args], capture_output=True, text=True).stdout.strip()  # the working directory's
-    head = git("rev-parse", "--short", "HEAD") or "unknown"
-    return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+def revision() -> str:
+    """The code's revision as the runner passes it in ``LLRMPP_NOTEBOOK_REVISION``
+    (``notebooks/_execute.py`` and the ``experiments/`` scripts set it from the checkout;
+    a wheel has none), ``unknown`` without it."""
+    return os.environ.get("LLRMPP_NOTEBOOK_REVISION") or "unknown"
 
 
 def machine() -> str:
@@ -176,7 +149,7 @@ def save(name: str, run: TableRun, comparisons: Sequence[dict[str, Any]], figure
     path = os.path.join(out, f"{name}_{run.scale.name}.json")
     record = {
         "table": name, "scale": str(run.scale), "scale_name": run.scale.name, "seeds": run.scale.seeds,
-        "steps": run.scale.steps, "commit": commit(), "machine": machine(), "wall_s": run.seconds,
+        "steps": run.scale.steps, "commit": revision(), "machine": machine(), "wall_s": run.seconds,
         "results": run.results, "references": run.references, "orderings": list(comparisons),
         "curves": {str(k): v for k, v in run.curves.items()},
     }
