@@ -3,7 +3,7 @@ memory analysis, the device's peak memory, the step time and its FLOPs, per atte
 kernel; or (``--profile``) a per-op profile of one smaller step.
 
 Run (one GPU or TPU):
-    python -m llrmpp_jax.benchmarks.paper_step --out experiments/results/bench_paper_step.json
+    python -m llrmpp_jax.benchmarks.paper_step                                 # writes runs/bench/bench_paper_step.json
     python -m llrmpp_jax.benchmarks.paper_step --impls blockwise --steps 1     # the portable kernel only
     python -m llrmpp_jax.benchmarks.paper_step --profile --views 8,8 --out runs/profile_step.json   # stage 3's shapes
     python -m llrmpp_jax.benchmarks.paper_step --scale cpu                     # config.tiny(), 2 + 1 views: seconds
@@ -16,7 +16,7 @@ VGG19 perceptual term with random weights of its shapes unless the file names we
 cost does not depend on the weights), with the project's own step
 (``objective.make_loss_fn`` -> ``train.make_train_step`` -> the runner's jit over a one-device
 mesh, ``trainer.stage_runner``, donated state) and the model's parameters initialised as for training (on the host CPU:
-``paper.host_init_params``; the init's own XLA:GPU compile took 52 s on an H200).
+``paper.host_init_params``, which spares the accelerator a slow XLA compile of the init of its own).
 ``--scale cpu`` swaps in ``config.tiny()`` (same stage, bf16, VGG19 term and code paths)
 with 2 inputs + 1 target at 64x96 and the blockwise kernel.
 
@@ -35,7 +35,7 @@ calls not at all) and ``model_flops`` (``paper.train_step_model_flops``: the mat
 products of the loss's forward and backward, no recomputation), with ``tflops_per_s`` and
 ``peak_fraction`` of the card's dense bf16 peak from ``model_flops`` and the median step.
 Set ``JAX_COMPILATION_CACHE_DIR`` (with ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0``) and
-the AOT compile loads the step's executable from the cache (0.4 s on an H200, not 80 s).
+the AOT compile loads the step's executable from the cache instead of compiling it again.
 
 ``--profile``: ``llrmpp_jax.profiling.profile_program`` of one step (not donated: the same
 state runs three times) at ``--views`` (default 8,8: stage 3's 8 inputs + 8 targets at
@@ -112,7 +112,7 @@ def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
 
 def progress(line: str) -> None:
     """One progress line on stderr, which the parent passes through: a kernel that runs out
-    of time shows how far it got (on an H200 both kernels ran past 165 s with no trace)."""
+    of time shows how far it got instead of ending with no trace."""
     print(f"[{time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
 

@@ -19,9 +19,8 @@ unfinished step is removed on the next start), so starting every process again r
 exactly.
 
 The coordinator itself (process 0) is the exception: its death closes the connection every
-other process's JAX client polls, and JAX aborts them at once (measured: 0.4 s after a
-SIGKILL; SIGABRT with a stack dump whose first line says the leader task died), before any
-Python code can run. That line comes from outside the process:
+other process's JAX client polls, and JAX aborts them at once (SIGABRT with a stack dump
+whose first line says the leader task died), before any Python code can run. That line comes from outside the process:
 :mod:`llrmpp_jax.train.supervise`, under which ``llrmpp train --distributed`` runs.
 
 The watchdog must fire before JAX's own abort: give ``jax.distributed.initialize`` a

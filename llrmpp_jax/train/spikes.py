@@ -4,9 +4,10 @@ Why: one gradient whose norm is hundreds of times the usual one fills Adam's sec
 estimate ``v`` for the parameters it touches; with ``b2 = 0.95`` their updates then stay
 ~``spike / usual`` times too small for ``log(spike / usual) / (1 - b2)`` steps, and a short
 run stalls. Long-LRM's guards are absolute (clip at norm 10, skip above 50), sized for its
-model and data; at the ablation notebooks' cpu scale the usual norm is ~0.03, so a 3,000x
-spike (norm 102.7, seen in a stalled Table 6 seed) was clipped to 10 and applied, and 60-200x
-ones (1.9, 6.5) passed untouched (``notebooks/README.md``, "Stalled seeds").
+model and data; at the ablation notebooks' cpu scale the usual norm is hundreds of times
+smaller than those thresholds, so a spike thousands of times the usual norm is clipped to 10
+and applied, and one tens to hundreds of times it passes untouched (the stalled seeds' norms:
+``notebooks/README.md``, "Stalled seeds", and ``docs/lab-notes.md``).
 """
 
 from __future__ import annotations
