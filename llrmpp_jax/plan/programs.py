@@ -84,8 +84,10 @@ def _model(cfg: C.ModelConfig, backend: str) -> C.ModelConfig:
     return C.for_accelerators(cfg, backend=backend)
 
 
-def reconstruct_program(cfg: C.ModelConfig, views: int, size: tuple[int, int], bf16: bool) -> Program:
-    """``reconstruct`` of ``views`` inputs of ``size`` (h, w), one scene per device."""
+def reconstruct_program(cfg: C.ModelConfig, views: int, size: tuple[int, int], bf16: bool,
+                        name: str | None = None) -> Program:
+    """``reconstruct`` of ``views`` inputs of ``size`` (h, w), one scene per device (``name``:
+    ``reconstruct_<views>`` by default)."""
     from llrmpp_jax.benchmarks.measure import matmul_flops
     from llrmpp_jax.benchmarks.paper import counting_config
     from llrmpp_jax.model import reconstruct
@@ -109,7 +111,7 @@ def reconstruct_program(cfg: C.ModelConfig, views: int, size: tuple[int, int], b
         count = counting_config(_model(cfg, backend))
         return matmul_flops(lambda p, i, c, k: reconstruct(p, count, i, c, k), *args(None, 1))
 
-    return Program(f"reconstruct_{views}", f"reconstruct {views} inputs of {h}x{w} (one scene)", build, flops)
+    return Program(name or f"reconstruct_{views}", f"reconstruct {views} inputs of {h}x{w} (one scene)", build, flops)
 
 
 def render_program(cfg: C.ModelConfig, from_views: int, size: tuple[int, int], bf16: bool,
@@ -229,7 +231,7 @@ def _tiny_programs() -> dict[str, Callable[[], Program]]:
         return train_program(replace(exp, model=C.tiny()), exp.stages[3], "tiny_train", views=(2, 1),
                              size=(64, 96), per_device_batch=1)
 
-    return {"tiny_reconstruct": lambda: reconstruct_program(C.tiny(), 2, (64, 96), True),
+    return {"tiny_reconstruct": lambda: reconstruct_program(C.tiny(), 2, (64, 96), True, name="tiny_reconstruct"),
             "tiny_render": lambda: render_program(C.tiny(), 2, (64, 96), True, name="tiny_render"),
             "tiny_train": tiny_train}
 

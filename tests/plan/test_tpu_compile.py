@@ -24,7 +24,7 @@ V5E = target("v5e")
 @pytest.mark.parametrize("name", ["tiny_reconstruct", "tiny_render"])
 def test_tiny_programs_compile_and_fit_on_v5e(name):
     row = compile_row(program(name), V5E)
-    assert row["compiled"], row.get("error")
+    assert row["program"] == name and row["compiled"], row.get("error")
     assert row["fits"] and 0 < row["hbm_needed_bytes"] < 2**30
     assert row["estimate"]["flops"] == pytest.approx(row["model_flops"], rel=0.01)
     assert row["estimate"]["seconds"] >= row["matmul_limit_s"] > 0
