@@ -847,9 +847,10 @@ def main(argv: list[str] | None = None) -> int:
 def run() -> None:
     """The ``llrmpp`` console command: :func:`main` with Ctrl-C leaving at once
     (:mod:`llrmpp_jax.process_exit`)."""
-    from llrmpp_jax import process_exit
+    from llrmpp_jax import platforms, process_exit
 
     process_exit.install()
+    platforms.skip_absent_tpu()
     process_exit.leave(main())
 
 
