@@ -46,7 +46,7 @@ def chosen_row(name: str, scale: A.Scale) -> tuple[A.Scale, A.Variant]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     parser.add_argument("--budgets", default="200,400,600", help="comma-separated step counts to score")
     parser.add_argument("--seeds", type=int, default=3, help="seeds per row (init and data order)")
     parser.add_argument(
@@ -70,7 +70,7 @@ def main() -> None:
         parser.error(f"--rows: unknown {unknown}; known: {list(CHOSEN)}")
     for name in args.rows.split(","):
         scale, variant = chosen_row(name, base_scale)
-        cfg = variant.build(scale.base)
+        cfg = variant.build(scale.base)  # pyright: ignore[reportOptionalCall] -- every CHOSEN row has a build
         samples = A.held_out_samples(cfg, scale)
         per_budget: dict[int, list[dict]] = {b: [] for b in budgets}
         seconds = []

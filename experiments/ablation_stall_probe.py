@@ -46,7 +46,7 @@ if os.environ.get("WARMUP"):
     scale = dataclasses.replace(scale, warmup=int(os.environ["WARMUP"]))
 if depth:
     cfg = scale.base
-    variant = A.Variant({}, lambda b: cfg, {}, **({} if aux == "aux" else dict(grad_weight=0.0, normal_weight=0.0)))
+    variant = A.Variant({}, lambda b: cfg, {}, **({} if aux == "aux" else dict(grad_weight=0.0, normal_weight=0.0)))  # pyright: ignore[reportArgumentType] -- the dict's floats go to the weight fields, not to chosen
 else:
     cfg = replace(
         scale.base,

@@ -87,11 +87,11 @@ def ideal_canvas_render(
     canvas = paint.reshape(b, 1, h, w, m, m, s, f).transpose(0, 1, 6, 2, 4, 3, 5, 7).reshape(b, 1, s, h * m, w * m, f)
     canvas = append_target_rays(canvas, c2w, intrinsics, cfg.decoder.canvas_ratio)[:, 0]  # one target: the input view
     out = LongLRMPP(cfg).apply({"params": params}, canvas, method=lambda mod, c: mod.decoder(c, ("rgb",)))
-    return out["rgb"][:, None]
+    return out["rgb"][:, None]  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--name", default=None, help="result name (default: from the options)")
     p.add_argument("--steps", type=int, default=1000, help="training steps")
     p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate")

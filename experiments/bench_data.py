@@ -76,12 +76,12 @@ def bench_capture(scene, size: int, frames: int, repeats: int) -> dict[str, floa
         load_views(scene, np.arange(start, start + frames), resized, box, None, False)
 
     out = _rate(load, frames, repeats)
-    out["output_hw"] = list(out_hw)
+    out["output_hw"] = list(out_hw)  # pyright: ignore[reportArgumentType] -- a JSON row: mixed values
     return out
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench_data.json"))
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()

@@ -48,7 +48,7 @@ def score(a, b) -> float:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument(
         "--checkpoint", default="pretrained:small", help="training workdir, params folder or pretrained:NAME"
     )

@@ -33,14 +33,14 @@ def temp_bytes(h: int, w: int, k: int, nh: int, hd: int) -> int:
     bias = jax.ShapeDtypeStruct((h * w, min(k, h * w), nh), jnp.float32)
 
     def step(q, kk, v, b):
-        loss = lambda *a: jnp.sum(local_attention(*a[:3], jnp.asarray(index), a[3]) ** 2)  # noqa: E731
+        loss = lambda *a: jnp.sum(local_attention(*a[:3], jnp.asarray(index), a[3]) ** 2)  # noqa: E731  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
         return jax.grad(loss, argnums=(0, 1, 2, 3))(q, kk, v, b)
 
-    return int(jax.jit(step).lower(qkv, qkv, qkv, bias).compile().memory_analysis().temp_size_in_bytes)
+    return int(jax.jit(step).lower(qkv, qkv, qkv, bias).compile().memory_analysis().temp_size_in_bytes)  # pyright: ignore[reportOptionalMemberAccess] -- memory_analysis() is None only on a backend without it; CPU, GPU and TPU have it
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--k", type=int, default=64, help="neighbours per token")
     ap.add_argument("--heads", type=int, default=4, help="attention heads")
     ap.add_argument("--head-dim", type=int, default=64, help="channels per head")

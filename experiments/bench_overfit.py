@@ -180,7 +180,7 @@ def table() -> str:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--name", help="run name: results/learning/<name>.json and .png")
     p.add_argument("--table", action="store_true", help="print the Markdown table of every stored run and exit")
     p.add_argument("--seed", type=int, default=3, help="procedural scene seed")

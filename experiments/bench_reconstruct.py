@@ -32,7 +32,7 @@ RESULTS = os.path.join(ROOT, "experiments", "results", "bench_reconstruct.json")
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128], help="view heights")
     ap.add_argument("--inputs", type=int, default=8, help="input views")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per setting (median reported)")

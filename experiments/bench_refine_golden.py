@@ -58,7 +58,7 @@ def scenes() -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--steps", type=int, default=50, help="refinement steps")
     ap.add_argument("--size", type=int, default=64, help="image height before rounding to the patch multiple")
     ap.add_argument("--inputs", type=int, default=8, help="input views (k-means)")
@@ -75,7 +75,7 @@ def main() -> None:
             params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"]
         )
         tgt = (b["target_images"], b["target_c2w"], b["target_intrinsics"])
-        before = heldout_psnr(params, cfg, g, *tgt)
+        before = heldout_psnr(params, cfg, g, *tgt)  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
         views = (b["input_images"], b["input_c2w"], b["input_intrinsics"])
         t0 = time.time()
         refine(params, cfg, g, *views, steps=1)  # compiles init, step and the final loss
@@ -83,7 +83,7 @@ def main() -> None:
         t0 = time.time()
         refined, info = refine(params, cfg, g, *views, steps=a.steps, progress=True)
         seconds = time.time() - t0
-        after = heldout_psnr(params, cfg, refined, *tgt)
+        after = heldout_psnr(params, cfg, refined, *tgt)  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
         print(
             f"{name}: {g.means.shape[1]} Gaussians, {len(inputs)} inputs, {len(targets)} targets at "
             f"{s['input_images'].shape[1:3]}: PSNR before {before:.2f} / after {after:.2f} "

@@ -66,7 +66,7 @@ def parse_variant(text: str) -> tuple[float, float, dict[str, float]]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument(
         "--config",
         default="small",

@@ -177,7 +177,7 @@ def measure_case(name: str, remat: bool, steps: int, max_step_bytes: float) -> d
     data_s = (time.perf_counter() - t0) / (steps + 1)
     runner, optimizer = make_step(exp, stage, None)
     batches = [runner.place_batch(b) for b in host_batches]
-    params = init_params(jax.random.key(0), exp.model, stage.num_inputs, h, w)
+    params = init_params(jax.random.key(0), exp.model, stage.num_inputs, h, w)  # pyright: ignore[reportArgumentType] -- the stage sets resize_h
     state = runner.place_state(T.init_train_state(params, optimizer, jax.random.key(1)))
     t0 = time.perf_counter()
     compiled = runner.step.lower(state, batches[0]).compile()
@@ -239,7 +239,7 @@ def paper_abstract_args(exp: ExperimentConfig, stage: StageConfig, vgg_params: d
             f"stage {stage.name}: global_batch {stage.global_batch} does not split over {PAPER_STAGE4_DEVICES} devices"
         )
     b = stage.global_batch // PAPER_STAGE4_DEVICES
-    h = -(-stage.resize_h // exp.model.size_multiple) * exp.model.size_multiple  # 540 -> 544
+    h = -(-stage.resize_h // exp.model.size_multiple) * exp.model.size_multiple  # 540 -> 544  # pyright: ignore[reportOptionalOperand] -- the paper stage sets resize_h
     w = 960
     v, t = stage.num_inputs, stage.num_targets
     params = jax.eval_shape(lambda k: init_params(k, exp.model, 2, 32, 32), jax.random.key(0))
@@ -484,7 +484,7 @@ def paper_stage4(args: argparse.Namespace) -> dict:
 def main() -> None:
     if CPU_MEMORY_SCHEDULER not in os.environ.get("XLA_FLAGS", ""):  # before the backend starts
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {CPU_MEMORY_SCHEDULER}".strip()
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--out", default=os.path.join(HERE, "results", "bench_train.json"))
     ap.add_argument("--quick", action="store_true", help="demo config only")
     ap.add_argument("--skip-paper", action="store_true", help="skip the stage-4 analysis")

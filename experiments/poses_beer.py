@@ -64,7 +64,7 @@ def nearest_later(poses, name: str, min_gap: int) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--capture", default="../shared/data/beer", help="capture with images/ and sparse/0/")
     ap.add_argument("--out", default="experiments/results/poses", help="folder for beer.json and the picture")
     args = ap.parse_args(argv)

@@ -60,7 +60,7 @@ def refine_step_profile(args) -> dict:
         "gaussians": int(g.means.shape[1]),
         "views": args.views_per_step,
         "view_hw": [int(h), int(w)],
-        "capacity": int(cfg.splat.max_intersections),
+        "capacity": int(cfg.splat.max_intersections),  # pyright: ignore[reportArgumentType] -- refine's config sets the capacity
     } | prof.to_json()
 
 

@@ -28,7 +28,7 @@ from llrmpp_jax.pretrained import load_pretrained
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--steps", type=int, default=100, help="refinement steps per scene")
     ap.add_argument("--scenes", type=int, default=4, help="how many held-out scenes (from the first)")
     ap.add_argument("--zoom", type=int, default=3, help="nearest-neighbour upscaling of the picture")

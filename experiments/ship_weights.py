@@ -36,7 +36,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--workdir", required=True, help="the training workdir (its newest checkpoint is shipped)")
     p.add_argument("--config", required=True, help="the experiment file it was trained with")
     p.add_argument(

@@ -158,7 +158,7 @@ def from_dict(cls: type, data: dict):
     for name, value in data.items():
         kind = hints[name]
         if dataclasses.is_dataclass(kind):
-            value = from_dict(kind, value)
+            value = from_dict(kind, value)  # pyright: ignore[reportArgumentType] -- is_dataclass of a type hint: a dataclass type
         elif isinstance(value, list):
             value = tuple(tuple(v) if isinstance(v, list) else v for v in value)
         kwargs[name] = value

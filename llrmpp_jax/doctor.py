@@ -94,7 +94,7 @@ def check_splat() -> float:
             [w, w, w / 2, h / 2],
         )
     ]
-    got = rasterize(*args, h, w)
+    got = rasterize(*args, h, w)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     want = jax.jit(render_features_reference, static_argnums=(7, 8))(*args, h, w)
     return max(_rel(got.features, want[0]), _rel(got.transmittance, want[1]))
 
@@ -197,7 +197,7 @@ def run_checks(emit: Callable[[str], None] = print) -> list[CheckResult]:
             err = float("nan")
         res = CheckResult(name, err, tol, time.perf_counter() - t0)
         emit(res.line())
-        if not res.ok and np.isfinite(err) and tol > 0 and jax.config.jax_default_matmul_precision != "highest":
+        if not res.ok and np.isfinite(err) and tol > 0 and jax.config.jax_default_matmul_precision != "highest":  # pyright: ignore[reportAttributeAccessIssue] -- jax.config's options are made at run time; its stub lists none
             emit("     " + precision_diagnosis(name, fn, tol))
         results.append(res)
     failed = [r.name for r in results if not r.ok]

@@ -71,7 +71,7 @@ class DataConfig:
     kind: DataKind = "procedural"
     path: str | None = None
     eval_path: str | None = None
-    procedural: ProceduralConfig = field(default_factory=ProceduralConfig)
+    procedural: ProceduralConfig = field(default_factory=ProceduralConfig)  # pyright: ignore[reportArgumentType, reportCallIssue] -- a frozen dataclass as default_factory: pyright misreads the field overloads
     eval_seed_offset: int = 1_000_000_000
     num_eval_scenes: int = 8
     eval_span: int | None = None  # window of frames for procedural/held-out evaluation
@@ -279,9 +279,9 @@ def load_experiment(name_or_path: str) -> ExperimentConfig:
             f"config file not found: {name_or_path} (a file, or a recipe: {', '.join(recipe_names())})"
         )
     spec = importlib.util.spec_from_file_location(f"llrmpp_experiment_{abs(hash(path))}", path)
-    module = importlib.util.module_from_spec(spec)
+    module = importlib.util.module_from_spec(spec)  # pyright: ignore[reportArgumentType] -- a .py path that exists always gets a spec with a loader
     try:
-        spec.loader.exec_module(module)
+        spec.loader.exec_module(module)  # pyright: ignore[reportOptionalMemberAccess] -- as above
     except SyntaxError as e:
         raise UserError(f"{path}:{e.lineno}: syntax error in the experiment file: {e.msg}") from None
     if not hasattr(module, "get_config"):

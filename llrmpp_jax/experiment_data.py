@@ -31,11 +31,11 @@ def scene_source(data: DataConfig, held_out: bool = False) -> SceneSource:
     if data.kind == "procedural":
         return OffsetSource(ProceduralSource(data.procedural), data.eval_seed_offset if held_out else 0)
     if held_out:
-        return dataset_source(data.held_out_path, data.kind, data.held_out_list)
-    files = dataset_source(data.path, data.kind)
+        return dataset_source(data.held_out_path, data.kind, data.held_out_list)  # pyright: ignore[reportArgumentType] -- a file dataset has a path (DataConfig checks it)
+    files = dataset_source(data.path, data.kind)  # pyright: ignore[reportArgumentType] -- as above
     if not data.eval_reads_training_scenes:
         return files
-    evaluated = scene_source(data, held_out=True).paths[: data.num_eval_scenes]
+    evaluated = scene_source(data, held_out=True).paths[: data.num_eval_scenes]  # pyright: ignore[reportAttributeAccessIssue] -- the source made here is a FileSource (a HeldOutSource for .base), which has it
     return WithoutEvalTargets(files, frozenset(os.path.abspath(p) for p in evaluated), data.eval_max_frames)
 
 
@@ -139,7 +139,7 @@ def eval_samples(exp: ExperimentConfig, stage: StageConfig) -> tuple[list[dict[s
         if data.kind == "procedural":
             inputs, targets = _procedural_views(exp, stage, i, scene)
         else:
-            inputs, targets, how = held_out_split(data, stage.num_inputs, scene, source.paths[i], index)
+            inputs, targets, how = held_out_split(data, stage.num_inputs, scene, source.paths[i], index)  # pyright: ignore[reportAttributeAccessIssue] -- the source made here is a FileSource (a HeldOutSource for .base), which has it
         samples.append(make_sample(scene, inputs, targets, geom, rng=None, with_depth=with_depth, rescale=data.rescale))
         if data.kind != "procedural":
             h, w = samples[-1]["input_images"].shape[-3:-1]

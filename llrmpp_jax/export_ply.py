@@ -167,7 +167,7 @@ def sh_rotation(rot: Float[np.ndarray, "3 3"], degree: int) -> Float[np.ndarray,
 
 
 def _unbatched(gaussians: Gaussians) -> Gaussians:
-    g = Gaussians(*(np.asarray(a) for a in gaussians))
+    g = Gaussians(*(np.asarray(a) for a in gaussians))  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     if g.means.ndim == 3:
         if g.means.shape[0] != 1:
             raise UserError(f"export_ply writes one scene; got a batch of {g.means.shape[0]} (means {g.means.shape})")
@@ -316,10 +316,10 @@ def read_ply(path: str) -> PlyGaussians:
         logits = col(*(f"partition_{i}" for i in range(s)))
     quats = col("rot_0", "rot_1", "rot_2", "rot_3")
     g = Gaussians(
-        means=col("x", "y", "z"),
+        means=col("x", "y", "z"),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
         quats=quats / np.linalg.norm(quats, axis=-1, keepdims=True),
-        scales=np.exp(col("scale_0", "scale_1", "scale_2")),
-        opacities=(1.0 / (1.0 + np.exp(-col("opacity")[:, 0]))).astype(np.float32),
-        features=features,
+        scales=np.exp(col("scale_0", "scale_1", "scale_2")),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        opacities=(1.0 / (1.0 + np.exp(-col("opacity")[:, 0]))).astype(np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        features=features,  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     )
     return PlyGaussians(g, mode, logits, wfs)

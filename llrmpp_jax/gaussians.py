@@ -158,7 +158,7 @@ def decode_gaussians(
         return a.reshape(b, n, -1)
 
     return Gaussians(
-        means=flat(means),
+        means=flat(means),  # pyright: ignore[reportArgumentType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
         quats=flat(_unit_quat(quat)),
         scales=flat(jnp.exp(log_scale)),
         opacities=flat(jax.nn.sigmoid(opac + cfg.opacity_bias))[..., 0],

@@ -125,7 +125,7 @@ def rgb_loss(
         t = target.astype(jnp.float32)
         mse = jnp.mean(jnp.square(p - t))
         if perceptual_weight:
-            perceptual = perceptual_loss(vgg_params, p, t)
+            perceptual = perceptual_loss(vgg_params, p, t)  # pyright: ignore[reportArgumentType] -- a perceptual weight without VGG params is rejected above
         else:
             perceptual = jnp.zeros((), jnp.float32)
         loss = mse + perceptual_weight * perceptual

@@ -75,8 +75,8 @@ def _filter_valid(x: ArrayLike, taps: np.ndarray) -> Array:
     n = len(taps)
     for axis in (-3, -2):
         size = x.shape[axis] - n + 1
-        x = sum(float(t) * jax.lax.slice_in_dim(x, k, k + size, axis=x.ndim + axis) for k, t in enumerate(taps))
-    return x
+        x = sum(float(t) * jax.lax.slice_in_dim(x, k, k + size, axis=x.ndim + axis) for k, t in enumerate(taps))  # pyright: ignore[reportAssignmentType] -- taps is never empty: the sum is an array
+    return x  # pyright: ignore[reportReturnType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
 
 
 def ssim(

@@ -42,7 +42,7 @@ def save_params(path: str, params, cfg: ModelConfig) -> int:
         json.dump({"format": _FORMAT, "num_params": count, "model": dataclasses.asdict(cfg)}, f, indent=1)
     back, _ = load_params(path)
     mine, theirs = flatten_params(host), flatten_params(back)
-    bad = [k for k in mine if k not in theirs or not np.array_equal(mine[k], np.asarray(theirs[k]))]
+    bad = [k for k in mine if k not in theirs or not np.array_equal(mine[k], np.asarray(theirs[k]))]  # pyright: ignore[reportArgumentType] -- the leaves are arrays
     if bad or set(theirs) != set(mine):
         raise UserError(f"{path}: params read back differ from those written (first: {(bad or ['tree'])[0]})")
     return count
@@ -61,10 +61,10 @@ def _load_params_folder(path: str, cfg: ModelConfig | None) -> tuple[dict, Model
             cfg = from_dict(ModelConfig, json.load(f)["model"])
     with ocp.StandardCheckpointer() as ckptr:
         saved = ckptr.metadata(path).item_metadata.tree
-        check_params_fit(saved, cfg, path)
+        check_params_fit(saved, cfg, path)  # pyright: ignore[reportArgumentType] -- cfg is read above when not given
         target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype), saved)
         params = ckptr.restore(path, target)
-    return params, cfg
+    return params, cfg  # pyright: ignore[reportReturnType] -- as above
 
 
 def _stage_dirs(workdir: str) -> list[str]:
@@ -92,14 +92,14 @@ def _load_workdir(path: str, cfg: ModelConfig | None) -> tuple[dict, ModelConfig
             raise UserError(f"{stage_dir}: the checkpoint records no model config; pass --config")
         cfg = from_dict(ModelConfig, recorded["model"])
     opt = T.make_optimizer(T.OptimizerConfig(total_steps=1, warmup_steps=0))
-    template = jax.eval_shape(lambda p: T.init_train_state(p, opt, jax.random.key(0)), expected_shapes(cfg))
+    template = jax.eval_shape(lambda p: T.init_train_state(p, opt, jax.random.key(0)), expected_shapes(cfg))  # pyright: ignore[reportArgumentType] -- cfg is read above when not given
     try:
         restored = T.restore_checkpoint(os.path.abspath(stage_dir), template)
     except T.IncompatibleCheckpointError as e:
         raise UserError(str(e)) from None
     if restored is None:
         raise UserError(f"no checkpoint in {stage_dir}")
-    return restored.state.params, cfg
+    return restored.state.params, cfg  # pyright: ignore[reportReturnType] -- as above
 
 
 def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelConfig]:

@@ -128,9 +128,9 @@ def vgg_features(
     block = order[0][0]
     for b, i, name in order[: last + 1]:
         if b != block:
-            x = _pool2x2(x, pool)
+            x = _pool2x2(x, pool)  # pyright: ignore[reportArgumentType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
             block = b
-        x = jax.nn.relu(_conv3x3(x, params[name]))
+        x = jax.nn.relu(_conv3x3(x, params[name]))  # pyright: ignore[reportArgumentType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
         out[f"relu{b}_{i}"] = x
     return [out[t] for t in taps]
 

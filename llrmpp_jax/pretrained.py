@@ -147,7 +147,7 @@ def export_pretrained(
     half = {k: np.asarray(v, np.float16) for k, v in flatten_params(jax.device_get(params)).items()}
     if not all(np.isfinite(v).all() for v in half.values()):
         raise UserError(f"export_pretrained({name!r}): a parameter overflows float16")
-    np.savez(npz_path, **half)
+    np.savez(npz_path, **half)  # pyright: ignore[reportArgumentType] -- arrays by keyword; pyright matches the ** to allow_pickle
     loaded = unflatten_dict({k: v.astype(np.float32) for k, v in half.items()}, sep="/")
     np.savez(ref_path, rgb=reference_forward(loaded, cfg, reference))
     meta = dict(

@@ -101,7 +101,7 @@ def profile_program(fn: Callable, args: tuple, repeats: int = 3, top: int = 30) 
     t0 = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - t0
-    phases = _instruction_phases(compiled.as_text())
+    phases = _instruction_phases(compiled.as_text())  # pyright: ignore[reportArgumentType] -- as_text() is None only without an HLO module; a compiled program has one
     jax.block_until_ready(compiled(*args))
     walls = []
     for _ in range(repeats):
@@ -129,7 +129,7 @@ def profile_program(fn: Callable, args: tuple, repeats: int = 3, top: int = 30) 
                         count[ev.name] += 1
     per_phase: collections.Counter = collections.Counter()
     for name, ns in total.items():
-        per_phase[phases[name]] += ns / 1e6 / repeats
+        per_phase[phases[name]] += ns / 1e6 / repeats  # pyright: ignore[reportArgumentType] -- a Counter of milliseconds: floats
     ops = [OpRow(name, phases[name], ns / 1e6 / repeats, count[name] / repeats) for name, ns in total.most_common(top)]
     walls.sort()
     return ProgramProfile(

@@ -72,7 +72,7 @@ def fresh_params(exp: ExperimentConfig, si: int) -> dict:
     its input views and resolution."""
     stage = exp.stages[si]
     h, w = stage.resize_h, stage.resize_w or stage.resize_h
-    return init_params(jax.random.fold_in(stage_key(exp, si), 1), exp.model, stage.num_inputs, h, w)
+    return init_params(jax.random.fold_in(stage_key(exp, si), 1), exp.model, stage.num_inputs, h, w)  # pyright: ignore[reportArgumentType] -- a training stage sets resize_h
 
 
 def stage_runner(

@@ -22,7 +22,7 @@ ARRAY_KINDS = {"Float", "Int", "Bool", "Shaped", "UInt32"}
 
 def legend() -> list[str]:
     """The names of the docstring's legend lines (``    NAME   meaning``), in order."""
-    return re.findall(r"^ {4}(\*?\w+) {2,}\S", array_typing.__doc__, flags=re.M)
+    return re.findall(r"^ {4}(\*?\w+) {2,}\S", array_typing.__doc__, flags=re.M)  # pyright: ignore[reportArgumentType, reportCallIssue] -- the module has its legend docstring
 
 
 def annotated_axes() -> dict[str, set[str]]:
@@ -40,9 +40,9 @@ def annotated_axes() -> dict[str, set[str]]:
                 continue
             shape = node.slice.elts[1]
             assert isinstance(shape, ast.Constant), f"{path}: shape of {ast.unparse(node)} is not a literal"
-            for axis in shape.value.split():
-                star = "*" if axis.lstrip("#").startswith("*") else ""
-                for name in re.findall(r"[A-Za-z]\w*", axis):
+            for axis in shape.value.split():  # pyright: ignore[reportAttributeAccessIssue, reportOptionalMemberAccess] -- the shape is a str constant (asserted above)
+                star = "*" if axis.lstrip("#").startswith("*") else ""  # pyright: ignore[reportArgumentType] -- the shape is a str constant (asserted above)
+                for name in re.findall(r"[A-Za-z]\w*", axis):  # pyright: ignore[reportArgumentType, reportCallIssue] -- as above
                     uses.setdefault(star + name, set()).add(str(path.relative_to(PACKAGE.parent)))
     return uses
 

@@ -39,7 +39,7 @@ def test_doctor_tells_a_reduced_precision_default_from_a_wrong_kernel(monkeypatc
     the kernel is right and how to restore float32."""
 
     def precision_sensitive() -> float:
-        return 1e-7 if jax.config.jax_default_matmul_precision == "highest" else 5.8e-4
+        return 1e-7 if jax.config.jax_default_matmul_precision == "highest" else 5.8e-4  # pyright: ignore[reportAttributeAccessIssue] -- jax.config's options are made at run time; its stub lists none
 
     monkeypatch.setattr(doctor, "CHECKS", {"scan": (precision_sensitive, 1e-4)})
     with jax.default_matmul_precision("default"):  # as a user runs it (the suite runs at 'highest')

@@ -32,12 +32,12 @@ def random_gaussians(rng, n, f, batch=True) -> Gaussians:
         opacities=rng.uniform(0.01, 0.99, n),
         features=rng.normal(size=(n, f)),
     )
-    return Gaussians(*(np.asarray(a, np.float32)[None] if batch else np.asarray(a, np.float32) for a in g))
+    return Gaussians(*(np.asarray(a, np.float32)[None] if batch else np.asarray(a, np.float32) for a in g))  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
 
 
 def random_similarity(rng) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
     s = rng.uniform(0.3, 3.0)
-    rot = Rotation.random(random_state=rng)
+    rot = Rotation.random(random_state=rng)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
     t = rng.normal(size=3) * 5
     m = np.eye(4)
     m[:3, :3] = s * rot.as_matrix()
@@ -86,7 +86,7 @@ def test_feature_ply_fields_round_trip_exactly(tmp_path, rng):
     back = read_ply(path)
     assert back.mode == "feature"
     np.testing.assert_array_equal(back.partition_logits, np.asarray(logits[0], np.float32))
-    np.testing.assert_allclose(back.world_from_scene, m, rtol=1e-15)
+    np.testing.assert_allclose(back.world_from_scene, m, rtol=1e-15)  # pyright: ignore[reportArgumentType, reportCallIssue] -- this PLY records world_from_scene
 
 
 def test_world_transform_matches_scipy(tmp_path, rng):
@@ -98,7 +98,7 @@ def test_world_transform_matches_scipy(tmp_path, rng):
     vertex, _ = _read_vertex(path)
     col = lambda *ks: np.stack([vertex[k].astype(np.float64) for k in ks], -1)  # noqa: E731
     g64 = Gaussians(*(a.astype(np.float64) for a in g))
-    np.testing.assert_allclose(col("x", "y", "z"), s * rot.apply(g64.means) + t, rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(col("x", "y", "z"), s * rot.apply(g64.means) + t, rtol=1e-6, atol=1e-5)  # pyright: ignore[reportAttributeAccessIssue] -- rot is a scipy Rotation; its random() overloads miss random_state
     want_q = (rot * Rotation.from_quat(g64.quats, scalar_first=True)).as_quat(scalar_first=True)
     got_q = col("rot_0", "rot_1", "rot_2", "rot_3")
     sign = np.sign(np.sum(got_q * want_q, axis=-1, keepdims=True))  # q and -q are one rotation
@@ -113,7 +113,7 @@ def test_world_transform_matches_scipy(tmp_path, rng):
     rest = col(*(f"f_rest_{i}" for i in range(45))).reshape(N, 3, 15).transpose(0, 2, 1)
     world = np.concatenate([col("f_dc_0", "f_dc_1", "f_dc_2")[:, None], rest], axis=1)
     want = np.einsum("nk,nkc->nc", scipy_real_sh(dirs, 3), coeffs)
-    got = np.einsum("nk,nkc->nc", scipy_real_sh(rot.apply(dirs), 3), world)
+    got = np.einsum("nk,nkc->nc", scipy_real_sh(rot.apply(dirs), 3), world)  # pyright: ignore[reportAttributeAccessIssue] -- rot is a scipy Rotation; its random() overloads miss random_state
     np.testing.assert_allclose(got, want, atol=2e-5 * np.abs(want).max())
 
 
@@ -138,7 +138,10 @@ def test_read_ply_decodes_to_world_gaussians(tmp_path, rng):
     back = read_ply(path)
     assert back.mode == "color" and back.partition_logits is None
     np.testing.assert_allclose(
-        back.gaussians.means, s * rot.apply(g.means[0].astype(np.float64)) + t, rtol=1e-6, atol=1e-5
+        back.gaussians.means,
+        s * rot.apply(g.means[0].astype(np.float64)) + t,  # pyright: ignore[reportAttributeAccessIssue] -- rot is a scipy Rotation; its random() overloads miss random_state
+        rtol=1e-6,
+        atol=1e-5,
     )
     np.testing.assert_allclose(back.gaussians.scales, s * g.scales[0], rtol=2e-6)
     np.testing.assert_allclose(back.gaussians.opacities, g.opacities[0], rtol=1e-6, atol=1e-7)
@@ -178,7 +181,7 @@ def test_bad_input(rng, case, match):
     elif case == "shear":
         m[0, 1] = 0.3
     elif case == "batch":
-        g = Gaussians(*(np.concatenate([a, a]) for a in g))
+        g = Gaussians(*(np.concatenate([a, a]) for a in g))  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     elif case == "no_logits":
         cfg = C.tiny()
         g = random_gaussians(rng, N, 16)

@@ -73,7 +73,7 @@ def test_grid_anchors_start_on_the_sub_grid(rng):
     head = GaussianHead(cfg, p)
     params = head.init(jax.random.key(3), tokens, (h, w), c2w, intr)
     g = head.apply(params, tokens, (h, w), c2w, intr)
-    means = np.asarray(g.means, np.float64).reshape(b, v, h, w, 16, 3)
+    means = np.asarray(g.means, np.float64).reshape(b, v, h, w, 16, 3)  # pyright: ignore[reportAttributeAccessIssue] -- flax's apply is typed as maybe (out, variables); without mutable= it is out
     for i in np.ndindex(b, v, h, w, 16):
         rot, t = c2w[i[0], i[1], :3, :3].astype(np.float64), c2w[i[0], i[1], :3, 3]
         x = rot.T @ (means[i] - t)
@@ -82,13 +82,13 @@ def test_grid_anchors_start_on_the_sub_grid(rng):
         want = (i[3] * p + (i[4] % 4 + 0.5) * 2, i[2] * p + (i[4] // 4 + 0.5) * 2)
         np.testing.assert_allclose(uv, want, atol=2e-4)
         np.testing.assert_allclose(np.linalg.norm(means[i] - t), cfg.max_dist / 2, rtol=1e-5)
-    np.testing.assert_allclose(np.asarray(g.scales), np.exp(cfg.scale_bias), rtol=1e-6)  # isotropic, one size
-    np.testing.assert_allclose(np.asarray(g.quats), np.broadcast_to([1.0, 0, 0, 0], g.quats.shape), atol=1e-7)
-    assert np.std(np.asarray(g.features)) > 0.1 and np.std(np.asarray(g.opacities)) > 0.01  # still drawn
+    np.testing.assert_allclose(np.asarray(g.scales), np.exp(cfg.scale_bias), rtol=1e-6)  # isotropic, one size  # pyright: ignore[reportAttributeAccessIssue] -- flax's apply is typed as maybe (out, variables); without mutable= it is out
+    np.testing.assert_allclose(np.asarray(g.quats), np.broadcast_to([1.0, 0, 0, 0], g.quats.shape), atol=1e-7)  # pyright: ignore[reportAttributeAccessIssue] -- flax's apply is typed as maybe (out, variables); without mutable= it is out
+    assert np.std(np.asarray(g.features)) > 0.1 and np.std(np.asarray(g.opacities)) > 0.01  # still drawn  # pyright: ignore[reportAttributeAccessIssue] -- flax's apply is typed as maybe (out, variables); without mutable= it is out
 
 
 def test_grid_anchors_need_a_square_k():
     with pytest.raises(ValueError, match="square gaussians_per_token"):
         C.GaussianHeadConfig(gaussians_per_token=8, anchors="grid")
     with pytest.raises(ValueError, match="anchors must be"), unchecked():
-        C.GaussianHeadConfig(anchors="corner")
+        C.GaussianHeadConfig(anchors="corner")  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error

@@ -62,7 +62,7 @@ def test_rgb_loss_value_and_grad_match_torch(rng, vgg19):
     np.testing.assert_allclose(float(aux["psnr"]), -10 * np.log10(mse.item()), rtol=1e-5)
     np.testing.assert_allclose(float(aux["perceptual"]), perc.item(), rtol=1e-4)
     np.testing.assert_allclose(float(loss), want.item(), rtol=1e-4)
-    want_grad = tp.grad.permute(0, 2, 3, 1).numpy().reshape(grad.shape)
+    want_grad = tp.grad.permute(0, 2, 3, 1).numpy().reshape(grad.shape)  # pyright: ignore[reportOptionalMemberAccess] -- torch fills .grad in the backward() above
     rel = np.linalg.norm(np.asarray(grad) - want_grad) / np.linalg.norm(want_grad)
     assert rel <= 1e-3, rel
     # lambda = 0: plain MSE, no VGG needed.
@@ -228,7 +228,7 @@ def test_depth_loss_matches_torch_reference(rng):
     np.testing.assert_allclose(float(loss), want.item(), rtol=1e-4)
     n_invalid = int(np.sum(~(np.isfinite(target) & (target > 0))))
     assert float(aux["num_invalid"]) == n_invalid
-    g, wg = np.asarray(grad), tp.grad.numpy()
+    g, wg = np.asarray(grad), tp.grad.numpy()  # pyright: ignore[reportOptionalMemberAccess] -- torch fills .grad in the backward() above
     assert np.all(np.isfinite(g))
     assert np.linalg.norm(g - wg) <= 1e-3 * np.linalg.norm(wg)
 

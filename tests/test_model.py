@@ -45,7 +45,7 @@ def test_golden_long_lrm_gaussians(dtype, tol):
     inp = np.load(os.path.join(GOLDEN, "inputs.npz"))
     out = np.load(os.path.join(GOLDEN, "outputs.npz"))
     cfg = golden_model_config()
-    params = convert_long_lrm(sd, cfg, dtype=np.dtype(dtype))
+    params = convert_long_lrm(sd, cfg, dtype=np.dtype(dtype))  # pyright: ignore[reportArgumentType] -- any float dtype is taken; the annotation comes from the default
     images = jnp.asarray(inp["images"].transpose(0, 1, 3, 4, 2), dtype)
     g = reconstruct(params, cfg, images, jnp.asarray(inp["c2ws"], dtype), jnp.asarray(inp["intrinsics"], dtype))
     assert _rel_err(g.means, out["xyz"]) < tol
@@ -125,7 +125,7 @@ def test_single_partition_equals_no_partition(key):
     ).features
     rays = plucker(*pixel_rays(c2w[0, 2], intr[0, 2] / 2, 16, 24))
     x = jnp.concatenate([canvas, rays], axis=-1)[None, None]
-    want = TargetDecoder(cfg.decoder).apply({"params": params["decoder"]}, x)["rgb"]
+    want = TargetDecoder(cfg.decoder).apply({"params": params["decoder"]}, x)["rgb"]  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
     np.testing.assert_allclose(np.asarray(got[0, 0]), np.asarray(want[0]), atol=1e-5)
 
 
@@ -138,7 +138,7 @@ def test_local_decoder_is_translation_invariant(key):
     big = jax.random.normal(key, (1, 1, hc + 2 * cp, wc + 3 * cp, 7), jnp.float32)
     a, b = big[:, :, :hc, :wc], big[:, :, 2 * cp :, 3 * cp :]  # b = a shifted by (2, 3) tokens
     params = dec.init(jax.random.key(1), a)["params"]
-    ya, yb = (dec.apply({"params": params}, x)["rgb"][0] for x in (a, b))
+    ya, yb = (dec.apply({"params": params}, x)["rgb"][0] for x in (a, b))  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
     # b's token (i, j) is a's (i+2, j+3); compare tokens at least 2 rings (k=9) from every border.
     m = 2 * q
     np.testing.assert_allclose(
@@ -213,7 +213,7 @@ def test_absolute_positions_add_the_sincos_embedding(key):
         x = jax.random.normal(jax.random.fold_in(key, hc), (1, 1, hc, wc, 7), jnp.float32)
         seen.clear()
         with nn.intercept_methods(spy):
-            out = with_pe.apply({"params": params}, x)["rgb"]
+            out = with_pe.apply({"params": params}, x)["rgb"]  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
             TargetDecoder(cfg).apply({"params": params}, x)
         assert out.shape == (1, hc * 2, wc * 2, 3) and bool(jnp.all(jnp.isfinite(out)))
         np.testing.assert_allclose(seen[0] - seen[1], sincos_2d_oracle(hc // 4, wc // 4, 32)[None], atol=1e-6)
@@ -232,11 +232,13 @@ def test_depth_bias_offsets_the_log_depth_head(key):
     params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
     base = TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))
     biased = TargetDecoder(replace(cfg, depth_bias=1.7)).apply({"params": params}, canvas, ("rgb", "depth"))
-    assert base["depth"].shape == (2, 32, 48, 1)
+    assert base["depth"].shape == (2, 32, 48, 1)  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
     np.testing.assert_allclose(
-        np.asarray(biased["depth"], np.float64), np.exp(1.7) * np.asarray(base["depth"], np.float64), rtol=1e-5
+        np.asarray(biased["depth"], np.float64),  # pyright: ignore[reportArgumentType, reportCallIssue] -- as above
+        np.exp(1.7) * np.asarray(base["depth"], np.float64),  # pyright: ignore[reportArgumentType, reportCallIssue] -- as above
+        rtol=1e-5,
     )
-    np.testing.assert_array_equal(np.asarray(biased["rgb"]), np.asarray(base["rgb"]))
+    np.testing.assert_array_equal(np.asarray(biased["rgb"]), np.asarray(base["rgb"]))  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
 
 
 def test_paper_scannet_depth_head_starts_at_its_typical_depth(key):
@@ -251,7 +253,7 @@ def test_paper_scannet_depth_head_starts_at_its_typical_depth(key):
     k_init, k_x = jax.random.split(key)
     canvas = jax.random.normal(k_x, (1, cfg.partitions, 48, 64, model.head.feature_dim + 6), jnp.float32)
     params = TargetDecoder(cfg).init(k_init, canvas, ("rgb", "depth"))["params"]
-    depth = np.asarray(TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))["depth"])
+    depth = np.asarray(TargetDecoder(cfg).apply({"params": params}, canvas, ("rgb", "depth"))["depth"])  # pyright: ignore[reportArgumentType, reportCallIssue] -- flax's apply is typed loosely; this module returns a dict of arrays
     assert depth.shape == (1, 96, 128, 1)
     assert abs(np.log(np.median(depth)) - np.log(4.0)) < np.log(1.15), np.median(depth)
 

@@ -118,7 +118,7 @@ def test_each_weight_scales_its_term(key):
     def losses(params, batch, k):
         rgb, depth, gdepth = _terms(params, cfg, batch, 0.3, 0.2, gaussian_depth=True)
         (w, aux), (r, _) = weighted(params, batch, k), rgb_only(params, batch, k)
-        return w, r, rgb + 0.5 * depth + 0.25 * gdepth, rgb, aux
+        return w, r, rgb + 0.5 * depth + 0.25 * gdepth, rgb, aux  # pyright: ignore[reportOperatorIssue] -- gaussian_depth=True gives the Gaussian depth term
 
     w, r, want_w, want_r, aux = losses(params, batch, k_loss)
     np.testing.assert_allclose(float(w), float(want_w), rtol=1e-6)

@@ -131,7 +131,7 @@ def test_vgg_features_input_errors():
     with pytest.raises(ValueError, match=r"\[B, H, W, 3\]"), unchecked():
         vgg_features(params, x[..., :2], taps=("relu1_1",), pool="max")
     with pytest.raises(ValueError, match="pool"), unchecked():
-        vgg_features(params, x, taps=("relu1_1",), pool="min")
+        vgg_features(params, x, taps=("relu1_1",), pool="min")  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
 
 
 class TorchVGG19(torch.nn.Module):

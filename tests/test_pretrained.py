@@ -36,7 +36,7 @@ def test_export_then_load_gives_the_float16_params_and_the_recorded_forward(ship
     assert got_cfg == cfg and meta["dtype"] == "float16" and meta["steps"] == 0
     want = flatten_params(params)
     for k, v in flatten_params(got).items():  # exactly the float16 rounding of what was exported
-        assert v.dtype == np.float32
+        assert v.dtype == np.float32  # pyright: ignore[reportAttributeAccessIssue] -- the npz holds arrays
         np.testing.assert_array_equal(v, np.asarray(want[k], np.float16).astype(np.float32), err_msg=k)
     recorded = np.load(os.path.join(d, "tiny.reference.npz"))["rgb"]
     assert recorded.shape == (64, 64, 3) and np.isfinite(recorded).all() and recorded.std() > 0

@@ -31,7 +31,7 @@ def _start(program: str) -> subprocess.Popen:
         text=True,
         preexec_fn=_default_ctrl_c,
     )
-    assert proc.stdout.readline() == "ready\n", proc.stderr.read()
+    assert proc.stdout.readline() == "ready\n", proc.stderr.read()  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
     return proc
 
 
@@ -45,7 +45,7 @@ def _interrupt(body: str, grace_s: float = 10.0) -> tuple[int, str, float]:
     start = time.monotonic()
     proc.send_signal(signal.SIGINT)
     status = proc.wait(timeout=60)
-    return status, proc.stderr.read(), time.monotonic() - start
+    return status, proc.stderr.read(), time.monotonic() - start  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
 
 
 def test_an_interrupt_python_would_ignore_leaves_at_once():
@@ -110,10 +110,10 @@ def test_a_second_interrupt_leaves_at_once():
         """)
     proc = _start(program)
     proc.send_signal(signal.SIGINT)
-    assert proc.stdout.readline() == "cleaning up\n"
+    assert proc.stdout.readline() == "cleaning up\n"  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
     proc.send_signal(signal.SIGINT)
     assert proc.wait(timeout=5) == 130
-    assert proc.stderr.read() == "llrmpp: interrupted\n"
+    assert proc.stderr.read() == "llrmpp: interrupted\n"  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
 
 
 def test_an_ignored_sigint_stays_ignored():

@@ -34,7 +34,7 @@ def known_scene(rng, n=300, views=12):
         q / np.linalg.norm(q, axis=-1, keepdims=True),
         np.exp(rng.uniform(-3.2, -2.2, (n, 3))),
         rng.uniform(0.5, 0.95, n),
-        sh.reshape(n, 12),
+        sh.reshape(n, 12),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     )
     ang = np.linspace(-0.9, 0.9, views)
     eye = np.stack([2.5 * np.sin(ang), -2.5 * np.cos(ang), 0.6 + 0.2 * np.cos(3 * ang)], -1)

@@ -69,7 +69,7 @@ def compare(
                 "confidence": confidence,
                 "diff_seeds": diffs.tolist(),
                 "seeds": n,
-                "paper_diff": None if None in paper else sign * (paper[0] - paper[1]),
+                "paper_diff": None if None in paper else sign * (paper[0] - paper[1]),  # pyright: ignore[reportOperatorIssue] -- None in paper is tested first
                 "verdict": verdict(iv, n),
             }
         )

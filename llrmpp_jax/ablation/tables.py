@@ -275,9 +275,9 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
         samples = _held_out(scale, cfg)
         row = _scores(index, v, per_seed)
         row.update(
-            time_model(per_seed[0].params, cfg, scale, samples[0]),
+            time_model(per_seed[0].params, cfg, scale, samples[0]),  # pyright: ignore[reportArgumentType] -- a finished run has its params
             params=count_params(per_seed[0].params),
-            decoder_params=count_params(per_seed[0].params.get("decoder", {})),
+            decoder_params=count_params(per_seed[0].params.get("decoder", {})),  # pyright: ignore[reportOptionalMemberAccess] -- a finished run has its params
             decoder_dim=cfg.decoder.dim if cfg.head.mode == "feature" else None,
         )
         curves[index] = np.mean([r.losses for r in per_seed], axis=0).tolist()
@@ -290,6 +290,6 @@ def run_table(variants: Sequence[Variant], scale: Scale, orderings: Sequence[Ord
     chosen = [v for v in runnable if v.chosen] or runnable
     refs = []
     if chosen:
-        cfg = chosen[0].build(scale.base)
+        cfg = chosen[0].build(scale.base)  # pyright: ignore[reportOptionalCall] -- runnable rows have a build
         refs = references(cfg, scale, _held_out(scale, cfg), _lpips_params(scale))
     return TableRun(scale, results, refs, curves, time.perf_counter() - t_start, comparisons)

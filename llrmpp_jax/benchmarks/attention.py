@@ -32,7 +32,7 @@ def attention_fwd_bwd(implementation: str, block: int = 512):
 
     def step(q, k, v, cot):
         _, vjp = jax.vjp(
-            lambda q, k, v: multi_head_attention(q, k, v, implementation=implementation, block_q=block, block_k=block),
+            lambda q, k, v: multi_head_attention(q, k, v, implementation=implementation, block_q=block, block_k=block),  # pyright: ignore[reportArgumentType] -- a str checked against the Literal's values at run time
             q,
             k,
             v,
@@ -81,9 +81,9 @@ def attention_benchmark(
                 row[impl] = {"failed": _one_line(e), "compile_s": time.perf_counter() - t0}
                 continue
             row[impl] = {
-                "temp_bytes": int(ma.temp_size_in_bytes),
-                "argument_bytes": int(ma.argument_size_in_bytes),
-                "output_bytes": int(ma.output_size_in_bytes),
+                "temp_bytes": int(ma.temp_size_in_bytes),  # pyright: ignore[reportOptionalMemberAccess] -- memory_analysis() is None only on a backend without it; CPU, GPU and TPU have it
+                "argument_bytes": int(ma.argument_size_in_bytes),  # pyright: ignore[reportOptionalMemberAccess] -- memory_analysis() is None only on a backend without it; CPU, GPU and TPU have it
+                "output_bytes": int(ma.output_size_in_bytes),  # pyright: ignore[reportOptionalMemberAccess] -- memory_analysis() is None only on a backend without it; CPU, GPU and TPU have it
                 "compile_s": time.perf_counter() - t0,
             }
         rows.append(row)
@@ -111,7 +111,7 @@ def attention_benchmark(
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument(
         "--lengths",
         type=int,

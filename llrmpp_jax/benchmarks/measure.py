@@ -33,7 +33,7 @@ def environment() -> dict:
         "host": platform.machine(),
         "cpu_count": os.cpu_count(),
         "versions": versions,
-        "default_matmul_precision": jax.config.jax_default_matmul_precision or "default (backend's own)",
+        "default_matmul_precision": jax.config.jax_default_matmul_precision or "default (backend's own)",  # pyright: ignore[reportAttributeAccessIssue] -- jax.config's options are made at run time; its stub lists none
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "load_average": list(os.getloadavg()),
     }
@@ -178,7 +178,7 @@ def timed_with_output(fn, *args, repeats: int = 3, warmup: int = 1) -> tuple[dic
         "run_s_median": ordered[len(ordered) // 2],
         "run_s_min": ordered[0],
         "run_s_all": runs,
-        "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes),
+        "temp_bytes": int(compiled.memory_analysis().temp_size_in_bytes),  # pyright: ignore[reportOptionalMemberAccess] -- memory_analysis() is None only on a backend without it; CPU, GPU and TPU have it
         "xla_flops": cost["flops"],
         "xla_bytes_accessed": cost["bytes_accessed"],
         "device_peak_bytes": device_peak_bytes(),

@@ -32,7 +32,7 @@ from llrmpp_jax.benchmarks.paper import (
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--scale", default="paper", help="paper (one accelerator) or cpu (config.tiny())")
     ap.add_argument("--views", default=None, help="input view counts, comma-separated (default: the scale's)")
     ap.add_argument("--size", default=None, help="HxW of every view (default: the scale's, 544x960 at paper scale)")

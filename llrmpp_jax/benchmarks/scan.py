@@ -36,6 +36,7 @@ import os
 import platform
 import statistics
 import time
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +55,7 @@ METHODS = {
     "dense": lambda x, dt, A, B, C, D, Q: ssd_dense(x, dt, A, B, C, chunk_size=Q, D=D),
     "sequential": lambda x, dt, A, B, C, D, Q: ssd_sequential(x, dt, A, B, C, D=D),
 }
-PRESETS = {
+PRESETS: dict[str, dict[str, Any]] = {
     "full": dict(lengths=[4096, 16384, 65536], repeats=5, mem_limit_gb=60.0, matmul_n=8192),
     # 2-core CPU: paper widths; the sequential reference is timed on 4096-token slices.
     "cpu": dict(lengths=[4096, 16384, 65536], repeats=2, mem_limit_gb=4.0, matmul_n=2048),
@@ -167,7 +168,7 @@ def main() -> None:
             # the cotangent w is an argument, not a closed-over constant (XLA would fold it)
             passes = [("fwd", fwd, (x, dt, A, B, C, D))]
             if not args.no_backward:
-                passes.append(("fwd+bwd", jax.grad(loss, argnums=(0, 1, 2, 3, 4)), (x, dt, A, B, C, D, w)))
+                passes.append(("fwd+bwd", jax.grad(loss, argnums=(0, 1, 2, 3, 4)), (x, dt, A, B, C, D, w)))  # pyright: ignore[reportArgumentType] -- a pass's arguments: any length
             for name, fn, fn_args in passes:
                 row = {"L": L, "method": method, "pass": name, "chunk_size": q}
                 if method == "fused":  # which loop the fused form runs (nn/ssd.py, _FACTOR_SPAN)

@@ -106,13 +106,13 @@ def convert_state_dict(
     if expected is not None:
         want = flatten_dict(dict(expected), sep="/")
         for path in sorted(set(want) - set(flat)):
-            problems.append(f"parameter {path!r} {tuple(want[path].shape)} missing")
+            problems.append(f"parameter {path!r} {tuple(want[path].shape)} missing")  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
         for path in sorted(set(flat) - set(want)):
             problems.append(f"{path!r} given, but the model has no such parameter")
         for path in sorted(set(want) & set(flat)):
-            if tuple(want[path].shape) != flat[path].shape:
+            if tuple(want[path].shape) != flat[path].shape:  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
                 problems.append(
-                    f"parameter {path!r}: the model's shape {tuple(want[path].shape)}, the file's {flat[path].shape}"
+                    f"parameter {path!r}: the model's shape {tuple(want[path].shape)}, the file's {flat[path].shape}"  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
                 )
     if problems:
         shown = "; ".join(problems[:3])

@@ -63,7 +63,7 @@ class SceneSource(Protocol):
 class ProceduralSource:
     """Endless procedural scenes: index i is the scene of seed i."""
 
-    config: ProceduralConfig = field(default_factory=ProceduralConfig)
+    config: ProceduralConfig = field(default_factory=ProceduralConfig)  # pyright: ignore[reportArgumentType, reportCallIssue] -- a frozen dataclass as default_factory: pyright misreads the field overloads
     size: int = 2**31 - 1
 
     def __len__(self) -> int:
@@ -169,7 +169,7 @@ def _init_process(source: SceneSource, cfg: BatchConfig) -> None:
 
 
 def _process_element(seed: int, step: int, b: int) -> tuple[dict[str, np.ndarray], list[str]]:
-    return build_element(*_PROCESS_DATA, seed, step, b)
+    return build_element(*_PROCESS_DATA, seed, step, b)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
 
 
 class BatchIterator:

@@ -42,7 +42,7 @@ def eval_split(
         used = max_frames if first else n
         how = (
             f"targets every {every}th of {'the first' if first else 'all'} {used} frames, "
-            f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}"
+            f"{num_inputs} inputs spread uniformly over the other {used - len(targets)}"  # pyright: ignore[reportOptionalOperand] -- used is max_frames only when it is set
         )
         if max_frames is not None and n < max_frames:
             how = f"only {n} frames, fewer than {max_frames}: {how}"

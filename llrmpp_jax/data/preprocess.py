@@ -62,11 +62,11 @@ def resized_size(hw: tuple[IntLike, IntLike], geom: ViewGeometry) -> tuple[int, 
     if rh is None and rw is None:
         rh, rw = h, w
     elif rw is None:
-        rw = int(rh / h * w)
+        rw = int(rh / h * w)  # pyright: ignore[reportOptionalOperand] -- rh is set in this branch
     elif rh is None:
         rh = int(rw / w * h)
     m = geom.multiple
-    out = (int(round(rh / m)) * m, int(round(rw / m)) * m)
+    out = (int(round(rh / m)) * m, int(round(rw / m)) * m)  # pyright: ignore[reportOptionalOperand] -- both are set by now
     if min(out) <= 0:
         raise UserError(
             f"resized size {out} from {hw} with {geom} is empty; choose a larger resize or smaller multiple"
@@ -86,7 +86,7 @@ def crop_box(hw: tuple[int, int], geom: ViewGeometry) -> tuple[int, int, int, in
 def output_size(hw: tuple[IntLike, IntLike], geom: ViewGeometry) -> tuple[int, int]:
     """Final view size for stored size ``hw`` (after resize and square crop; the zoom keeps it)."""
     rh, rw = resized_size(hw, geom)
-    return (min(rh, rw),) * 2 if geom.square_crop else (rh, rw)
+    return (min(rh, rw),) * 2 if geom.square_crop else (rh, rw)  # pyright: ignore[reportReturnType] -- two ints
 
 
 def draw_zoom(geom: ViewGeometry, rng: np.random.Generator | None) -> float | None:
@@ -101,7 +101,7 @@ def zoom_offset(hw: tuple[int, int], r: float) -> tuple[int, int]:
     """``(top, left)`` of Long-LRM's centre crop in the image upsampled by ``1/r``, whose
     size torch makes ``floor(side * (1/r))``."""
     scale = 1.0 / r
-    return tuple((int(math.floor(float(n) * scale)) - n) // 2 for n in hw)
+    return tuple((int(math.floor(float(n) * scale)) - n) // 2 for n in hw)  # pyright: ignore[reportReturnType] -- two ints, from the two of hw
 
 
 def zoom_intrinsics(
@@ -109,7 +109,7 @@ def zoom_intrinsics(
 ) -> Float[np.ndarray, "... 4"]:
     """Exact intrinsics after step 3: every coordinate scales by ``1/r``, then the crop
     moves the principal point by ``-(left, top)``."""
-    return crop_intrinsics(np.asarray(intrinsics, np.float64) / r, offset[0], offset[1])
+    return crop_intrinsics(np.asarray(intrinsics, np.float64) / r, offset[0], offset[1])  # pyright: ignore[reportReturnType] -- NumPy in, NumPy out
 
 
 def zoom_image(image: Float[np.ndarray, "H W C"], r: float, offset: tuple[int, int]) -> Float[np.ndarray, "H W C"]:
@@ -142,7 +142,7 @@ def load_views(
         img = scene.image(int(i), resized_hw)[top : top + ch, left : left + cw]
         k = crop_intrinsics(resize_intrinsics(scene.intrinsics[i], tuple(scene.hw[i]), resized_hw), top, left)
         if zoom is not None:
-            img, k = zoom_image(img, zoom, offset), zoom_intrinsics(k, zoom, offset)
+            img, k = zoom_image(img, zoom, offset), zoom_intrinsics(k, zoom, offset)  # pyright: ignore[reportArgumentType] -- offset is set whenever zoom is
         images.append(img)
         intr.append(k)
         if with_depth:
@@ -190,6 +190,6 @@ def make_sample(
         "target_intrinsics": tg_k.astype(np.float32),
     }
     if with_depth:
-        sample["target_depth"] = (tg_depth * np.float32(scale)).astype(np.float32)
+        sample["target_depth"] = (tg_depth * np.float32(scale)).astype(np.float32)  # pyright: ignore[reportOptionalOperand] -- with_depth loads the depth
     sample["scene_scale"] = np.float32(scale)
     return sample

@@ -32,7 +32,7 @@ def _box_reduce(x: np.ndarray, factor: int, axis: int) -> np.ndarray:
     pick = [slice(None)] * len(shape)
     total = np.zeros(shape[: axis + 1] + shape[axis + 2 :], dtype=np.float32)
     for j in range(factor):  # strided adds: much faster than mean() over a short middle axis
-        pick[axis + 1] = j
+        pick[axis + 1] = j  # pyright: ignore[reportArgumentType, reportCallIssue] -- a list of slices and ints indexes an array
         total += groups[tuple(pick)]
     return total * np.float32(1.0 / factor)
 

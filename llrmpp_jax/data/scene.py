@@ -122,7 +122,7 @@ class Scene:
         return depth
 
     def _intrinsics_at(self, i: IntLike, hw: tuple[int, int]) -> np.ndarray:
-        return resize_intrinsics(self.intrinsics[i], tuple(self.hw[i]), hw)
+        return resize_intrinsics(self.intrinsics[i], tuple(self.hw[i]), hw)  # pyright: ignore[reportReturnType] -- NumPy in, NumPy out
 
     def subset(self, indices: Sequence[int] | Int[np.ndarray, " views"]) -> Scene:
         """The scene restricted to ``indices`` (in that order); loaders are re-indexed."""

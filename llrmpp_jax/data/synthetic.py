@@ -245,7 +245,7 @@ class ProceduralConfig:
     height: int = 128
     width: int = 128
     num_frames: int = 32
-    path_kinds: tuple[PathKind, ...] = PATH_KINDS
+    path_kinds: tuple[PathKind, ...] = PATH_KINDS  # pyright: ignore[reportAssignmentType] -- PATH_KINDS holds PathKind values
     fov_deg: tuple[float, float] = (50.0, 75.0)
     num_boxes: tuple[int, int] = (2, 6)
     num_spheres: tuple[int, int] = (1, 4)

@@ -97,8 +97,13 @@ def multi_head_attention(
         # (our test configuration) rejects for float64/bfloat16 inputs; that promotion is the
         # intended behaviour, so allow it for this call only.
         with jax.numpy_dtype_promotion("standard"):
-            out = jax.nn.dot_product_attention(
-                q4, k4, v4, bias=bias4, mask=mask4, implementation=implementation
+            out = jax.nn.dot_product_attention(  # pyright: ignore[reportCallIssue] -- q4, k4, v4 are arrays; bias4 and mask4 may be None, which the call takes
+                q4,  # pyright: ignore[reportArgumentType] -- as above
+                k4,  # pyright: ignore[reportArgumentType] -- as above
+                v4,  # pyright: ignore[reportArgumentType] -- as above
+                bias=bias4,
+                mask=mask4,
+                implementation=implementation,
             ).astype(q.dtype)
     return out.reshape(*batch, lq, nh, hd)
 

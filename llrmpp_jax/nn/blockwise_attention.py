@@ -186,7 +186,7 @@ def _backward(q, k, v, bias, mask, o, stats, do, bq, bk, lk):
     )
     dk, dv = _from_blocks(dkb), _from_blocks(dvb)
     if dbias is not None:
-        dbias = dbias.astype(bias.dtype)
+        dbias = dbias.astype(bias.dtype)  # pyright: ignore[reportOptionalMemberAccess] -- dbias exists only with a bias
     return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), dbias
 
 

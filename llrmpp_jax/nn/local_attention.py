@@ -214,7 +214,7 @@ def local_attention(
         raise ValueError(f"local_attention: bias has shape {bias.shape}, expected [L, kn, nh] = {(length, kn, nh)}")
     batch = q.shape[:-3]
     flat = lambda a: a.reshape(-1, length, nh, hd)  # noqa: E731
-    q, k, v, bias = common_variance(flat(q), flat(k), flat(v), bias)
+    q, k, v, bias = common_variance(flat(q), flat(k), flat(v), bias)  # pyright: ignore[reportAssignmentType] -- common_variance keeps None only for None inputs
     out = _knn_attention(q, k, v, index, bias)
     return out.reshape(*batch, length, nh, hd)
 

@@ -162,7 +162,7 @@ def mamba2_scan_direction(proj: InProj, params: dict[str, ArrayLike], cfg: Mamba
         C.reshape(*lead, L, g, n),
         chunk_size=cfg.chunk_size,
         D=params["D"].astype(acc),
-        inter_chunk=cfg.resolved_inter_chunk(),
+        inter_chunk=cfg.resolved_inter_chunk(),  # pyright: ignore[reportArgumentType] -- a str checked against the Literal's values at run time
     )
     return gated_rms_norm(y.reshape(*lead, L, d_inner), proj.z, params["norm_scale"], cfg.norm_eps)
 
@@ -252,7 +252,7 @@ def init_mamba2_params(key: KeyArray, d_model: int, cfg: Mamba2Config) -> Params
     }
     if cfg.bidirectional:
         params["mamba_scans_1"] = init_scan_direction(k1, d_model, cfg)
-    return params
+    return params  # pyright: ignore[reportReturnType] -- Params is a mapping of arrays; dict is invariant
 
 
 class Mamba2Block(nn.Module):
@@ -277,4 +277,4 @@ class Mamba2Block(nn.Module):
         }
         if self.cfg.bidirectional:
             params["mamba_scans_1"] = self.param("mamba_scans_1", init_scan_direction, self.d_model, self.cfg)
-        return mamba2_block(params, x, self.cfg)
+        return mamba2_block(params, x, self.cfg)  # pyright: ignore[reportArgumentType] -- as above

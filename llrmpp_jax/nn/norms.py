@@ -26,7 +26,7 @@ def rms_norm(x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: f
     """``x / sqrt(mean(x**2) + eps) * scale`` over the last axis."""
     xf = x.astype(_compute_dtype(x))
     inv = jax.lax.rsqrt(jnp.mean(jnp.square(xf), axis=-1, keepdims=True) + eps)
-    return (xf * inv * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)
+    return (xf * inv * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)  # pyright: ignore[reportReturnType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
 
 
 def layer_norm(x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps: float = 1e-5) -> Float[Array, "... C"]:
@@ -34,7 +34,7 @@ def layer_norm(x: Float[ArrayLike, "... C"], scale: Float[ArrayLike, " C"], eps:
     xf = x.astype(_compute_dtype(x))
     mean = jnp.mean(xf, axis=-1, keepdims=True)
     var = jnp.mean(jnp.square(xf - mean), axis=-1, keepdims=True)
-    return ((xf - mean) * jax.lax.rsqrt(var + eps) * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)
+    return ((xf - mean) * jax.lax.rsqrt(var + eps) * _lead(scale.astype(xf.dtype), xf)).astype(x.dtype)  # pyright: ignore[reportReturnType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
 
 
 class LayerNorm(nn.Module):

@@ -87,7 +87,7 @@ def remat_blocks(
     n, period = len(kinds), layout_period(kinds)
     if n == 1:
         block = make(kinds)
-        return remat_after_cotangent(lambda h, w: block.apply({"params": w}, h))(x, params[0])
+        return remat_after_cotangent(lambda h, w: block.apply({"params": w}, h))(x, params[0])  # pyright: ignore[reportArgumentType] -- apply without mutable= returns the output alone
     if period < n:
         stacked = [jax.tree.map(lambda *a: jnp.stack(a), *params[j::period]) for j in range(period)]
 

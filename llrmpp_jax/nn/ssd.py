@@ -234,13 +234,13 @@ def _state_write(B: Float[Array, "b Q g n"], E: Float[Array, "b Q g hgP"], acc) 
 def _read_bwd(acc, res, dR):
     C, S = res
     dR = dR.astype(C.dtype)
-    return _state_dot_nt(S, dR, acc).astype(C.dtype), _state_write(C, dR, acc).astype(S.dtype)
+    return _state_dot_nt(S, dR, acc).astype(C.dtype), _state_write(C, dR, acc).astype(S.dtype)  # pyright: ignore[reportAttributeAccessIssue] -- custom_vjp results are arrays
 
 
 def _write_bwd(acc, res, G):
     B, E = res
     G = G.astype(B.dtype)
-    return _state_dot_nt(G, E, acc).astype(B.dtype), _state_read(B, G, acc).astype(E.dtype)
+    return _state_dot_nt(G, E, acc).astype(B.dtype), _state_read(B, G, acc).astype(E.dtype)  # pyright: ignore[reportAttributeAccessIssue] -- custom_vjp results are arrays
 
 
 _state_read.defvjp(lambda C, S, acc: (_state_read(C, S, acc), (C, S)), _read_bwd)
@@ -291,7 +291,7 @@ def _fused_step(
     causal = jnp.tril(jnp.ones((Q, Q), dtype=bool)).reshape(1, 1, Q, Q)  # [b, g, l, s]: s <= l
     xa = xq.astype(acc)
     CB = jnp.where(causal, jnp.einsum("blgn,bsgn->bgls", Cq, Bq, preferred_element_type=acc), 0.0)
-    read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc).reshape(b, Q, g, hg, P)
+    read = _state_read(Cq, state.reshape(b, g, n, hg * P).astype(cd), acc).reshape(b, Q, g, hg, P)  # pyright: ignore[reportAttributeAccessIssue] -- the scan carry is an array
 
     def shared(_):  # the diagonal block before its l-side factor exp(d_l)
         xs = (xa * s_in[..., None]).astype(cd)
@@ -315,7 +315,7 @@ def _fused_step(
     if skip is not None:
         y = y + skip * xa
     xe = (xa * s_end[..., None]).astype(cd).reshape(b, Q, g, hg * P)
-    state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)
+    state = decay[:, :, None, :, None] * state + _state_write(Bq, xe, acc).reshape(b, g, n, hg, P)  # pyright: ignore[reportAttributeAccessIssue] -- the scan carry is an array
     return state, y.astype(meta.out)
 
 
@@ -436,7 +436,7 @@ def _ssd_fused(x, dt, A, B, C, chunk_size: int, D):
     xs = (xc, Bc, Cc, dtc, hi, lo, scales, chunk_decay, jnp.exp(mid[:, :, 0]))
     skip = None if D is None else common_variance(xc, D.reshape(1, 1, g, hg, 1).astype(acc))[1]
     y = _chunk_loop(meta, factor, xs, skip)
-    y = jnp.moveaxis(y, 0, 1).reshape(b, nc * Q, nh, P)[:, :L]
+    y = jnp.moveaxis(y, 0, 1).reshape(b, nc * Q, nh, P)[:, :L]  # pyright: ignore[reportArgumentType] -- custom_vjp results are arrays
     return y.reshape(*batch, L, nh, P)
 
 

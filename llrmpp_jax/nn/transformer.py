@@ -77,7 +77,7 @@ class TransformerBlock(nn.Module):
                 self.dim,
                 cfg.head_dim,
                 cfg.qk_norm,
-                tuple(self.grid),
+                tuple(self.grid),  # pyright: ignore[reportArgumentType] -- the grid is two ints
                 self.num_neighbours,
                 norm_eps=cfg.norm_eps,
                 dtype=self.dtype,
@@ -87,4 +87,4 @@ class TransformerBlock(nn.Module):
             raise ValueError(f"TransformerBlock: attention must be 'global' or 'local', got {self.attention!r}")
         x = x + attn(LayerNorm(cfg.norm_eps, name="norm1")(x)).astype(x.dtype)
         mlp = Mlp(self.dim, cfg.mlp_ratio * self.dim, self.dtype, name="mlp")
-        return x + mlp(LayerNorm(cfg.norm_eps, name="norm2")(x)).astype(x.dtype)
+        return x + mlp(LayerNorm(cfg.norm_eps, name="norm2")(x)).astype(x.dtype)  # pyright: ignore[reportReturnType] -- jnp operations give a jax.Array; the ArrayLike input type carries through

@@ -28,4 +28,4 @@ def common_variance(*xs: ArrayLike | None) -> list[Array | None]:
     q must enter with q's variance, so that autodiff (the transpose of the implicit cast)
     sums its cotangent over devices instead of the rule returning a mistyped one."""
     zero = sum(lax.full_like(x, 0, jnp.float32, ()) for x in xs if x is not None)
-    return [None if x is None else x + zero.astype(x.dtype) for x in xs]
+    return [None if x is None else x + zero.astype(x.dtype) for x in xs]  # pyright: ignore[reportAttributeAccessIssue, reportReturnType] -- only arrays get here (None is kept)

@@ -37,6 +37,8 @@ notes a global batch of 256): these are Long-LRM++'s DL3DV ones (paper Table 8),
 final steps agree with the released ``checkpoint_000010000.pt``.
 """
 
+from typing import Any
+
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
@@ -48,7 +50,7 @@ KMEANS_INDEX = "data/dl3dv/dl3dv_fold_8_kmeans_input_idx.json"
 
 
 def get_config() -> ExperimentConfig:
-    shared = dict(lr_schedule="long_lrm", input_weight=1.0, reverse_prob=0.5, shuffle_prob=0.5)
+    shared: dict[str, Any] = dict(lr_schedule="long_lrm", input_weight=1.0, reverse_prob=0.5, shuffle_prob=0.5)
     stages = (
         StageConfig(
             "stage1_256",

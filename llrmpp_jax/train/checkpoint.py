@@ -140,7 +140,7 @@ def verify_checkpoint(directory: str | os.PathLike, step: int) -> None:
 
 def _config_json(config: Any) -> Any:
     """``config`` as JSON data (dataclasses via ``asdict``); raise if not serialisable."""
-    data = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else config
+    data = dataclasses.asdict(config) if dataclasses.is_dataclass(config) else config  # pyright: ignore[reportArgumentType] -- an instance here, not a class
     try:
         return json.loads(json.dumps(data))
     except TypeError as err:
@@ -328,13 +328,13 @@ def _check_compatible(step_dir: Path, saved: list, paths: list[str], leaves: lis
 
 def _restore_step(mngr: ocp.CheckpointManager, directory: Path, step: int, template) -> Restored:
     paths, leaves, treedef = _flatten(template)
-    meta = mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta
+    meta = mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta  # pyright: ignore[reportAttributeAccessIssue] -- orbax's Composite result is typed as a Mapping; it has the items as attributes
     _check_compatible(directory / str(step), meta["leaves"], paths, leaves)
     abstract = {
         _leaf_name(i): jax.ShapeDtypeStruct(np.shape(x), x.dtype, sharding=getattr(x, "sharding", None))
         for i, x in enumerate(leaves)
     }
-    items = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state
+    items = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract))).state  # pyright: ignore[reportAttributeAccessIssue] -- orbax's Composite result is typed as a Mapping; it has the items as attributes
     restored = [items[_leaf_name(i)] for i in range(len(leaves))]
     return Restored(
         state=jax.tree_util.tree_unflatten(treedef, restored),
@@ -390,4 +390,4 @@ def recorded_config(directory: str | os.PathLike) -> Any:
         steps = mngr.all_steps()
         if not steps:
             return None
-        return mngr.restore(max(steps), args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta["config"]
+        return mngr.restore(max(steps), args=ocp.args.Composite(meta=ocp.args.JsonRestore())).meta["config"]  # pyright: ignore[reportAttributeAccessIssue] -- orbax's Composite result is typed as a Mapping; it has the items as attributes

@@ -88,7 +88,7 @@ def warmup_cosine_schedule(lr: float, warmup_steps: int, total_steps: int) -> op
         cosine = jnp.square(jnp.sin(np.float32(np.pi / 2) * remaining))
         return (lr * jnp.where(step < float(warmup_steps), ramp, cosine)).astype(jnp.float32)
 
-    return schedule
+    return schedule  # pyright: ignore[reportReturnType] -- a function of the step count is an optax schedule
 
 
 def _path_names(path: tuple) -> tuple[str, ...]:

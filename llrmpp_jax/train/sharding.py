@@ -29,14 +29,14 @@ def _batch_rows(batch: Any, n_shards: int, caller: str) -> int:
     if len(set(sizes.values())) != 1 or None in sizes.values():
         raise ValueError(f"{caller}: batch leaves must share a leading batch axis, got leading sizes {sizes}")
     rows = next(iter(sizes.values()))
-    if rows % n_shards:
+    if rows % n_shards:  # pyright: ignore[reportOptionalOperand] -- None is rejected just above
         raise ValueError(
             f"{caller}: batch size {rows} does not divide over {n_shards} devices; expected a multiple of {n_shards}"
         )
-    return rows
+    return rows  # pyright: ignore[reportReturnType] -- None is rejected above
 
 
-def make_data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+def make_data_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:  # pyright: ignore[reportInvalidTypeForm] -- jax.Device is the device class
     """1-D mesh with axis ``"batch"`` over ``devices`` (default: all global devices)."""
     devs = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devs), (AXIS,))

@@ -64,11 +64,11 @@ def init_train_state(params: Any, optimizer: optax.GradientTransformation, key: 
     if key.shape != ():
         raise ValueError(f"init_train_state: key has shape {key.shape}, expected ()")
     impl = str(jax.random.key_impl(key))
-    if impl != jax.config.jax_default_prng_impl:
+    if impl != jax.config.jax_default_prng_impl:  # pyright: ignore[reportAttributeAccessIssue] -- jax.config's options are made at run time; its stub lists none
         # step_key re-wraps the stored key data with the default implementation.
         raise ValueError(
             f"init_train_state: key uses the PRNG implementation {impl!r}, expected the "
-            f"default {jax.config.jax_default_prng_impl!r}"
+            f"default {jax.config.jax_default_prng_impl!r}"  # pyright: ignore[reportAttributeAccessIssue] -- jax.config's options are made at run time; its stub lists none
         )
     _check_float32(params)
     return TrainState(

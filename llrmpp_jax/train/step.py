@@ -128,7 +128,7 @@ def make_train_step(
             skipped=skipped_now.astype(jnp.float32),
             skipped_total=new_state.skipped.astype(jnp.float32),
             skipped_grad_norm=too_large.astype(jnp.float32),
-            skipped_grad_norm_total=(new_count - applied).astype(jnp.float32),
+            skipped_grad_norm_total=(new_count - applied).astype(jnp.float32),  # pyright: ignore[reportOptionalOperand] -- the optimizer state has a schedule count
         )
         return new_state, metrics
 

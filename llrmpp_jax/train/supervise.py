@@ -91,7 +91,7 @@ def run_supervised(command: list[str], resume_hint: str, log_path: str) -> int:
         sig: signal.signal(sig, lambda s, _frame: child.send_signal(s)) for sig in (signal.SIGINT, signal.SIGTERM)
     }
     try:
-        held = _relay(child.stderr, sys.stderr.buffer)
+        held = _relay(child.stderr, sys.stderr.buffer)  # pyright: ignore[reportArgumentType] -- Popen(..., stderr=PIPE): the stream is set
         status = child.wait()
     finally:
         for sig, handler in forward.items():

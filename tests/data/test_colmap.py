@@ -49,7 +49,7 @@ def model(rng):
         cams[cid] = dict(model=name, wh=(w, h), params=np.array(params), k=np.array(k), dist=np.array(dist))
     images = {}
     for iid, stem in zip(range(1, 8), rng.permutation(7)):
-        rot, t = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        rot, t = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
         xys = rng.uniform(0.0, 60.0, (6, 2))
         cid = 1 + (iid % len(MODELS))
         name = f"views/{stem:03d}.png"
@@ -128,7 +128,7 @@ def test_scene_orders_by_name_with_each_images_camera(tmp_path, model, binary):
     assert [os.path.relpath(f, tmp_path / "images") for f in scene.frame_names] == [im["name"] for im in order]
     np.testing.assert_allclose(scene.c2w, np.stack([im["c2w"] for im in order]), atol=TOL)
     np.testing.assert_allclose(scene.intrinsics, np.stack([cams[im["camera_id"]]["k"] for im in order]), rtol=TOL)
-    np.testing.assert_allclose(scene.distortion, np.stack([cams[im["camera_id"]]["dist"] for im in order]), rtol=TOL)
+    np.testing.assert_allclose(scene.distortion, np.stack([cams[im["camera_id"]]["dist"] for im in order]), rtol=TOL)  # pyright: ignore[reportArgumentType, reportCallIssue] -- the written cameras have distortion
     np.testing.assert_array_equal(scene.hw, [cams[im["camera_id"]]["wh"][::-1] for im in order])
     with pytest.raises(MissingInputError, match="points3D"):
         read_colmap_model(sparse)

@@ -34,9 +34,9 @@ def test_grey_image_becomes_rgb(tmp_path, rng):
 
     grey = (rng.random((5, 6)) * 255).astype(np.uint8)
     out = oiio.ImageOutput.create(str(tmp_path / "g.png"))
-    out.open(str(tmp_path / "g.png"), oiio.ImageSpec(6, 5, 1, oiio.UINT8))
-    out.write_image(grey[:, :, None])
-    out.close()
+    out.open(str(tmp_path / "g.png"), oiio.ImageSpec(6, 5, 1, oiio.UINT8))  # pyright: ignore[reportOptionalMemberAccess] -- create() is None only for an unknown format; PNG is known
+    out.write_image(grey[:, :, None])  # pyright: ignore[reportOptionalMemberAccess] -- as above
+    out.close()  # pyright: ignore[reportOptionalMemberAccess] -- as above
     img = read_image(str(tmp_path / "g.png"))
     assert img.shape == (5, 6, 3)
     for c in range(3):

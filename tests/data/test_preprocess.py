@@ -42,7 +42,7 @@ def long_lrm_size(h, w, resize_h, resize_w, patch):
 )
 def test_resized_size_matches_long_lrm(hw, rh, rw, m):
     got = resized_size(hw, ViewGeometry(resize_h=rh, resize_w=rw, multiple=m))
-    assert got == long_lrm_size(*hw, -1 if rh is None else rh, -1 if rw is None else rw, m)
+    assert got == long_lrm_size(*hw, -1 if rh is None else rh, -1 if rw is None else rw, m)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     assert resized_size((540, 960), ViewGeometry(resize_h=540, multiple=16)) == (544, 960)
 
 

@@ -33,7 +33,7 @@ def test_fox_loads_skipping_the_missing_images():
     assert len(s) == 50
     np.testing.assert_allclose(s.intrinsics[0], [1375.52, 1374.49, 554.558, 965.268])
     np.testing.assert_array_equal(s.hw[0], [1920, 1080])
-    np.testing.assert_allclose(s.distortion[0], [0.0578421, -0.0805099, -0.000980296, 0.00015575, 0.0])
+    np.testing.assert_allclose(s.distortion[0], [0.0578421, -0.0805099, -0.000980296, 0.00015575, 0.0])  # pyright: ignore[reportOptionalSubscript] -- this capture has distortion
     meta = json.load(open(f"{root}/transforms.json"))
     first = np.array(meta["frames"][0]["transform_matrix"])
     assert meta["frames"][0]["file_path"].endswith("0001.jpg") and s.frame_names[0].endswith("0001.jpg")
@@ -90,7 +90,7 @@ def test_beer_colmap_reprojection(beer):
         assert (z > 0).all()
         k, dist = scene.intrinsics[f], scene.distortion[f]
         errors[sel] = np.linalg.norm(px - undistort_pixels(obs[sel], k, dist), axis=1)
-        distorted_err[sel] = np.linalg.norm(distort_pixels(px, k, dist) - obs[sel], axis=1)
+        distorted_err[sel] = np.linalg.norm(distort_pixels(px, k, dist) - obs[sel], axis=1)  # pyright: ignore[reportArgumentType] -- NumPy arrays
     mine = np.bincount(point_of, distorted_err) / np.bincount(point_of)
     np.testing.assert_allclose(mine, [p.error for p in pts.values()], atol=1e-6)
     assert np.median(errors) < 1.0 and (errors < 2.0).mean() > 0.9, (np.median(errors), (errors < 2).mean())
@@ -111,8 +111,8 @@ def test_beer_point_colours_match_the_undistorted_images(beer):
         xyz = np.stack([pts[i].xyz for i in ids])
         rgb = np.stack([pts[i].rgb for i in ids]) / 255.0
         px, _ = project_points(xyz, scene.c2w[f], k)
-        right.append(np.abs(remap(img, px[None].astype(np.float32))[0] - rgb).mean(axis=1))
+        right.append(np.abs(remap(img, px[None].astype(np.float32))[0] - rgb).mean(axis=1))  # pyright: ignore[reportArgumentType] -- a jax.Array where a NumPy array is annotated: both work
         px, _ = project_points(xyz, scene.c2w[f + 3], k)
-        wrong.append(np.abs(remap(img, px[None].astype(np.float32))[0] - rgb).mean(axis=1))
+        wrong.append(np.abs(remap(img, px[None].astype(np.float32))[0] - rgb).mean(axis=1))  # pyright: ignore[reportArgumentType] -- a jax.Array where a NumPy array is annotated: both work
     right, wrong = np.median(np.concatenate(right)), np.median(np.concatenate(wrong))
     assert right < 0.06 and right < 0.6 * wrong, (right, wrong)

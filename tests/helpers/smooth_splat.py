@@ -25,7 +25,7 @@ def smooth_scene(rng):
         u, v = rng.uniform(0.15 * W, 0.85 * W, N), rng.uniform(0.15 * H, 0.85 * H, N)
         means_c = np.stack([(u - intr[2]) / fx * z, (v - intr[3]) / fy * z, z], -1)
         c2w = np.eye(4)
-        c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
         means = means_c @ c2w[:3, :3].T + c2w[:3, 3]
         quats = rng.normal(size=(N, 4))
         scales = np.exp(rng.uniform(-3.0, -1.5, (N, 3)))

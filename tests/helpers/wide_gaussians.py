@@ -21,11 +21,11 @@ def wide_colour_scene(rng: np.random.Generator, n: int = 300) -> tuple[Gaussians
     z = rng.uniform(1.5, 4.0, n)
     means = np.stack([rng.uniform(-0.6, 0.6, n) * z, rng.uniform(-0.6, 0.6, n) * z, z], -1)
     g = Gaussians(
-        means.astype(np.float32),
-        rng.normal(size=(n, 4)).astype(np.float32),
-        rng.uniform(0.1, 0.3, (n, 3)).astype(np.float32),
-        rng.uniform(0.05, 0.6, n).astype(np.float32),
-        rng.normal(0.0, 0.5, (n, 3)).astype(np.float32),
+        means.astype(np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        rng.normal(size=(n, 4)).astype(np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        rng.uniform(0.1, 0.3, (n, 3)).astype(np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        rng.uniform(0.05, 0.6, n).astype(np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        rng.normal(0.0, 0.5, (n, 3)).astype(np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     )
     c2w = np.tile(np.eye(4), (2, 1, 1))
     c2w[1, :3, 3] = [0.2, -0.1, 0.1]

@@ -58,7 +58,7 @@ def test_cudnn_gets_bfloat16_from_float32_inputs(rng, monkeypatch):
     library = jax.nn.dot_product_attention
 
     def fake_cudnn(q, k, v, bias=None, mask=None, implementation=None):
-        seen.update(q=q.dtype, k=k.dtype, v=v.dtype, bias=bias.dtype, implementation=implementation)
+        seen.update(q=q.dtype, k=k.dtype, v=v.dtype, bias=bias.dtype, implementation=implementation)  # pyright: ignore[reportOptionalMemberAccess] -- the test passes a bias
         return library(q, k, v, bias=bias, mask=mask, implementation="xla")
 
     monkeypatch.setattr(jax.nn, "dot_product_attention", fake_cudnn)
@@ -93,7 +93,7 @@ def test_attention_module_matches_oracle(key, rng, qk_norm):
     params = m.init(key, x)["params"]
     names = {"qkv", "proj"} | ({"q_norm", "k_norm"} if qk_norm else set())
     assert set(params) == names
-    assert params["qkv"]["kernel"].shape == (24, 72) and params["proj"]["kernel"].shape == (24, 24)
+    assert params["qkv"]["kernel"].shape == (24, 72) and params["proj"]["kernel"].shape == (24, 24)  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
     params = randomize(params, rng)
     got = m.apply({"params": params}, x)
     assert rel_err(got, attention_module_oracle(params, x, 8, qk_norm)) < 1e-5

@@ -84,14 +84,14 @@ def test_golden_long_lrm_backbone(dtype, tol):
     cfg = golden_backbone_config()
     model = Backbone(cfg, patch_size=8)
     pixels = jnp.asarray(out["pixel_features"], dtype)
-    params = convert_backbone(sd, cfg, dtype=np.dtype(dtype))
+    params = convert_backbone(sd, cfg, dtype=np.dtype(dtype))  # pyright: ignore[reportArgumentType] -- any float dtype is taken; the annotation comes from the default
     res, inter = model.apply({"params": params}, pixels, capture_intermediates=True)
     inter = inter["intermediates"]
     assert _rel_err(inter["tokenizer"]["__call__"][0], out["tokenizer_output"]) < tol
     for i in range(6):
         got = inter[f"blocks_{i}"]["__call__"][0]
         assert _rel_err(got, out[f"block{i}_out"]) < tol, i
-    merged = jnp.concatenate(inter["merge_0"]["__call__"][0][:2], axis=1)
+    merged = jnp.concatenate(inter["merge_0"]["__call__"][0][:2], axis=1)  # pyright: ignore[reportArgumentType] -- sown intermediates: a tuple of arrays per call
     assert _rel_err(merged, out["merge_out"]) < tol
     final = jnp.concatenate([res.global_tokens, res.tokens], axis=1)
     assert _rel_err(final, out["block5_out"]) < tol

@@ -126,7 +126,7 @@ def test_blockwise_bfloat16_within_plain_bfloat16_error(rng):
     0.6-1.5 for the QK-norm scale gradients (sums over all tokens, rounded once)."""
     args, _ = random_inputs(rng, 1, 1000, 1000, with_bias=False)
     args16 = [jnp.asarray(a, jnp.bfloat16) for a in args[:5]] + [None]
-    args32 = [a.astype(jnp.float32) for a in args16[:5]] + [None]
+    args32 = [a.astype(jnp.float32) for a in args16[:5]] + [None]  # pyright: ignore[reportOptionalMemberAccess] -- the first five are arrays
     cot16 = jnp.asarray(rng.normal(size=(1, 1000, NH, HD)), jnp.bfloat16)
 
     def plain(q, k, v, bias):
@@ -190,10 +190,10 @@ def test_bad_input_one_line():
         ),
         (lambda: multi_head_attention(q, q, q, mask=jnp.ones((NH, 5, 6), bool)), r"mask has shape \(2, 5, 6\)"),
         (
-            lambda: multi_head_attention(q, q, q, implementation="flash"),
+            lambda: multi_head_attention(q, q, q, implementation="flash"),  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
             r"implementation must be one of \('xla', 'cudnn', 'blockwise'\), got 'flash'",
         ),
-        (lambda: TransformerConfig(attention_impl="pallas"), r"attention_impl must be .* got 'pallas'"),
+        (lambda: TransformerConfig(attention_impl="pallas"), r"attention_impl must be .* got 'pallas'"),  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
         (lambda: TransformerConfig(attention_block_q=0), r"attention block sizes must be >= 1"),
     ]
     for call, message in cases:

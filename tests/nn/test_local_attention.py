@@ -145,12 +145,13 @@ def test_local_attention_has_no_full_neighbour_gather():
 
     def step(q, kk, v, b):
         return jax.grad(
-            lambda *a: jnp.sum(local_attention(*a[:3], jnp.asarray(index), a[3]) ** 2), argnums=(0, 1, 2, 3)
+            lambda *a: jnp.sum(local_attention(*a[:3], jnp.asarray(index), a[3]) ** 2),  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
+            argnums=(0, 1, 2, 3),
         )(q, kk, v, b)
 
     mem = jax.jit(step).lower(shape, shape, shape, bias).compile().memory_analysis()
     one_gather = h * w * k * nh * hd * 4  # 16.8 MB
-    assert mem.temp_size_in_bytes < one_gather / 4, mem.temp_size_in_bytes
+    assert mem.temp_size_in_bytes < one_gather / 4, mem.temp_size_in_bytes  # pyright: ignore[reportOptionalMemberAccess] -- memory_analysis() is None only on a backend without it; CPU, GPU and TPU have it
 
 
 def test_local_attention_errors():
@@ -177,9 +178,9 @@ def test_local_attention_module_matches_oracle(key, rng, qk_norm):
     x = rng.normal(size=(2, h * w, 16)).astype(np.float32)
     m = LocalAttention(dim=16, head_dim=8, qk_norm=qk_norm, grid=(h, w), num_neighbours=k)
     params = m.init(key, x)["params"]
-    assert params["rel_bias"]["fc1"]["kernel"].shape == (5, 32)
-    assert params["rel_bias"]["fc1"]["bias"].shape == (32,)
-    assert set(params["rel_bias"]["fc2"]) == {"kernel"} and params["rel_bias"]["fc2"]["kernel"].shape == (32, 2)
+    assert params["rel_bias"]["fc1"]["kernel"].shape == (5, 32)  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
+    assert params["rel_bias"]["fc1"]["bias"].shape == (32,)  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
+    assert set(params["rel_bias"]["fc2"]) == {"kernel"} and params["rel_bias"]["fc2"]["kernel"].shape == (32, 2)  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
     params = randomize(params, rng)
     got = m.apply({"params": params}, x)
     want = attention_module_oracle(params, x, 8, qk_norm, module_mask_bias((h, w), k))

@@ -119,9 +119,9 @@ def test_causal_conv_gradients_match_torch(rng):
     (yt[..., :9].transpose(1, 2).reshape(2, 3, 9, 5) * torch.from_numpy(ct)).sum().backward()
     _, vjp = jax.vjp(causal_depthwise_conv1d, jnp.asarray(x), jnp.asarray(conv1d_depthwise(w)), jnp.asarray(b))
     gx, gk, gb = vjp(jnp.asarray(ct))
-    np.testing.assert_allclose(np.asarray(gx), xt.grad.numpy(), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(gk), conv1d_depthwise(wt.grad.numpy()), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(gb), bt.grad.numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(gx), xt.grad.numpy(), rtol=1e-12, atol=1e-12)  # pyright: ignore[reportOptionalMemberAccess] -- torch fills .grad in the backward() above
+    np.testing.assert_allclose(np.asarray(gk), conv1d_depthwise(wt.grad.numpy()), rtol=1e-12, atol=1e-12)  # pyright: ignore[reportOptionalMemberAccess] -- torch fills .grad in the backward() above
+    np.testing.assert_allclose(np.asarray(gb), bt.grad.numpy(), rtol=1e-12, atol=1e-12)  # pyright: ignore[reportOptionalMemberAccess] -- torch fills .grad in the backward() above
 
 
 def test_gated_rms_norm_matches_formula(rng):
@@ -296,6 +296,6 @@ def test_bad_inputs_raise(key):
 
 def test_bad_scan_settings_raise_one_line():
     with pytest.raises(ValueError, match=r"^Mamba2Config.inter_chunk must be .* got 'dense'$"), unchecked():
-        Mamba2Config(inter_chunk="dense")
+        Mamba2Config(inter_chunk="dense")  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
     with pytest.raises(ValueError, match=r"^Mamba2Config.chunk_size must be >= 1, got 0$"):
         Mamba2Config(chunk_size=0)

@@ -65,7 +65,7 @@ def test_segment_sum_matches_loop(rng):
 
 
 def test_sequential_reference_matches_numpy_loop(rng):
-    args = _inputs(rng, (2,), 13, 4, 3, 2, 5, dtype=np.float64)
+    args = _inputs(rng, (2,), 13, 4, 3, 2, 5, dtype=np.float64)  # pyright: ignore[reportArgumentType] -- any float dtype is taken; the annotation comes from the default
     x, dt, A, B, C, D = args
     got = ssd_sequential(*_f64(x, dt, A, B, C), D=jnp.asarray(D))
     assert _rel(got, _numpy_recurrence(*args)) <= 1e-12
@@ -219,10 +219,10 @@ def test_ssd_bad_inputs_raise(rng):
     with pytest.raises(ValueError, match="A has shape"), unchecked():
         ssd_scan(x, dt, A[:3], B, C, chunk_size=4)
     with pytest.raises(ValueError, match="not a multiple of ngroups"), unchecked():
-        ssd_sequential(x, dt, A, np.concatenate([B] * 3, -2), np.concatenate([C] * 3, -2))
+        ssd_sequential(x, dt, A, np.concatenate([B] * 3, -2), np.concatenate([C] * 3, -2))  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     with pytest.raises(ValueError, match="C has shape"), unchecked():
         ssd_dense(x, dt, A, B, C[..., :4], chunk_size=4)
     with pytest.raises(ValueError, match="chunk_size"), unchecked():
         ssd_scan(x, dt, A, B, C, chunk_size=0)
     with pytest.raises(ValueError, match="inter_chunk"), unchecked():
-        ssd_scan(x, dt, A, B, C, chunk_size=4, inter_chunk="dense")
+        ssd_scan(x, dt, A, B, C, chunk_size=4, inter_chunk="dense")  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error

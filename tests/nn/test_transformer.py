@@ -43,7 +43,7 @@ def test_global_block_matches_oracle(key, rng, qk_norm):
     x = rng.normal(size=(2, 7, 16)).astype(np.float32)
     block = TransformerBlock(dim=16, cfg=cfg)
     params = block.init(key, x)["params"]
-    assert params["mlp"]["fc1"]["kernel"].shape == (16, 64) and params["mlp"]["fc2"]["kernel"].shape == (64, 16)
+    assert params["mlp"]["fc1"]["kernel"].shape == (16, 64) and params["mlp"]["fc2"]["kernel"].shape == (64, 16)  # pyright: ignore[reportAttributeAccessIssue] -- a leaf of the params tree is an array
     assert set(params) == {"norm1", "attn", "norm2", "mlp"}
     params = randomize(params, rng)
     got = jax.jit(block.apply)({"params": params}, x)
@@ -69,7 +69,7 @@ def test_block_bfloat16_compute(key, rng):
     params = randomize(TransformerBlock(16, cfg).init(key, x)["params"], rng, std=0.2)
     want = block_oracle(params, x, cfg)
     for attention, grid in (("global", None), ("local", (3, 4))):
-        block = TransformerBlock(16, cfg, attention, grid, num_neighbours=64, dtype=jnp.bfloat16)
+        block = TransformerBlock(16, cfg, attention, grid, num_neighbours=64, dtype=jnp.bfloat16)  # pyright: ignore[reportArgumentType] -- a str checked against the Literal's values at run time
         if attention == "local":
             p = randomize(block.init(key, x)["params"], rng, std=0.2)
             want = block_oracle(p, x, cfg, grid=grid, num_neighbours=64)
@@ -84,7 +84,7 @@ def test_block_errors(key):
     x = jnp.zeros((1, 6, 16), jnp.float32)
     cfg = TransformerConfig(head_dim=8)
     with pytest.raises(ValueError, match=r"attention must be 'global' or 'local', got 'sparse'"):
-        TransformerBlock(16, cfg, attention="sparse").init(key, x)
+        TransformerBlock(16, cfg, attention="sparse").init(key, x)  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
     with pytest.raises(ValueError, match=r"attention='local' needs grid"):
         TransformerBlock(16, cfg, attention="local").init(key, x)
     with pytest.raises(ValueError, match=r"dim=16 is not a multiple of head_dim=6"):

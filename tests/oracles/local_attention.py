@@ -48,9 +48,9 @@ def module_mask_bias(grid, k):
 
     def fn(p):
         rb = p["rel_bias"]
-        offs = brute_neighbours(*grid, k)
+        offs = brute_neighbours(*grid, k)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
         feats = np.stack([oracle_features(o) for o in offs])  # [L, kn, 5]
         pair = gelu(feats @ rb["fc1"]["kernel"] + rb["fc1"]["bias"]) @ rb["fc2"]["kernel"]
-        return dense_mask_bias(*grid, k, pair)
+        return dense_mask_bias(*grid, k, pair)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
 
     return fn

@@ -230,6 +230,6 @@ def random_scene(rng: np.random.Generator, n: int, f: int, height: int, width: i
     feats = rng.normal(size=(n, f))
     c2w = np.eye(4)
     if not conditioned:  # express the Gaussians in the world frame of a random rigid camera
-        c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
     means = means_c @ c2w[:3, :3].T + c2w[:3, 3]
     return means, quats, scales, opac, feats, c2w, intr

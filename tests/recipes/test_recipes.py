@@ -29,12 +29,12 @@ def test_the_recipes_commands_and_docs_name_are_shipped():
 def test_each_recipe_loads_by_name_and_stands_alone(name):
     exp = load_experiment(name)
     assert isinstance(exp, ExperimentConfig) and exp.stages
-    assert load_experiment(recipe_path(name)) == exp  # by path, the same
-    tree = ast.parse(open(recipe_path(name)).read())
+    assert load_experiment(recipe_path(name)) == exp  # by path, the same  # pyright: ignore[reportArgumentType] -- every listed recipe has a path
+    tree = ast.parse(open(recipe_path(name)).read())  # pyright: ignore[reportArgumentType] -- as above
     imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names} | {
         n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)
     }
-    assert not any(m.startswith("llrmpp_jax.recipes") for m in imported), imported
+    assert not any(m.startswith("llrmpp_jax.recipes") for m in imported), imported  # pyright: ignore[reportOptionalMemberAccess] -- recipes use absolute imports only
     calls = [n.func for n in ast.walk(tree) if isinstance(n, ast.Call)]
     assert not any(isinstance(f, ast.Name) and f.id == "load_experiment" for f in calls), "a recipe loads another"
 
@@ -52,13 +52,13 @@ def test_the_paper_recipes_take_long_lrm_s_learning_rate_schedule():
         for stage in load_experiment(name).stages:
             cfg = optimizer_config(stage)
             assert stage.lr_schedule == "long_lrm" and cfg.total_steps == 1_000_000, (name, stage.name)
-            assert 0.99 * stage.lr <= float(make_schedule(cfg)(stage.steps)) <= stage.lr, (name, stage.name)
+            assert 0.99 * stage.lr <= float(make_schedule(cfg)(stage.steps)) <= stage.lr, (name, stage.name)  # pyright: ignore[reportArgumentType] -- float()/int() of a scalar array
     own = StageConfig(
         "s", steps=100, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, warmup_steps=10, lr_schedule="stage"
     )
-    assert optimizer_config(own).total_steps == 100 and float(make_schedule(optimizer_config(own))(100)) == 0.0
+    assert optimizer_config(own).total_steps == 100 and float(make_schedule(optimizer_config(own))(100)) == 0.0  # pyright: ignore[reportArgumentType] -- float()/int() of a scalar array
     with pytest.raises(UserError, match="lr_schedule must be 'long_lrm' or 'stage', got 'constant'"), unchecked():
-        StageConfig("s", steps=1, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, lr_schedule="constant")
+        StageConfig("s", steps=1, global_batch=1, num_inputs=1, num_targets=1, resize_h=None, lr_schedule="constant")  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
 
 
 def test_the_long_lrm_recipe_is_long_lrm_s_training_recipe():

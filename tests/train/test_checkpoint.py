@@ -91,9 +91,9 @@ def test_resume_equals_uninterrupted(tmp_path):
 
     template = replicate_on_mesh(fresh_state(seed=99), mesh)
     restored = restore_checkpoint(tmp_path, template)
-    assert restored.step == k and restored.data_state == {"position": k}
-    assert restored.config == json.loads(json.dumps(dataclasses.asdict(CFG)))
-    resumed = run(restored.state, restored.data_state["position"], 2 * k)
+    assert restored.step == k and restored.data_state == {"position": k}  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    assert restored.config == json.loads(json.dumps(dataclasses.asdict(CFG)))  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    resumed = run(restored.state, restored.data_state["position"], 2 * k)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
     assert_tree_equal(resumed, full)
     assert int(resumed.step) == 2 * k
 
@@ -109,7 +109,7 @@ def test_resume_after_sigkill(tmp_path):
         cwd=ROOT,
     )
     try:
-        for line in proc.stdout:
+        for line in proc.stdout:  # pyright: ignore[reportOptionalIterable] -- Popen(..., stdout/stderr=PIPE): the stream is set
             if line.strip() == "saved 3":
                 break
         else:
@@ -124,16 +124,16 @@ def test_resume_after_sigkill(tmp_path):
         # rejected with a warning and the one before is used.
         warnings.simplefilter("ignore", UserWarning)
         restored = restore_checkpoint(tmp_path, fresh_state(seed=7))
-    j = restored.step
-    assert j >= 3 and restored.data_state == {"position": j}
-    runner, resumed = toy_runner(), restored.state
+    j = restored.step  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    assert j >= 3 and restored.data_state == {"position": j}  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    runner, resumed = toy_runner(), restored.state  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
     for position in range(j, 2 * j):
         # Saving as it goes replaces a step the kill left without a manifest.
         resumed = run_steps(resumed, position, position + 1, runner)
         save_checkpoint(tmp_path, resumed, data_state={"position": position + 1}, keep=2)
     full = run_steps(fresh_state(), 0, 2 * j, runner)
     assert_tree_equal(resumed, full)
-    assert_tree_equal(restore_checkpoint(tmp_path, fresh_state(seed=7)).state, full)
+    assert_tree_equal(restore_checkpoint(tmp_path, fresh_state(seed=7)).state, full)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
 
 
 @pytest.fixture(scope="module")
@@ -182,15 +182,15 @@ def test_damaged_checkpoint_falls_back(tmp_path, three_states, damage, message):
 
     with pytest.warns(UserWarning, match=message):
         restored = restore_checkpoint(tmp_path, fresh_state(seed=5))
-    assert restored.step == 2 and restored.data_state == {"position": 2}
-    assert_tree_equal(restored.state, three_states[1])
+    assert restored.step == 2 and restored.data_state == {"position": 2}  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    assert_tree_equal(restored.state, three_states[1])  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
 
     with pytest.raises(CorruptCheckpointError, match=message):
         restore_checkpoint(tmp_path, fresh_state(seed=5), step=3)
 
     # The resumed run saves step 3 again: the damaged folder is replaced.
     save_checkpoint(tmp_path, three_states[2], data_state={"position": 3})
-    assert_tree_equal(restore_checkpoint(tmp_path, fresh_state(seed=5)).state, three_states[2])
+    assert_tree_equal(restore_checkpoint(tmp_path, fresh_state(seed=5)).state, three_states[2])  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
 
 
 def test_no_good_checkpoint(tmp_path, three_states):
@@ -217,8 +217,8 @@ def test_keep_last_n_and_abstract_template(tmp_path, three_states):
         save_checkpoint(tmp_path, state.replace(step=jnp.asarray(s, jnp.int32)), keep=2)
     assert sorted(int(p.name) for p in tmp_path.iterdir() if p.name.isdigit()) == [4, 5]
     restored = restore_checkpoint(tmp_path, jax.eval_shape(lambda: state))
-    assert restored.step == 5
-    assert_tree_equal(restored.state.params, state.params)
+    assert restored.step == 5  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    assert_tree_equal(restored.state.params, state.params)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
 
 
 def test_save_rejects_stacked_per_device_copies(tmp_path, three_states):
@@ -280,7 +280,7 @@ def test_a_stage_resumes_across_a_change_of_lr_schedule(tmp_path, before, after)
     template = init(after, 99)
     assert jax.tree.structure(template.opt_state) == jax.tree.structure(half.opt_state)
     restored = restore_checkpoint(tmp_path, template)
-    resumed, rates_after = run(after, restored.state, 3, 6)
+    resumed, rates_after = run(after, restored.state, 3, 6)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
     direct, _ = run(after, half, 3, 6)
     assert_tree_equal(resumed, direct)
     want = [hf_rate(before, c) for c in range(3)] + [hf_rate(after, c) for c in range(3, 6)]

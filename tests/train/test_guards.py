@@ -77,7 +77,7 @@ def test_nonfinite_is_skipped_and_the_schedule_stays(setup, rng, where):
         u, s = _update(tx, grads, state, params, loss=loss)
         assert _zero(u)
         assert_tree_equal(s, state)
-        assert int(schedule_count(s)) == int(schedule_count(state))
+        assert int(schedule_count(s)) == int(schedule_count(state))  # pyright: ignore[reportArgumentType] -- this optimizer state has a schedule count
 
 
 def test_too_large_is_skipped_and_only_the_schedule_advances(setup, rng):
@@ -87,9 +87,9 @@ def test_too_large_is_skipped_and_only_the_schedule_advances(setup, rng):
     tx = guard_steps(inner, limit)
     u, s = _update(tx, grads, state, params, loss=jnp.float32(3.0))
     assert _zero(u)
-    assert int(schedule_count(s)) == int(schedule_count(state)) + 1
-    adam, adam0 = s[1][0], state[1][0]
-    assert_tree_equal((adam.mu, adam.nu, adam.count), (adam0.mu, adam0.nu, adam0.count))
+    assert int(schedule_count(s)) == int(schedule_count(state)) + 1  # pyright: ignore[reportArgumentType] -- this optimizer state has a schedule count
+    adam, adam0 = s[1][0], state[1][0]  # pyright: ignore[reportIndexIssue] -- an optax state is typed as any pytree; this one is the (named) tuple its transformation builds
+    assert_tree_equal((adam.mu, adam.nu, adam.count), (adam0.mu, adam0.nu, adam0.count))  # pyright: ignore[reportAttributeAccessIssue] -- an optax state is typed as any pytree; this one is the (named) tuple its transformation builds
     # just under the limit: the inner update, as is
     small = jax.tree.map(lambda g: g * (0.99 * limit / _norm(grads)), grads)
     u, s = _update(tx, small, state, params, loss=jnp.float32(3.0))
@@ -105,8 +105,8 @@ def test_guards_around_the_spike_guard_keep_its_running_mean(key, rng):
     state = _update(inner, _grads(params, rng), inner.init(params), params)[1]
     tx = guard_steps(inner, 1.0)
     _, s = _update(tx, _grads(params, rng, scale=100.0), state, params, loss=jnp.float32(1.0))
-    assert (float(s.log_norm_ema), int(s.seen)) == (float(state.log_norm_ema), int(state.seen))
-    assert int(schedule_count(s)) == int(schedule_count(state)) + 1
+    assert (float(s.log_norm_ema), int(s.seen)) == (float(state.log_norm_ema), int(state.seen))  # pyright: ignore[reportAttributeAccessIssue] -- an optax state is typed as any pytree; this one is the (named) tuple its transformation builds
+    assert int(schedule_count(s)) == int(schedule_count(state)) + 1  # pyright: ignore[reportArgumentType] -- this optimizer state has a schedule count
 
 
 def test_skip_reasons():

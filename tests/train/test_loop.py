@@ -57,5 +57,5 @@ def test_stop_ends_the_stage_after_the_step_and_its_hooks():
 
 
 def test_a_finished_stage_runs_nothing():
-    done = run_stage(7, _step, iter(()), steps=3, start=3, hooks=[lambda i: 1 / 0], stop=lambda: 1 / 0)
+    done = run_stage(7, _step, iter(()), steps=3, start=3, hooks=[lambda i: 1 / 0], stop=lambda: 1 / 0)  # pyright: ignore[reportArgumentType] -- a hook may return a value; run_stage ignores it
     assert done == StageRun(state=7, step=3, stopped=False)

@@ -100,15 +100,15 @@ def _kill_after_checkpoint(procs: list[subprocess.Popen], victim: int) -> tuple[
     status, the seconds it took to end after the kill, and its stderr."""
     other = procs[1 - victim]
     try:
-        for line in other.stdout:
+        for line in other.stdout:  # pyright: ignore[reportOptionalIterable] -- Popen(..., stdout/stderr=PIPE): the stream is set
             if line.strip() == "saved 3":
                 break
         else:
-            pytest.fail(f"the process ended early: {other.wait()} {other.stderr.read()[-3000:]}")
+            pytest.fail(f"the process ended early: {other.wait()} {other.stderr.read()[-3000:]}")  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
         procs[victim].send_signal(signal.SIGKILL)
         killed = time.monotonic()
         status = other.wait(timeout=PEER_TIMEOUT_S + 60)
-        return status, time.monotonic() - killed, other.stderr.read()
+        return status, time.monotonic() - killed, other.stderr.read()  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
     finally:
         for p in procs:
             p.kill()
@@ -124,8 +124,8 @@ def _assert_both_resume(directory) -> None:
     state0 = initial_state()
     want, _ = oracle_steps(state0.params, make_optimizer(CFG), [global_batch(s) for s in range(LONG_STEPS)])
     restored = restore_checkpoint(directory / "ckpt", state0)
-    assert restored.step == LONG_STEPS
-    assert_tree_close(restored.state.params, want, atol=1e-5)
+    assert restored.step == LONG_STEPS  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    assert_tree_close(restored.state.params, want, atol=1e-5)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
 
 
 def test_two_processes_equal_one_device(tmp_path):
@@ -133,11 +133,11 @@ def test_two_processes_equal_one_device(tmp_path):
     state0 = initial_state()
     want, _ = oracle_steps(state0.params, make_optimizer(CFG), [global_batch(s) for s in range(STEPS)])
     restored = restore_checkpoint(tmp_path / "ckpt", state0)
-    assert restored.step == STEPS and restored.data_state == {"position": STEPS}
-    assert_tree_close(restored.state.params, want, atol=1e-5)
+    assert restored.step == STEPS and restored.data_state == {"position": STEPS}  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
+    assert_tree_close(restored.state.params, want, atol=1e-5)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
     with np.load(tmp_path / "params_process0.npz") as saved:
         from_process = {k: saved[k] for k in saved.files}
-    leaves = jax.tree_util.tree_leaves_with_path(restored.state.params)
+    leaves = jax.tree_util.tree_leaves_with_path(restored.state.params)  # pyright: ignore[reportOptionalMemberAccess] -- a checkpoint was saved above, so restore finds one
     assert_tree_equal({jax.tree_util.keystr(p): x for p, x in leaves}, from_process)
 
 
@@ -221,7 +221,7 @@ def _run_process(mode: str, process_id: int, port: str, directory: str) -> None:
         leaves = jax.tree_util.tree_leaves_with_path(state.params)
         np.savez(
             os.path.join(directory, "params_process0.npz"),
-            **{jax.tree_util.keystr(p): np.asarray(x.addressable_data(0)) for p, x in leaves},
+            **{jax.tree_util.keystr(p): np.asarray(x.addressable_data(0)) for p, x in leaves},  # pyright: ignore[reportArgumentType] -- arrays by keyword; pyright matches the ** to allow_pickle
         )
 
 

@@ -57,7 +57,7 @@ def test_two_devices_equal_one_device(key, rng):
         loss, aux = history[-1]
         assert float(smetrics["loss"]) == pytest.approx(float(loss), rel=1e-5)
         assert float(smetrics["mae"]) == pytest.approx(float(aux["mae"]), rel=1e-5)
-        assert float(smetrics["lr"]) == pytest.approx(float(schedule(2)), rel=1e-6)
+        assert float(smetrics["lr"]) == pytest.approx(float(schedule(2)), rel=1e-6)  # pyright: ignore[reportArgumentType] -- float()/int() of a scalar array
 
 
 def test_the_step_under_pmap_gets_the_runners_result(key, rng):
@@ -141,7 +141,7 @@ def test_large_grad_norm_skip_advances_the_schedule(key, rng):
     norm = lambda b: float(  # noqa: E731
         jax.jit(lambda p: optax.tree.norm(jax.grad(lambda q: toy_loss(q, b, None)[0])(p)))(state0.params)
     )
-    threshold = 5 * CFG.grad_clip_norm
+    threshold = 5 * CFG.grad_clip_norm  # pyright: ignore[reportOperatorIssue] -- CFG sets grad_clip_norm
     assert norm(huge) > threshold > norm(good)
     runner = make_runner(make_train_step(toy_loss, tx, schedule, skip_grad_norm_above=threshold), donate=False)
     state1, m = runner.step(runner.place_state(state0), runner.place_batch(huge))
@@ -154,15 +154,15 @@ def test_large_grad_norm_skip_advances_the_schedule(key, rng):
         1.0,
     ]
     assert_tree_equal(state1.params, state0.params)
-    adam0, adam1 = state0.opt_state[1][0], state1.opt_state[1][0]
-    assert_tree_equal((adam1.mu, adam1.nu, adam1.count), (adam0.mu, adam0.nu, adam0.count))
-    assert int(state1.opt_state[1][-1].count) == 1  # the schedule's count
+    adam0, adam1 = state0.opt_state[1][0], state1.opt_state[1][0]  # pyright: ignore[reportIndexIssue] -- an optax state is typed as any pytree; this one is the (named) tuple its transformation builds
+    assert_tree_equal((adam1.mu, adam1.nu, adam1.count), (adam0.mu, adam0.nu, adam0.count))  # pyright: ignore[reportAttributeAccessIssue] -- an optax state is typed as any pytree; this one is the (named) tuple its transformation builds
+    assert int(state1.opt_state[1][-1].count) == 1  # the schedule's count  # pyright: ignore[reportAttributeAccessIssue, reportIndexIssue] -- an optax state is typed as any pytree; this one is the (named) tuple its transformation builds
 
     state2, m = runner.step(state1, runner.place_batch(good))
-    assert float(m["lr"]) == pytest.approx(float(schedule(1)), rel=1e-6) and float(schedule(1)) > 0
+    assert float(m["lr"]) == pytest.approx(float(schedule(1)), rel=1e-6) and float(schedule(1)) > 0  # pyright: ignore[reportArgumentType] -- float()/int() of a scalar array
     assert [float(m[k]) for k in ("skipped", "skipped_total", "skipped_grad_norm_total")] == [0.0, 1.0, 1.0]
     grads = jax.grad(lambda p: toy_loss(p, good, None)[0])(state0.params)
-    want = numpy_adamw_first_update(state0.params, grads, float(schedule(1)), CFG)
+    want = numpy_adamw_first_update(state0.params, grads, float(schedule(1)), CFG)  # pyright: ignore[reportArgumentType] -- float()/int() of a scalar array
     assert_tree_close(state2.params, want, atol=1e-6)
 
 

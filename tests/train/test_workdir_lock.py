@@ -23,7 +23,7 @@ with workdir_lock(sys.argv[1]):
 
 def _holder(workdir):
     proc = subprocess.Popen([sys.executable, "-c", HOLD, workdir], stdout=subprocess.PIPE, text=True)
-    assert proc.stdout.readline().strip() == "held"
+    assert proc.stdout.readline().strip() == "held"  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
     return proc
 
 

@@ -142,7 +142,7 @@ def _pycolmap_read(paths: dict[str, str], binary: bool, rig_dir: str | None) -> 
                 with open(dst, "wb") as f:
                     f.write(bytes(8) if binary else b"")  # binary: a count of 0
         for part in ("rigs", "frames") if rig_dir is not None else ():
-            if os.path.exists(src := os.path.join(rig_dir, part + ext)):
+            if os.path.exists(src := os.path.join(rig_dir, part + ext)):  # pyright: ignore[reportArgumentType, reportCallIssue] -- the loop runs only when rig_dir is set
                 os.symlink(os.path.abspath(src), os.path.join(tmp, part + ext))
         rec = pycolmap.Reconstruction()
         (rec.read_binary if binary else rec.read_text)(tmp)

@@ -77,8 +77,8 @@ def files_scene(
     if depth_paths is not None:
         keep &= present_mask(depth_paths, "depth", source, missing)
     idx = np.flatnonzero(keep)
-    image_paths = [image_paths[i] for i in idx]
-    depth_paths = None if depth_paths is None else [depth_paths[i] for i in idx]
+    image_paths = [image_paths[i] for i in idx]  # pyright: ignore[reportArgumentType, reportCallIssue] -- NumPy integers index a list (they have __index__)
+    depth_paths = None if depth_paths is None else [depth_paths[i] for i in idx]  # pyright: ignore[reportArgumentType, reportCallIssue] -- NumPy integers index a list (they have __index__)
     c2w, intrinsics = c2w[idx], intrinsics[idx]
     check_frames(source, c2w, intrinsics, image_paths)
     hw = np.array([image_size(p) for p in image_paths], dtype=np.int64).reshape(-1, 2)

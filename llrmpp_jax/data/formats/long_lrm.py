@@ -156,7 +156,7 @@ def write_long_lrm_scene(
             frame["depth_path"] = depth_names[i]
         frames.append(frame)
     data = {"scene_name": scene.name, "frames": frames}
-    if depth_names is not None and not depth_ext.lower().endswith(".exr"):
+    if depth_names is not None and not depth_ext.lower().endswith(".exr"):  # pyright: ignore[reportOptionalMemberAccess] -- depth_names is None when depth_ext is
         data["depth_scale"] = depth_scale
     path = os.path.join(out_dir, SCENE_JSON)
     with open(path, "w") as f:

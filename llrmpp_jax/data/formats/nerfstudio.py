@@ -121,7 +121,7 @@ def read_nerfstudio_scene(
         name=os.path.basename(base),
         source=json_path,
         image_paths=images,
-        c2w=c2w,
+        c2w=c2w,  # pyright: ignore[reportArgumentType] -- an np.asarray result
         intrinsics=np.asarray(intr).reshape(-1, 4),
         declared_hw=np.asarray(hw).reshape(-1, 2),
         depth_paths=depths or None,

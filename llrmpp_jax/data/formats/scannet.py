@@ -88,9 +88,10 @@ def read_scannet_scene(
         else np.zeros((0, 4, 4))
     )
     finite = np.isfinite(poses).reshape(len(stems), -1).all(axis=1)
-    if not finite[keep].all():
+    if not finite[keep].all():  # pyright: ignore[reportIndexIssue] -- finite is a bool array (all(axis=1))
         warnings.warn(
-            f"{scene_dir}: skipped {int((~finite[keep]).sum())} frames with invalid (non-finite) poses", stacklevel=2
+            f"{scene_dir}: skipped {int((~finite[keep]).sum())} frames with invalid (non-finite) poses",  # pyright: ignore[reportIndexIssue] -- as above
+            stacklevel=2,
         )
     idx = np.flatnonzero(keep & finite)
     color_paths = [color_paths[i] for i in idx]
