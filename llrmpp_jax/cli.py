@@ -318,8 +318,8 @@ def _eval_experiment(args):
 
 def cmd_eval(args) -> int:
     from llrmpp_jax.evaluate import evaluate, summary_table
-    from llrmpp_jax.metrics import load_lpips_params
     from llrmpp_jax.experiment_data import eval_samples, held_out_description, scene_source
+    from llrmpp_jax.metrics import load_lpips_params
 
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
@@ -625,8 +625,8 @@ def demo_options(parser: argparse.ArgumentParser) -> None:
 
 
 def cmd_bench(args) -> int:
-    from llrmpp_jax.benchmarks.suite import BENCHMARKS, run_benchmarks
     from llrmpp_jax.benchmarks.paper import parse_hw, parse_views
+    from llrmpp_jax.benchmarks.suite import BENCHMARKS, run_benchmarks
 
     only = tuple(args.only.split(",")) if args.only else BENCHMARKS
     views = parse_views(args.views) if args.views else None

@@ -20,6 +20,7 @@ import json
 import os
 import shutil
 import time
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -28,7 +29,6 @@ from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.evaluate import evaluate, scene_picture, summary_table
 from llrmpp_jax.experiment import load_experiment
 from llrmpp_jax.experiment_data import eval_samples
-from dataclasses import replace
 from llrmpp_jax.metrics import load_lpips_params
 from llrmpp_jax.pretrained import load_pretrained
 from llrmpp_jax.trainer import train

@@ -30,6 +30,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from llrmpp_jax import splat
 from llrmpp_jax.array_typing import Array, ArrayLike, Float, KeyArray
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.decoder import TargetDecoder, partition_opacities
@@ -37,8 +38,6 @@ from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import GaussianHead, Gaussians
 from llrmpp_jax.geometry import pixel_rays, plucker
 from llrmpp_jax.nn.backbone import Backbone
-from llrmpp_jax import splat
-
 
 
 class RenderOutput(NamedTuple):

@@ -123,7 +123,7 @@ class RefineInfo(NamedTuple):
     not scored in one program: on a 32-view capture that alone would take about as long as
     four updates and most of the memory.)"""
 
-    losses: Float[np.ndarray, "steps+1"]
+    losses: Float[np.ndarray, " steps+1"]
     steps: int  # updates taken (fewer than asked only if the solver's tolerances were met)
     dropped: int  # most splat intersections dropped by any step's render (0 = exact)
     views_per_step: int = 0  # input views each update fitted

@@ -1,6 +1,7 @@
 """Evaluation diagnostics (input-view re-render PSNR, Gaussian statistics) and the refined rows, against NumPy."""
 
 from dataclasses import replace
+
 import jax
 import numpy as np
 import pytest

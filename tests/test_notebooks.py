@@ -16,7 +16,6 @@ as printed in the paper's .tex, and a smoke run per notebook.
 """
 
 import dataclasses
-from dataclasses import replace
 import json
 import math
 import os
@@ -25,6 +24,7 @@ import runpy
 import subprocess
 import sys
 import tempfile
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -248,15 +248,15 @@ def _row(i: int, psnr_seeds, lpips_seeds, paper_psnr: str, paper_lpips: str, sta
 
 
 def test_compare_verdicts(ablation):
-    O = ablation.Ordering
+    Od = ablation.Ordering
     results = [
         _row(0, [20.0, 20.5, 21.0], [0.50, 0.40, 0.45], "28.0", "0.10"),
         _row(1, [20.3, 20.9, 21.2], [0.40, 0.30, 0.34], "28.5", "0.08"),  # +0.3/+0.4/+0.2 dB, LPIPS -0.1
         _row(2, [19.0, 21.9, 20.0], [0.5, 0.4, 0.45], "28.9", "0.07"),  # -1/+1.4/-1: straddles 0
         {"row": 3, "status": "not run: no splatter", "paper": {}},
     ]
-    got = ablation.compare(results, [O("1 > 0", 1, 0), O("0 > 1", 0, 1), O("1 > 0 lpips", 1, 0, "lpips"),
-                                     O("2 > 0", 2, 0), O("3 > 0", 3, 0)])
+    got = ablation.compare(results, [Od("1 > 0", 1, 0), Od("0 > 1", 0, 1), Od("1 > 0 lpips", 1, 0, "lpips"),
+                                     Od("2 > 0", 2, 0), Od("3 > 0", 3, 0)])
     assert [c["verdict"] for c in got] == ["reproduced", "reversed", "reproduced", "not resolved", "not run"]
     assert got[0]["diff"] == pytest.approx(0.3) and got[0]["paper_diff"] == pytest.approx(0.5)
     assert got[1]["diff"] == pytest.approx(-0.3) and got[0]["diff_ci"] == pytest.approx(got[1]["diff_ci"])
@@ -268,8 +268,8 @@ def test_compare_verdicts(ablation):
     assert table.splitlines()[-1] == "Intervals: paired differences over seeds, Student-t, 95% two-sided."
     # Rows that ran different numbers of seeds are paired over the seeds both ran.
     results[1] = _row(1, [20.3, 20.9, 21.2, 30.0], [0.40, 0.30, 0.34, 0.1], "28.5", "0.08")
-    assert ablation.compare(results, [O("1 > 0", 1, 0)])[0]["seeds"] == 3
-    assert ablation.compare(results, [O("1 > 0", 1, 0)])[0]["diff"] == pytest.approx(0.3)
+    assert ablation.compare(results, [Od("1 > 0", 1, 0)])[0]["seeds"] == 3
+    assert ablation.compare(results, [Od("1 > 0", 1, 0)])[0]["diff"] == pytest.approx(0.3)
 
 
 def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablation, monkeypatch):
@@ -293,10 +293,10 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     monkeypatch.setattr(tables, "_held_out", lambda scale, cfg: [None])
     monkeypatch.delenv("LLRMPP_NOTEBOOK_ROWS", raising=False)
     scale = dataclasses.replace(ablation.make_scale("smoke", paper_views=4), seeds=3, max_seeds=6, workers=1)
-    V, O = ablation.Variant, ablation.Ordering
+    V, Od = ablation.Variant, ablation.Ordering
     variants = [V({"x": str(i)}, lambda base, i=i: replace(base, decoder=replace(base.decoder, dim=8 * (i + 1))),
                   {}) for i in range(4)]
-    orderings = [O("1 > 0", 1, 0), O("2 > 0", 2, 0)]
+    orderings = [Od("1 > 0", 1, 0), Od("2 > 0", 2, 0)]
     monkeypatch.setattr(tables, "count_params", lambda p: 0)
     run = ablation.run_table(variants, scale, orderings)
     seeds = {r["row"]: r["seeds"] for r in run.results}
@@ -393,6 +393,7 @@ def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
     units) of those windows' log geometric-mean depth. The paper scale keeps Long-LRM's
     rescaling and its config's own bias and range."""
     import numpy as np
+
     from llrmpp_jax import config as C
     from llrmpp_jax.data import BatchConfig, BatchIterator, ProceduralConfig, ProceduralSource
     from llrmpp_jax.geometry import unproject_depth
@@ -434,7 +435,15 @@ def test_rows_are_scored_on_the_ablations_held_out_views(ablation):
     windows, the same for every training seed. The oracle builds them from the scene and
     the selection functions."""
     import numpy as np
-    from llrmpp_jax.data import ProceduralConfig, ViewGeometry, eval_views, make_sample, procedural_scene, training_views
+
+    from llrmpp_jax.data import (
+        ProceduralConfig,
+        ViewGeometry,
+        eval_views,
+        make_sample,
+        procedural_scene,
+        training_views,
+    )
 
     for name in ("smoke", "cpu"):
         scale = dataclasses.replace(ablation.make_scale(name, paper_views=4, depth=True), eval_scenes=2)

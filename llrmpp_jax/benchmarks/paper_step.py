@@ -46,12 +46,12 @@ milliseconds as JSON and prints them as Markdown.
 from __future__ import annotations
 
 import argparse
-from dataclasses import replace
 import json
 import os
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -63,13 +63,18 @@ from llrmpp_jax import config as C
 from llrmpp_jax import train as T
 from llrmpp_jax.benchmarks.measure import environment, memory_analysis_bytes, throughput, xla_cost
 from llrmpp_jax.benchmarks.paper import (
-    PAPER_A100, check_case, host_init_params, profile_markdown, synthetic_batch, train_step_model_flops,
+    PAPER_A100,
+    check_case,
+    host_init_params,
+    profile_markdown,
+    synthetic_batch,
+    train_step_model_flops,
 )
 from llrmpp_jax.convert.vgg import vgg_layers
 from llrmpp_jax.experiment import ExperimentConfig, StageConfig, load_experiment
 from llrmpp_jax.nn.attention import ATTENTION_IMPLEMENTATIONS
 from llrmpp_jax.nn.backbone import count_params
-from llrmpp_jax.objective import load_perceptual, make_loss_fn
+from llrmpp_jax.objective import load_perceptual
 from llrmpp_jax.trainer import optimizer_config, stage_runner
 
 GIB = 2.0**30

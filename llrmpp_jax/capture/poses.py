@@ -169,7 +169,7 @@ def extract_frames(video: str, out_dir: str, fps: float, progress: Callable[[str
         reader = imageio_ffmpeg.read_frames(video, output_params=["-vf", f"fps={fps}"])
         meta = next(reader)
     except (OSError, RuntimeError, StopIteration) as e:
-        raise UserError(f"--video {video}: not a video ffmpeg can read ({str(e).splitlines()[0] if str(e) else e})")
+        raise UserError(f"--video {video}: not a video ffmpeg can read ({str(e).splitlines()[0] if str(e) else e})") from e
     w, h = meta["size"]
     expected = int(meta.get("duration", 0) * fps) or None
     progress(f"extracting frames from {video} ({w}x{h}, {fps:g} a second"

@@ -31,7 +31,7 @@ from llrmpp_jax.model import reconstruct
 
 def select_views(
     scene: Scene, num_inputs: int, inputs: list[int] | None = None, every: int = 8
-) -> tuple[Int[np.ndarray, "V"], Int[np.ndarray, "T"]]:
+) -> tuple[Int[np.ndarray, " V"], Int[np.ndarray, " T"]]:
     """``(inputs, targets)`` frame indices. Targets: every ``every``-th frame (the paper's
     held-out split) not among the inputs. Inputs: ``inputs`` as given (checked against the
     frame count), else ``num_inputs`` frames by k-means over the non-target frames."""
@@ -150,8 +150,8 @@ def reconstruct_scene(
     params: dict,
     cfg: ModelConfig,
     scene: Scene,
-    inputs: Int[np.ndarray, "V"],
-    targets: Int[np.ndarray, "T"],
+    inputs: Int[np.ndarray, " V"],
+    targets: Int[np.ndarray, " T"],
     size: tuple[int, int | None],
     *,
     square_crop: bool = False,

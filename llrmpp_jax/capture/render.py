@@ -39,7 +39,7 @@ from llrmpp_jax.splat import rasterize
 PATHS = ("targets", "inputs", "spline", "orbit")
 
 
-def spline_at(c2w: Float[np.ndarray, "V 4 4"], positions: Float[np.ndarray, "frames"]) -> Float[np.ndarray, "frames 4 4"]:
+def spline_at(c2w: Float[np.ndarray, "V 4 4"], positions: Float[np.ndarray, " frames"]) -> Float[np.ndarray, "frames 4 4"]:
     """Poses on the spline through the ``V >= 2`` poses ``c2w`` in order, at ``positions``
     in ``[0, V - 1]`` (the integer ``i`` is pose ``i``): centres by a cubic spline, rotations
     by slerp (see the module doc)."""

@@ -48,8 +48,8 @@ class SavedScene:
     intrinsics: Float[np.ndarray, "frames 4"]
     world_from_scene: Float[np.ndarray, "4 4"]
     frame_names: tuple[str, ...]
-    inputs: Int[np.ndarray, "V"]
-    targets: Int[np.ndarray, "T"]
+    inputs: Int[np.ndarray, " V"]
+    targets: Int[np.ndarray, " T"]
     image_hw: tuple[int, int]
     resized_hw: tuple[int, int]  # frames were resized to this, then cropped to crop_box, then
     crop_box: tuple[int, int, int, int]  # (top, left, height, width) resized to image_hw

@@ -11,8 +11,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from llrmpp_jax.plan.hlo_cost import Chip, estimate_hlo
 from llrmpp_jax.plan.catalog import GROUPS, PROGRAM_NAMES
+from llrmpp_jax.plan.hlo_cost import Chip, estimate_hlo
 from llrmpp_jax.plan.programs import Program, program
 from llrmpp_jax.plan.targets import TARGETS, Target, check_compiler, compile_devices, target
 
@@ -44,7 +44,7 @@ def _cost_of(compiled) -> tuple[float | None, float | None]:
     return get("flops"), get("optimal_seconds")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def chip_model(name: str) -> Chip:
     """The :class:`~llrmpp_jax.plan.hlo_cost.Chip` of target ``name``: its data-sheet rates and
     the seconds per gathered and per scatter-added index row, measured once with the chip's own

@@ -76,7 +76,7 @@ def check_compiler(targets: list[Target]) -> None:
         raise UserError(f"plan: compiling for TPU needs libtpu, which is not installed: {TPU_INSTALL}")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _topology(topology: str):
     check_compiler([t for t in TARGETS.values() if t.topology == topology])
     # libtpu asks the cloud metadata server for the host's TPU unless told not to: there is none.

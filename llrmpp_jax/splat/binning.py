@@ -47,17 +47,17 @@ class TileBins(NamedTuple):
     """Depth-sorted Gaussian lists of all tiles (row-major, ``tiles = tiles_y * tiles_x``;
     ``isect`` = buffer capacity)."""
 
-    gaussian_ids: Int[Array, "isect"]  # Gaussian index of each slot, grouped by tile
-    tile_start: Int[Array, "tiles"]  # first slot of each tile
-    tile_count: Int[Array, "tiles"]  # number of slots of each tile
+    gaussian_ids: Int[Array, " isect"]  # Gaussian index of each slot, grouped by tile
+    tile_start: Int[Array, " tiles"]  # first slot of each tile
+    tile_count: Int[Array, " tiles"]  # number of slots of each tile
     num_intersections: Int[Array, ""]  # slots needed (exact below 2**30)
     overflow: Bool[Array, ""]  # needed > capacity: the farthest entries were dropped
     num_dropped: Int[Array, ""]  # max(needed - capacity, 0)
 
 
 def screen_extents(
-    projected: ProjectedGaussians, cfg: SplatConfig, opacities: Float[Array, "N"] | None = None
-) -> tuple[Float[Array, "N"], Float[Array, "N"]]:
+    projected: ProjectedGaussians, cfg: SplatConfig, opacities: Float[Array, " N"] | None = None
+) -> tuple[Float[Array, " N"], Float[Array, " N"]]:
     """Half-widths ``(ex, ey)`` in pixels of the box where each Gaussian can be drawn.
 
     Without ``opacities``: unbounded (``inf``; the tile rule alone decides). With them,
@@ -88,8 +88,8 @@ def screen_extents(
 
 
 def _ellipse_terms(
-    projected: ProjectedGaussians, opacities: Float[Array, "N"], cfg: SplatConfig
-) -> tuple[Float[Array, "N"], ...]:
+    projected: ProjectedGaussians, opacities: Float[Array, " N"], cfg: SplatConfig
+) -> tuple[Float[Array, " N"], ...]:
     """Per Gaussian, what :func:`_reaches_block` reads: the conic ``(a, b, c)``, the mean
     ``(x, y)`` and the level ``L = ln(o / alpha_min) + 0.01``."""
     conics, means = lax.stop_gradient(projected.conics), lax.stop_gradient(projected.means2d)
@@ -99,10 +99,10 @@ def _ellipse_terms(
 
 
 def _reaches_block(
-    a: Float[Array, "isect"], b: Float[Array, "isect"], c: Float[Array, "isect"], mx: Float[Array, "isect"],
-    my: Float[Array, "isect"], level: Float[Array, "isect"], bx: Int[Array, "isect"], by: Int[Array, "isect"],
+    a: Float[Array, " isect"], b: Float[Array, " isect"], c: Float[Array, " isect"], mx: Float[Array, " isect"],
+    my: Float[Array, " isect"], level: Float[Array, " isect"], bx: Int[Array, " isect"], by: Int[Array, " isect"],
     cfg: SplatConfig,
-) -> Bool[Array, "isect"]:
+) -> Bool[Array, " isect"]:
     """Whether a Gaussian (per slot: its conic ``a, b, c``, mean and level from
     :func:`_ellipse_terms`) passes the compositor's ``alpha >= alpha_min`` test at any pixel
     centre of compositor block ``(bx, by)``.
@@ -136,8 +136,8 @@ def _reaches_block(
 
 def tile_rects(
     projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
-    opacities: Float[Array, "N"] | None = None,
-) -> tuple[Int[Array, "N"], Int[Array, "N"], Int[Array, "N"], Int[Array, "N"]]:
+    opacities: Float[Array, " N"] | None = None,
+) -> tuple[Int[Array, " N"], Int[Array, " N"], Int[Array, " N"], Int[Array, " N"]]:
     """Half-open box ``(x0, x1, y0, y1)`` of compositor blocks for each Gaussian: the blocks
     of its gsplat tiles that it can reach (:func:`screen_extents`); empty when culled or,
     given ``opacities``, when it is too faint to be drawn."""
@@ -161,8 +161,8 @@ def tile_rects(
 
 def intersection_counts(
     projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
-    opacities: Float[Array, "N"] | None = None,
-) -> Int[Array, "N"]:
+    opacities: Float[Array, " N"] | None = None,
+) -> Int[Array, " N"]:
     """Number of compositor blocks each Gaussian enters (0 when culled); without
     ``opacities`` an upper bound (every block of its tiles)."""
     x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities)
@@ -173,7 +173,7 @@ def intersection_counts(
 _INF_BITS = 0x7F800000
 
 
-def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> tuple[Int[Array, "N"], Int[Array, "N"]]:
+def _depth_order_by_key(depths: Float[Array, " N"], drawn: Bool[Array, " N"]) -> tuple[Int[Array, " N"], Int[Array, " N"]]:
     """:func:`depth_positions` by one int32 sort.
 
     Drawn depths are > ``near`` > 0, so their float32 bit patterns order as the depths;
@@ -202,7 +202,7 @@ def _depth_order_by_key(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> t
     return jnp.zeros((n,), jnp.int32).at[rank].set(iota, unique_indices=True), rank
 
 
-def depth_positions(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> tuple[Int[Array, "N"], Int[Array, "N"]]:
+def depth_positions(depths: Float[Array, " N"], drawn: Bool[Array, " N"]) -> tuple[Int[Array, " N"], Int[Array, " N"]]:
     """``(order, position)``: the indices of the drawn Gaussians by increasing depth (ties by
     index: a stable sort), then the undrawn ones by index; and each Gaussian's place in that
     order (the inverse permutation, ``order[position] == arange(N)``).
@@ -218,16 +218,16 @@ def depth_positions(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> tuple
     return order, jnp.zeros_like(order).at[order].set(iota, unique_indices=True)
 
 
-def depth_order(depths: Float[Array, "N"], drawn: Bool[Array, "N"]) -> Int[Array, "N"]:
+def depth_order(depths: Float[Array, " N"], drawn: Bool[Array, " N"]) -> Int[Array, " N"]:
     """The first of :func:`depth_positions`: Gaussian indices in depth order."""
     return depth_positions(depths, drawn)[0]
 
 
-def _saturating_add(a: Int[Array, "..."], b: Int[Array, "..."]) -> Int[Array, "..."]:
+def _saturating_add(a: Int[Array, " ..."], b: Int[Array, " ..."]) -> Int[Array, " ..."]:
     return jnp.minimum(a + b, SATURATION)
 
 
-def _inclusive_prefix_sum(counts: Int[Array, "N"], num_tiles: int) -> Int[Array, "N"]:
+def _inclusive_prefix_sum(counts: Int[Array, " N"], num_tiles: int) -> Int[Array, " N"]:
     """Running total of intersection counts, saturating at ``SATURATION``.
 
     Each count is at most ``num_tiles``, so a plain int32 cumsum is exact whenever
@@ -240,7 +240,7 @@ def _inclusive_prefix_sum(counts: Int[Array, "N"], num_tiles: int) -> Int[Array,
 
 def bin_gaussians(
     projected: ProjectedGaussians, height: int, width: int, capacity: int, cfg: SplatConfig,
-    opacities: Float[Array, "N"] | None = None,
+    opacities: Float[Array, " N"] | None = None,
 ) -> TileBins:
     """Bin projected Gaussians into depth-sorted per-tile lists of ``capacity`` slots.
 

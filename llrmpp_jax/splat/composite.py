@@ -80,8 +80,8 @@ class _Chunk(NamedTuple):
 
 
 def _running(
-    xs: list[Float[Array, "..."]], op: Callable, identity: float
-) -> tuple[list[Float[Array, "..."]], Float[Array, "..."]]:
+    xs: list[Float[Array, " ..."]], op: Callable, identity: float
+) -> tuple[list[Float[Array, " ..."]], Float[Array, " ..."]]:
     """Exclusive running ``op`` over a list of equal-shaped arrays, and the total."""
     out, total = [], None
     for x in xs:
@@ -132,7 +132,7 @@ def _make_groups(bins: TileBins, cfg: SplatConfig) -> _Groups:
 
 
 def _pixels(
-    tile_ids: Int[Array, "group"], height: int, width: int, cfg: SplatConfig, dtype: jnp.dtype
+    tile_ids: Int[Array, " group"], height: int, width: int, cfg: SplatConfig, dtype: jnp.dtype
 ) -> tuple[Float[Array, "group pix"], Float[Array, "group pix"], Bool[Array, "group pix"]]:
     """Pixel centres (x, y) of each tile (row-major inside the tile) and in-canvas mask."""
     ts = cfg.composite_tile
@@ -146,11 +146,11 @@ def _pixels(
 
 def _eval_chunk(
     c: Int[Array, ""],
-    starts: Int[Array, "group"],
-    counts: Int[Array, "group"],
-    gaussian_ids: Int[Array, "isect"],
+    starts: Int[Array, " group"],
+    counts: Int[Array, " group"],
+    gaussian_ids: Int[Array, " isect"],
     geometry: Float[Array, "N 5"],
-    opacities: Float[Array, "N"],
+    opacities: Float[Array, " N"],
     px: Float[Array, "group pix"],
     py: Float[Array, "group pix"],
     cfg: SplatConfig,
@@ -182,10 +182,10 @@ def _typed_zero(dtype: jnp.dtype, *arrays: Array) -> Array:
 
 def _forward_group(
     geometry: Float[Array, "N 5"],
-    opacities: Float[Array, "N"],
+    opacities: Float[Array, " N"],
     features: Float[Array, "N C"],
-    gaussian_ids: Int[Array, "isect"],
-    group: tuple[Int[Array, "group"], Int[Array, "group"], Int[Array, "group"]],
+    gaussian_ids: Int[Array, " isect"],
+    group: tuple[Int[Array, " group"], Int[Array, " group"], Int[Array, " group"]],
     height: int,
     width: int,
     cfg: SplatConfig,
@@ -235,19 +235,19 @@ def _forward_group(
 
 def _backward_group(
     geometry: Float[Array, "N 5"],
-    opacities: Float[Array, "N"],
+    opacities: Float[Array, " N"],
     features: Float[Array, "N C"],
-    gaussian_ids: Int[Array, "isect"],
-    group: tuple[Int[Array, "group"], Int[Array, "group"], Int[Array, "group"]],
+    gaussian_ids: Int[Array, " isect"],
+    group: tuple[Int[Array, " group"], Int[Array, " group"], Int[Array, " group"]],
     trans_final: Float[Array, "group pix"],
     last: Int[Array, "group pix"],
     g_feat: Float[Array, "group C pix"],
     g_trans: Float[Array, "group pix"],
-    grads: tuple[Float[Array, "N 5"], Float[Array, "N"], Float[Array, "N C"]],
+    grads: tuple[Float[Array, "N 5"], Float[Array, " N"], Float[Array, "N C"]],
     height: int,
     width: int,
     cfg: SplatConfig,
-) -> tuple[Float[Array, "N 5"], Float[Array, "N"], Float[Array, "N C"]]:
+) -> tuple[Float[Array, "N 5"], Float[Array, " N"], Float[Array, "N C"]]:
     """Add one tile group's contribution to the gradients of geometry, opacity, features."""
     tile_ids, starts, counts = group
     k = cfg.chunk_size
@@ -394,7 +394,7 @@ _composite.defvjp(_composite_fwd, _composite_bwd)
 def composite(
     means2d: Float[Array, "N 2"],
     quad_form: Float[Array, "N 3"],
-    opacities: Float[Array, "N"],
+    opacities: Float[Array, " N"],
     features: Float[Array, "N C"],
     bins: TileBins,
     height: int,

@@ -58,8 +58,8 @@ class ProjectedGaussians(NamedTuple):
     means2d: Float[Array, "N 2"]  # projected centre (x, y) in pixels
     conics: Float[Array, "N 3"]  # inverse 2D covariance (a, b, c), 1/pixels^2
     quad_form: Float[Array, "N 3"]  # (a, q, s): sigma = 0.5 (a (dx + q dy)^2 + s dy^2)
-    depths: Float[Array, "N"]  # camera-space z (scene units)
-    radii: Int[Array, "N"]  # screen radius in whole pixels; 0 = culled
+    depths: Float[Array, " N"]  # camera-space z (scene units)
+    radii: Int[Array, " N"]  # screen radius in whole pixels; 0 = culled
 
 
 def quat_to_rotmat(quats: Float[Array, "N 4"]) -> Float[Array, "N 3 3"]:
@@ -78,7 +78,7 @@ def quat_to_rotmat(quats: Float[Array, "N 4"]) -> Float[Array, "N 3 3"]:
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def camera_is_valid(c2w: Float[Array, "4 4"], intrinsics: Float[Array, "4"]) -> Bool[Array, ""]:
+def camera_is_valid(c2w: Float[Array, "4 4"], intrinsics: Float[Array, " 4"]) -> Bool[Array, ""]:
     """True when the camera is usable: finite entries and positive focal lengths."""
     return (
         jnp.all(jnp.isfinite(c2w))
@@ -99,7 +99,7 @@ def _cross(u: Float[Array, "N 3"], v: Float[Array, "N 3"]) -> Float[Array, "N 3"
     )
 
 
-def _world_to_camera(c2w: Float[Array, "4 4"]) -> tuple[Float[Array, "3 3"], Float[Array, "3"]]:
+def _world_to_camera(c2w: Float[Array, "4 4"]) -> tuple[Float[Array, "3 3"], Float[Array, " 3"]]:
     """``(W, w)`` of ``inverse(c2w) = [[W, w], [0, 1]]`` for an affine ``c2w`` (adjugate formula,
     elementwise: cheaper to compile than a general LU inverse and exact to rounding)."""
     rows = c2w[:3, :3]
@@ -126,11 +126,11 @@ def project_gaussians(
     quats: Float[Array, "N 4"],
     scales: Float[Array, "N 3"],
     c2w: Float[Array, "4 4"],
-    intrinsics: Float[Array, "4"],
+    intrinsics: Float[Array, " 4"],
     height: int,
     width: int,
     cfg: SplatConfig = SplatConfig(),
-    keep: Bool[Array, "N"] | None = None,
+    keep: Bool[Array, " N"] | None = None,
 ) -> ProjectedGaussians:
     """Project N Gaussians (world space, linear ``scales``) onto an ``height x width`` canvas.
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from dataclasses import replace
 from typing import NamedTuple
 
 import jax
@@ -34,7 +35,6 @@ import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.config import ModelConfig
-from dataclasses import replace
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import fit_capacity, render
@@ -86,7 +86,7 @@ def render_view(
     cfg: ModelConfig,
     gaussians: Gaussians,
     c2w: Float[Array, "4 4"],
-    intrinsics: Float[Array, "4"],
+    intrinsics: Float[Array, " 4"],
     height: int,
     width: int,
     output: str = "rgb",

@@ -11,9 +11,8 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import os
+from typing import NamedTuple
 
 import jax
 import numpy as np

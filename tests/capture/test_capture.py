@@ -2,8 +2,8 @@
 camera paths (spline through the inputs, orbit around their look-at point), the ``.gs``
 file and params folders."""
 
-from dataclasses import replace
 import os
+from dataclasses import replace
 
 import jax
 import numpy as np
@@ -28,8 +28,7 @@ from llrmpp_jax.data.scene import in_memory_scene
 from llrmpp_jax.data.synthetic import ProceduralConfig, procedural_scene
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.geometry import validate_cameras
-from llrmpp_jax.model import init_params
-from llrmpp_jax.model import check_params_fit
+from llrmpp_jax.model import check_params_fit, init_params
 from llrmpp_jax.params_io import load_params, save_params
 
 

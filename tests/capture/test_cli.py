@@ -34,7 +34,7 @@ def golden(tmp_path_factory):
     d = tmp_path_factory.mktemp("golden")
     exp = d / "golden_exp.py"
     exp.write_text(
-        "import sys\nsys.path.insert(0, %r)\n" % ROOT
+        f"import sys\nsys.path.insert(0, {ROOT!r})\n"
         + "from tests.helpers.golden import golden_model_config\n"
         "from llrmpp_jax.experiment import ExperimentConfig, StageConfig\n"
         "def get_config():\n"

@@ -23,6 +23,7 @@ from llrmpp_jax.errors import MissingInputError, UserError
 from tests.helpers.environment import shared_path
 from tests.helpers.photos import FOX, fox_photos, fox_video
 
+
 def test_photos_register_and_read_back_as_a_capture(tmp_path, capsys):
     names = fox_photos(tmp_path / "photos")
     out = str(tmp_path / "capture")

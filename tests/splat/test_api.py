@@ -10,7 +10,14 @@ import pytest
 
 from llrmpp_jax.splat import SplatConfig, rasterize
 from tests.helpers.typechecks import unchecked
-from tests.oracles.splat import BLOCK, assert_render_close, oracle_project, oracle_render, oracle_tile_lists, random_scene
+from tests.oracles.splat import (
+    BLOCK,
+    assert_render_close,
+    oracle_project,
+    oracle_render,
+    oracle_tile_lists,
+    random_scene,
+)
 
 H, W, N, F = 37, 53, 300, 3
 

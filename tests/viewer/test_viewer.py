@@ -1,12 +1,12 @@
 """Viewer: the rendering function against the model and brute-force oracles, the scene
 checks, and the live page in a real headless browser (Debian's chromium + chromedriver)."""
 
-from dataclasses import replace
 import math
 import os
 import shutil
 import socket
 import time
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
