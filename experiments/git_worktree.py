@@ -21,8 +21,7 @@ def worktree(ref: str, repo: str = REPO) -> Iterator[str]:
     """The path of a detached worktree of ``repo`` at ``ref``, removed on exit."""
     with tempfile.TemporaryDirectory() as tmp:
         tree = os.path.join(tmp, "baseline")
-        subprocess.run(["git", "-C", repo, "worktree", "add", "--detach", tree, ref], check=True,
-                       capture_output=True)
+        subprocess.run(["git", "-C", repo, "worktree", "add", "--detach", tree, ref], check=True, capture_output=True)
         try:
             yield tree
         finally:
@@ -37,7 +36,9 @@ def rev_parse(ref: str, repo: str = REPO) -> str:
 def revision(repo: str = REPO) -> str:
     """``repo``'s short commit, with ``+dirty`` when tracked files differ from it
     (``unknown`` where git cannot say)."""
+
     def git(*args: str) -> str:
         return subprocess.run(["git", "-C", repo, *args], capture_output=True, text=True).stdout.strip()
+
     head = git("rev-parse", "--short", "HEAD") or "unknown"
     return head + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")

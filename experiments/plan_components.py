@@ -46,24 +46,41 @@ def _one(piece: str, target: str, grad: bool) -> dict:
         fn = lambda q, k, v: multi_head_attention(q, k, v, implementation="blockwise")  # noqa: E731
     elif piece == "ssd_scan":
         m = CT.MAMBA
-        fn = lambda x, dt, a, b, c, d: ssd_scan(x, dt, a, b, c, chunk_size=m.chunk_size, D=d,  # noqa: E731
-                                                inter_chunk="sequential")
+        fn = lambda x, dt, a, b, c, d: ssd_scan(
+            x,
+            dt,
+            a,
+            b,
+            c,
+            chunk_size=m.chunk_size,
+            D=d,  # noqa: E731
+            inter_chunk="sequential",
+        )
     if grad:
         forward = fn
 
         def total(*a):
-            return sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(forward(*a))
-                       if jnp.issubdtype(x.dtype, jnp.floating))
+            return sum(
+                jnp.sum(x.astype(jnp.float32))
+                for x in jax.tree.leaves(forward(*a))
+                if jnp.issubdtype(x.dtype, jnp.floating)
+            )
 
-        floating = tuple(i for i, a in enumerate(args)
-                         if all(jnp.issubdtype(x.dtype, jnp.floating) for x in jax.tree.leaves(a)))
+        floating = tuple(
+            i for i, a in enumerate(args) if all(jnp.issubdtype(x.dtype, jnp.floating) for x in jax.tree.leaves(a))
+        )
         fn = jax.grad(total, argnums=floating)
     args = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=rep), args)
     t0 = time.perf_counter()
     with jax.numpy_dtype_promotion("standard"):
         compiled = jax.jit(fn).lower(*args).compile()
-    row = {"piece": piece, "grad": grad, "target": target, "compile_s": time.perf_counter() - t0,
-           "temp_bytes": compiled.memory_analysis().temp_size_in_bytes}
+    row = {
+        "piece": piece,
+        "grad": grad,
+        "target": target,
+        "compile_s": time.perf_counter() - t0,
+        "temp_bytes": compiled.memory_analysis().temp_size_in_bytes,
+    }
     row["estimate"] = estimate_hlo(compiled.as_text(), chip_model(target)).to_json()
     return row
 
@@ -85,8 +102,11 @@ def head_compile_s(views: int, target: str) -> float:
     grid = (544 // cfg.token_stride, 960 // cfg.token_stride)
     head = GaussianHead(cfg.head, cfg.token_stride)
     sds = lambda shape, dtype=jnp.float32: jax.ShapeDtypeStruct(shape, dtype, sharding=rep)  # noqa: E731
-    args = (sds((1, views * grid[0] * grid[1], cfg.backbone.dims[0]), jnp.bfloat16), sds((1, views, 4, 4)),
-            sds((1, views, 4)))
+    args = (
+        sds((1, views * grid[0] * grid[1], cfg.backbone.dims[0]), jnp.bfloat16),
+        sds((1, views, 4, 4)),
+        sds((1, views, 4)),
+    )
     params = jax.eval_shape(lambda t, c, k: head.init(jax.random.key(0), t, grid, c, k), *args)["params"]
     params = jax.tree.map(lambda x: sds(x.shape, jnp.bfloat16), params)
     t0 = time.perf_counter()
@@ -101,14 +121,26 @@ def main() -> None:
     parser.add_argument("--grad", action="store_true", help="compile each piece's gradient instead of its forward")
     parser.add_argument("--limit", type=float, default=400.0, help="seconds one piece may compile")
     parser.add_argument("--out", default=None, help="JSON file of the rows (rewritten after each)")
-    parser.add_argument("--head-views", default=None, help="comma-separated view counts: time the Gaussian head's "
-                        "compile at each instead")
+    parser.add_argument(
+        "--head-views",
+        default=None,
+        help="comma-separated view counts: time the Gaussian head's compile at each instead",
+    )
     parser.add_argument("--one", default=None, help=argparse.SUPPRESS)  # internal: compile this piece here
     args = parser.parse_args()
     if args.head_views:
         for v in (int(x) for x in args.head_views.split(",")):
-            print(json.dumps({"piece": "gaussian_head", "views": v, "target": args.target,
-                              "compile_s": head_compile_s(v, args.target)}), flush=True)
+            print(
+                json.dumps(
+                    {
+                        "piece": "gaussian_head",
+                        "views": v,
+                        "target": args.target,
+                        "compile_s": head_compile_s(v, args.target),
+                    }
+                ),
+                flush=True,
+            )
         return
     if args.one:
         print(json.dumps(_one(args.one, args.target, args.grad)))
@@ -127,8 +159,13 @@ def main() -> None:
             lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
             row = json.loads(lines[-1]) if lines else {"piece": name, "error": done.stderr.strip().splitlines()[-1:]}
         except subprocess.TimeoutExpired:
-            row = {"piece": name, "grad": args.grad, "target": args.target,
-                   "compile_s": None, "not_compiled_within_s": args.limit}
+            row = {
+                "piece": name,
+                "grad": args.grad,
+                "target": args.target,
+                "compile_s": None,
+                "not_compiled_within_s": args.limit,
+            }
         row["wall_s"] = time.perf_counter() - t0
         rows.append(row)
         print(json.dumps(row), flush=True)

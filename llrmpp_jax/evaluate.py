@@ -40,8 +40,9 @@ from llrmpp_jax.tables import Column, format_table
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
-def predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
-                         key: KeyArray | None) -> tuple[Gaussians, jax.Array]:
+def predicted_gaussians(
+    params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None
+) -> tuple[Gaussians, jax.Array]:
     """The (pruned, colour mode with ``head.prune_ratio > 0``) Gaussians of a batched sample
     (leading axis B), and Long-LRM's ``gaussian_usage`` [B] measured before pruning: the
     reconstruction :func:`predict` renders (``key`` None: ``jax.random.key(0)``)."""
@@ -52,8 +53,7 @@ def predicted_gaussians(params: dict, cfg: ModelConfig, sample: dict,
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
-def render_sample(params: dict, cfg: ModelConfig, g: Gaussians, sample: dict,
-                   diagnose: bool) -> dict[str, jax.Array]:
+def render_sample(params: dict, cfg: ModelConfig, g: Gaussians, sample: dict, diagnose: bool) -> dict[str, jax.Array]:
     """``g`` rendered at the batched sample's targets (and, with ``diagnose``, its inputs):
     :func:`predict`'s outputs less ``gaussian_usage``."""
     h, w = sample["target_images"].shape[2:4]
@@ -67,8 +67,9 @@ def render_sample(params: dict, cfg: ModelConfig, g: Gaussians, sample: dict,
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "diagnose"))
-def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None = None,
-            diagnose: bool = False) -> dict[str, jax.Array]:
+def predict(
+    params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None = None, diagnose: bool = False
+) -> dict[str, jax.Array]:
     """Render the targets of one batched sample (leading axis B): ``{"rgb": [B, T, H, W, 3], ...}``,
     plus ``dropped`` and ``gaussian_usage`` ``[B]``.
 
@@ -82,15 +83,30 @@ def predict(params: dict, cfg: ModelConfig, sample: dict, key: KeyArray | None =
     return dict(render_sample(params, cfg, g, sample, diagnose), gaussian_usage=usage)
 
 
-def predict_refined(params: dict, cfg: ModelConfig, sample: dict, steps: int,
-                    rc: RefineConfig = RefineConfig(), vgg_params: VGGParams | None = None) -> dict[str, jax.Array]:
+def predict_refined(
+    params: dict,
+    cfg: ModelConfig,
+    sample: dict,
+    steps: int,
+    rc: RefineConfig = RefineConfig(),
+    vgg_params: VGGParams | None = None,
+) -> dict[str, jax.Array]:
     """:func:`predict` with ``diagnose``, the Gaussians first refined for ``steps`` updates
     against the sample's input views (:func:`llrmpp_jax.refine.refine`: the paper's
     post-prediction optimisation, Table 1's "Long-LRM_10"). ``gaussian_usage`` is that of the
     refined opacities."""
     g, _ = predicted_gaussians(params, cfg, sample, None)
-    g, _ = refine(params, cfg, g, sample["input_images"], sample["input_c2w"], sample["input_intrinsics"],
-                  steps=steps, rc=rc, vgg_params=vgg_params)
+    g, _ = refine(
+        params,
+        cfg,
+        g,
+        sample["input_images"],
+        sample["input_c2w"],
+        sample["input_intrinsics"],
+        steps=steps,
+        rc=rc,
+        vgg_params=vgg_params,
+    )
     out = render_sample(params, cfg, g, sample, True)
     return dict(out, gaussian_usage=gaussian_usage(g.opacities))
 
@@ -129,9 +145,12 @@ def _model_diagnostics(out: dict, sample: dict[str, np.ndarray]) -> dict[str, fl
     input-view re-render PSNR, Gaussian statistics and (with a depth head and depth targets)
     the depth metrics in metres, averaged over the targets with valid depth."""
     again = jnp.clip(out["input_rgb"][0], 0.0, 1.0)
-    extra = {"gaussian_usage": float(out["gaussian_usage"][0]), "splat_dropped": float(np.sum(out["dropped"])),
-             "input_psnr": float(jnp.mean(psnr(again, jnp.asarray(sample["input_images"])))),
-             **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")}}
+    extra = {
+        "gaussian_usage": float(out["gaussian_usage"][0]),
+        "splat_dropped": float(np.sum(out["dropped"])),
+        "input_psnr": float(jnp.mean(psnr(again, jnp.asarray(sample["input_images"])))),
+        **{k: float(out[k]) for k in ("mean_scale", "mean_opacity", "opaque_fraction")},
+    }
     if "depth" in out and "target_depth" in sample:
         metres = np.float32(1.0) / sample["scene_scale"]
         dm = depth_metrics(jnp.asarray(out["depth"][0, ..., 0] * metres), jnp.asarray(sample["target_depth"] * metres))
@@ -203,8 +222,13 @@ def disparity_picture(depth: Float[np.ndarray, "T H W"]) -> Float[np.ndarray, "T
     return np.repeat(out[..., None], 3, axis=-1)
 
 
-def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int = 2,
-                 input_renders: np.ndarray | None = None, depth: np.ndarray | None = None) -> np.ndarray:
+def picture_grid(
+    sample: dict[str, np.ndarray],
+    prediction: np.ndarray,
+    gap: int = 2,
+    input_renders: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
+) -> np.ndarray:
     """``[rows*H, cols*W, 3]`` picture: first row the inputs (then, given ``input_renders``
     ``[V, H, W, 3]``, the inputs re-rendered from the Gaussians); then one row per target:
     target, prediction, |error| (x4, clipped), nearest input view (the baseline) and, given
@@ -218,13 +242,14 @@ def picture_grid(sample: dict[str, np.ndarray], prediction: np.ndarray, gap: int
     shaded = None if depth is None else disparity_picture(np.asarray(depth))
     for t in range(targets.shape[0]):
         err = np.clip(np.abs(prediction[t] - targets[t]) * 4.0, 0.0, 1.0)
-        rows.append([targets[t], np.clip(prediction[t], 0, 1), err, nearest[t]]
-                    + ([] if shaded is None else [shaded[t]]))
+        rows.append(
+            [targets[t], np.clip(prediction[t], 0, 1), err, nearest[t]] + ([] if shaded is None else [shaded[t]])
+        )
     cols = max(len(r) for r in rows)
     grid = np.ones((len(rows) * (h + gap) - gap, cols * (w + gap) - gap, 3), np.float32)
     for i, r in enumerate(rows):
         for j, img in enumerate(r):
-            grid[i * (h + gap):i * (h + gap) + h, j * (w + gap):j * (w + gap) + w] = img
+            grid[i * (h + gap) : i * (h + gap) + h, j * (w + gap) : j * (w + gap) + w] = img
     return grid
 
 
@@ -235,13 +260,16 @@ def scene_picture(params: dict, cfg: ModelConfig, sample: dict[str, np.ndarray])
     from llrmpp_jax.gaussian_depth import splatted_depth
 
     out = predict(params, cfg, {k: v[None] for k, v in sample.items()}, diagnose=True)
-    g = reconstruct(params, cfg, sample["input_images"][None], sample["input_c2w"][None],
-                    sample["input_intrinsics"][None])
+    g = reconstruct(
+        params, cfg, sample["input_images"][None], sample["input_c2w"][None], sample["input_intrinsics"][None]
+    )
     h, w = sample["target_images"].shape[1:3]
-    depth, _ = splatted_depth(g, jnp.asarray(sample["target_c2w"][None]),
-                              jnp.asarray(sample["target_intrinsics"][None]), h, w, cfg)
-    return picture_grid(sample, np.asarray(out["rgb"][0]), input_renders=np.asarray(out["input_rgb"][0]),
-                        depth=np.asarray(depth[0]))
+    depth, _ = splatted_depth(
+        g, jnp.asarray(sample["target_c2w"][None]), jnp.asarray(sample["target_intrinsics"][None]), h, w, cfg
+    )
+    return picture_grid(
+        sample, np.asarray(out["rgb"][0]), input_renders=np.asarray(out["input_rgb"][0]), depth=np.asarray(depth[0])
+    )
 
 
 def summary_table(summary: dict[str, dict[str, float]]) -> str:
@@ -249,5 +277,7 @@ def summary_table(summary: dict[str, dict[str, float]]) -> str:
     per value of the first method (the model's), 4 decimals; ``-`` where a method has no
     such value (the baselines' diagnostics and depth metrics)."""
     keys = list(next(iter(summary.values())))
-    return format_table([{"method": method, **vals} for method, vals in summary.items()],
-                        [Column("method"), *(Column(k, digits=4) for k in keys)])
+    return format_table(
+        [{"method": method, **vals} for method, vals in summary.items()],
+        [Column("method"), *(Column(k, digits=4) for k in keys)],
+    )

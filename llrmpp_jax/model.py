@@ -55,7 +55,9 @@ def input_features(
 
 
 def append_target_rays(
-    canvas: Float[Array, "B T S Hc Wc F"], c2w: Float[ArrayLike, "B T 4 4"], intrinsics: Float[ArrayLike, "B T 4"],
+    canvas: Float[Array, "B T S Hc Wc F"],
+    c2w: Float[ArrayLike, "B T 4 4"],
+    intrinsics: Float[ArrayLike, "B T 4"],
     canvas_ratio: int,
 ) -> Float[Array, "B T S Hc Wc F+6"]:
     """The decoder's input: each canvas with its target's Plücker rays ``[o x d, d]`` through
@@ -86,8 +88,7 @@ class LongLRMPP(nn.Module):
         self.backbone = Backbone(cfg.backbone, cfg.patch_size)
         self.head = GaussianHead(cfg.head, cfg.token_stride)
         if cfg.head.mode == "feature":
-            self.partition = nn.Dense(cfg.decoder.partitions, use_bias=False,
-                                      kernel_init=nn.initializers.normal(0.02))
+            self.partition = nn.Dense(cfg.decoder.partitions, use_bias=False, kernel_init=nn.initializers.normal(0.02))
             self.decoder = TargetDecoder(cfg.decoder)
 
     def reconstruct(self, images, c2w, intrinsics) -> Gaussians:
@@ -96,8 +97,9 @@ class LongLRMPP(nn.Module):
         with jax.named_scope("gaussian_head"):
             return self.head(out.tokens, out.grid, c2w, intrinsics)
 
-    def render(self, gaussians: Gaussians, c2w, intrinsics, height: int, width: int,
-               outputs: tuple[str, ...]) -> RenderOutput:
+    def render(
+        self, gaussians: Gaussians, c2w, intrinsics, height: int, width: int, outputs: tuple[str, ...]
+    ) -> RenderOutput:
         cfg = self.cfg
         per_target = lambda f: jax.vmap(jax.vmap(f, (None, 0, 0)), (0, 0, 0))  # noqa: E731  over B, T
         if cfg.head.mode == "color":
@@ -106,9 +108,20 @@ class LongLRMPP(nn.Module):
             bg = jnp.asarray(cfg.background, jnp.float32)
 
             def one(g, cam, k):
-                out = splat.rasterize(g.means, g.quats, g.scales, g.opacities,
-                                      g.features.reshape(g.features.shape[0], -1, 3), cam, k, height, width,
-                                      cfg.splat, render_mode="RGB+ED", background=bg)
+                out = splat.rasterize(
+                    g.means,
+                    g.quats,
+                    g.scales,
+                    g.opacities,
+                    g.features.reshape(g.features.shape[0], -1, 3),
+                    cam,
+                    k,
+                    height,
+                    width,
+                    cfg.splat,
+                    render_mode="RGB+ED",
+                    background=bg,
+                )
                 return {"rgb": out.features, "depth": out.depth[..., None]}, out.stats.num_dropped
 
             images, dropped = per_target(one)(gaussians, c2w, intrinsics)
@@ -125,7 +138,8 @@ class LongLRMPP(nn.Module):
             return out.features, out.stats.num_dropped
 
         canvas, dropped = jax.vmap(jax.vmap(one, (None, None, 0, 0)), (0, 0, 0, 0))(
-            gaussians, copies, c2w, intrinsics)  # [B, T, S, hc, wc, F]
+            gaussians, copies, c2w, intrinsics
+        )  # [B, T, S, hc, wc, F]
         b, t, s = canvas.shape[:3]
         canvas = append_target_rays(canvas, c2w, intrinsics, r)
         with jax.named_scope("decoder"):
@@ -139,14 +153,14 @@ class LongLRMPP(nn.Module):
             return gaussians.opacities
         return jax.vmap(partition_opacities)(gaussians.opacities, self.partition(gaussians.features))
 
-    def __call__(self, images, c2w, intrinsics, target_c2w, target_intrinsics,
-                 outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
+    def __call__(
+        self, images, c2w, intrinsics, target_c2w, target_intrinsics, outputs: tuple[str, ...] = ("rgb",)
+    ) -> RenderOutput:
         g = self.reconstruct(images, c2w, intrinsics)
         return self.render(g, target_c2w, target_intrinsics, images.shape[2], images.shape[3], outputs)
 
 
-def init_params(key: KeyArray, cfg: ModelConfig, num_views: int, height: int, width: int,
-                num_targets: int = 1) -> dict:
+def init_params(key: KeyArray, cfg: ModelConfig, num_views: int, height: int, width: int, num_targets: int = 1) -> dict:
     """Parameters for the model (every output head of ``cfg.outputs`` included).
 
     Runs one jitted forward pass on a dummy scene (Flax initialises lazily); wrap the call
@@ -157,35 +171,57 @@ def init_params(key: KeyArray, cfg: ModelConfig, num_views: int, height: int, wi
     intr = jnp.broadcast_to(jnp.array([width, width, width / 2, height / 2], jnp.float32), (1, num_views, 4))
 
     def init(k):
-        return LongLRMPP(cfg).init(k, images, eye, intr, eye[:, :num_targets], intr[:, :num_targets],
-                                   cfg.outputs)["params"]
+        return LongLRMPP(cfg).init(k, images, eye, intr, eye[:, :num_targets], intr[:, :num_targets], cfg.outputs)[
+            "params"
+        ]
 
     return jax.jit(init)(key)
 
 
-def reconstruct(params: dict, cfg: ModelConfig, images: Float[ArrayLike, "B V H W 3"],
-                c2w: Float[ArrayLike, "B V 4 4"], intrinsics: Float[ArrayLike, "B V 4"]) -> Gaussians:
+def reconstruct(
+    params: dict,
+    cfg: ModelConfig,
+    images: Float[ArrayLike, "B V H W 3"],
+    c2w: Float[ArrayLike, "B V 4 4"],
+    intrinsics: Float[ArrayLike, "B V 4"],
+) -> Gaussians:
     """Images in [0, 1] + input cameras -> Gaussians (``N = V * h * w * K`` per scene)."""
     _check_views(images, c2w, intrinsics)
     return LongLRMPP(cfg).apply({"params": params}, images, c2w, intrinsics, method="reconstruct")
 
 
-def render(params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B T 4 4"],
-           intrinsics: Float[ArrayLike, "B T 4"], height: int, width: int,
-           outputs: tuple[str, ...] = ("rgb",)) -> RenderOutput:
+def render(
+    params: dict,
+    cfg: ModelConfig,
+    gaussians: Gaussians,
+    c2w: Float[ArrayLike, "B T 4 4"],
+    intrinsics: Float[ArrayLike, "B T 4"],
+    height: int,
+    width: int,
+    outputs: tuple[str, ...] = ("rgb",),
+) -> RenderOutput:
     """Render ``outputs`` ("rgb" and/or "depth") at T target cameras of size ``height x width``."""
     b = gaussians.means.shape[0]
     if c2w.ndim != 4 or c2w.shape[0] != b or c2w.shape[2:] != (4, 4):
         raise ValueError(f"target c2w must be [B={b}, T, 4, 4], got {c2w.shape}")
     if intrinsics.shape != (*c2w.shape[:2], 4):
         raise ValueError(f"target intrinsics must be {(*c2w.shape[:2], 4)}, got {intrinsics.shape}")
-    return LongLRMPP(cfg).apply({"params": params}, gaussians, c2w, intrinsics, height, width,
-                                tuple(outputs), method="render")
+    return LongLRMPP(cfg).apply(
+        {"params": params}, gaussians, c2w, intrinsics, height, width, tuple(outputs), method="render"
+    )
 
 
 def fit_capacity(
-    params: dict, cfg: ModelConfig, gaussians: Gaussians, c2w: Float[ArrayLike, "B T 4 4"],
-    intrinsics: Float[ArrayLike, "B T 4"], height: int, width: int, *, headroom: float = 1.0, minimum: int = 0,
+    params: dict,
+    cfg: ModelConfig,
+    gaussians: Gaussians,
+    c2w: Float[ArrayLike, "B T 4 4"],
+    intrinsics: Float[ArrayLike, "B T 4"],
+    height: int,
+    width: int,
+    *,
+    headroom: float = 1.0,
+    minimum: int = 0,
 ) -> ModelConfig:
     """``cfg`` with its splat capacity sized for :func:`render` of ``gaussians`` at these
     ``height x width`` cameras (:func:`llrmpp_jax.splat.fit_capacity` of the splats the render
@@ -197,9 +233,19 @@ def fit_capacity(
         return cfg
     r = cfg.decoder.canvas_ratio if cfg.head.mode == "feature" else 1
     opacities = LongLRMPP(cfg).apply({"params": params}, gaussians, method="splat_opacities")
-    fitted = splat.fit_capacity(gaussians.means, gaussians.quats, gaussians.scales, opacities, c2w,
-                                jnp.asarray(intrinsics) / float(r), height // r, width // r, cfg.splat,
-                                headroom=headroom, minimum=minimum)
+    fitted = splat.fit_capacity(
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        opacities,
+        c2w,
+        jnp.asarray(intrinsics) / float(r),
+        height // r,
+        width // r,
+        cfg.splat,
+        headroom=headroom,
+        minimum=minimum,
+    )
     return dataclasses.replace(cfg, splat=fitted)
 
 
@@ -213,8 +259,10 @@ def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Fl
 
 def flatten_params(tree) -> dict[str, object]:
     """``{'a/b/c': leaf}``: parameter paths joined by ``/``."""
-    return {"/".join(str(getattr(k, "key", k)) for k in path): leaf
-            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+    return {
+        "/".join(str(getattr(k, "key", k)) for k in path): leaf
+        for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]
+    }
 
 
 def expected_shapes(cfg: ModelConfig) -> dict:
@@ -234,5 +282,7 @@ def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
         if w != g:
             w_txt = "absent" if w is None else str(w)
             g_txt = "absent" if g is None else str(g)
-            raise UserError(f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
-                             f"model {w_txt}, checkpoint {g_txt} (another architecture? pass the matching --config)")
+            raise UserError(
+                f"{source}: parameters do not fit the model config: first mismatch {path!r}: "
+                f"model {w_txt}, checkpoint {g_txt} (another architecture? pass the matching --config)"
+            )

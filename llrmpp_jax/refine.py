@@ -135,8 +135,12 @@ class RefineInfo(NamedTuple):
 def to_unconstrained(gaussians: Gaussians, cfg: ModelConfig) -> dict[str, Array]:
     """The optimised pytree (module docstring) of render-ready Gaussians."""
     o = jnp.clip(gaussians.opacities, OPACITY_LOGIT_EPS, 1.0 - OPACITY_LOGIT_EPS)
-    y = {"means": gaussians.means, "log_scales": jnp.log(gaussians.scales), "quats": gaussians.quats,
-         "opacity_logits": jnp.log(o) - jnp.log1p(-o)}
+    y = {
+        "means": gaussians.means,
+        "log_scales": jnp.log(gaussians.scales),
+        "quats": gaussians.quats,
+        "opacity_logits": jnp.log(o) - jnp.log1p(-o),
+    }
     if cfg.head.mode == "color":
         y["sh_dc"], y["sh_rest"] = gaussians.features[..., :3], gaussians.features[..., 3:]
     else:
@@ -149,15 +153,26 @@ def from_unconstrained(y: dict[str, Array]) -> Gaussians:
     q = y["quats"]
     q = q * jax.lax.rsqrt(jnp.maximum(jnp.sum(jnp.square(q), axis=-1, keepdims=True), 1e-24))
     features = jnp.concatenate([y["sh_dc"], y["sh_rest"]], axis=-1) if "sh_dc" in y else y["features"]
-    return Gaussians(means=y["means"], quats=q, scales=jnp.exp(y["log_scales"]),
-                     opacities=jax.nn.sigmoid(y["opacity_logits"]), features=features)
+    return Gaussians(
+        means=y["means"],
+        quats=q,
+        scales=jnp.exp(y["log_scales"]),
+        opacities=jax.nn.sigmoid(y["opacity_logits"]),
+        features=features,
+    )
 
 
 def _optimizer(rc: RefineConfig) -> optax.GradientTransformation:
     """One Adam per field; ``rc.rate_scale`` must be resolved (:func:`refine` does)."""
-    lrs = {"means": rc.lr_means, "log_scales": rc.lr_log_scales, "quats": rc.lr_quats,
-           "opacity_logits": rc.lr_opacity_logits, "features": rc.lr_features, "sh_dc": rc.lr_features,
-           "sh_rest": rc.lr_features * rc.sh_rest_lr_factor}
+    lrs = {
+        "means": rc.lr_means,
+        "log_scales": rc.lr_log_scales,
+        "quats": rc.lr_quats,
+        "opacity_logits": rc.lr_opacity_logits,
+        "features": rc.lr_features,
+        "sh_dc": rc.lr_features,
+        "sh_rest": rc.lr_features * rc.sh_rest_lr_factor,
+    }
     tx = optax.multi_transform({k: optax.adam(v * rc.rate_scale) for k, v in lrs.items()}, lambda y: {k: k for k in y})
 
     def update(updates, state, params=None, **extra):
@@ -182,8 +197,12 @@ def objective(cfg: ModelConfig, rc: RefineConfig):
         params, images, c2w, intrinsics, vgg = args
         h, w = images.shape[2:4]
         out = render(params, cfg, from_unconstrained(y), c2w, intrinsics, h, w, ("rgb",))
-        loss, aux = rgb_loss(out.images["rgb"].reshape(-1, h, w, 3), images.reshape(-1, h, w, 3), vgg,
-                             perceptual_weight=rc.perceptual_weight)
+        loss, aux = rgb_loss(
+            out.images["rgb"].reshape(-1, h, w, 3),
+            images.reshape(-1, h, w, 3),
+            vgg,
+            perceptual_weight=rc.perceptual_weight,
+        )
         return loss, {"psnr": aux["psnr"], "dropped": jnp.max(out.dropped)}
 
     return fn
@@ -293,9 +312,11 @@ def refine(
             times.append(time.perf_counter() - t0)
             taken += 1
             if i == 0 and progress:
-                bar.write(f"refine: {steps} updates of {rc.views_per_step}/{num_views} views at {h}x{w}, "
-                          f"~{times[0]:.1f} s each: about {steps * times[0]:.0f} s "
-                          f"(compiled in {compile_s:.0f} s)")
+                bar.write(
+                    f"refine: {steps} updates of {rc.views_per_step}/{num_views} views at {h}x{w}, "
+                    f"~{times[0]:.1f} s each: about {steps * times[0]:.0f} s "
+                    f"(compiled in {compile_s:.0f} s)"
+                )
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.5f}", psnr=f"{float(aux['psnr']):.2f}")
             if bool(done):
@@ -304,9 +325,15 @@ def refine(
     final, aux = _loss(y, first_views, cfg, rc)
     losses.append(float(final))
     dropped = max(dropped, int(aux["dropped"]))
-    info = RefineInfo(np.asarray(losses, np.float32), taken, dropped, rc.views_per_step,
-                      int(cfg.splat.max_intersections), compile_s,
-                      float(np.median(times[1:])) if len(times) > 1 else (times[0] if times else 0.0))
+    info = RefineInfo(
+        np.asarray(losses, np.float32),
+        taken,
+        dropped,
+        rc.views_per_step,
+        int(cfg.splat.max_intersections),
+        compile_s,
+        float(np.median(times[1:])) if len(times) > 1 else (times[0] if times else 0.0),
+    )
     return from_unconstrained(y), info
 
 
@@ -332,7 +359,14 @@ def heldout_psnr(
     h, w = target_images.shape[2:4]
     values = []
     for t in range(target_images.shape[1]):
-        rgb = _render_rgb(params, cfg, gaussians, jnp.asarray(target_c2w)[:, t:t + 1],
-                          jnp.asarray(target_intrinsics)[:, t:t + 1], h, w)
-        values.append(psnr(rgb, target_images[:, t:t + 1]))
+        rgb = _render_rgb(
+            params,
+            cfg,
+            gaussians,
+            jnp.asarray(target_c2w)[:, t : t + 1],
+            jnp.asarray(target_intrinsics)[:, t : t + 1],
+            h,
+            w,
+        )
+        values.append(psnr(rgb, target_images[:, t : t + 1]))
     return float(jnp.mean(jnp.concatenate(values, axis=1)))

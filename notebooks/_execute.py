@@ -40,15 +40,23 @@ def execute(name: str, scale: str, timeout_s: int = 3 * 3600) -> float:
     os.environ["LLRMPP_NOTEBOOK_REVISION"] = checkout_revision()
     os.environ.setdefault("MPLBACKEND", "module://matplotlib_inline.backend_inline")
     # The notebooks' tables and figures go to the repository's results (cited by notebooks/README.md).
-    os.environ.setdefault("LLRMPP_NOTEBOOK_OUT", os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                                              "experiments", "results", "ablations"))
+    os.environ.setdefault(
+        "LLRMPP_NOTEBOOK_OUT",
+        os.path.join(
+            os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "results", "ablations"
+        ),
+    )
     os.environ["LLRMPP_NOTEBOOK_ECHO"] = "1"  # progress lines also to this terminal (llrmpp_jax.ablation.progress)
     t0 = time.perf_counter()
     # Without fd capture the kernel's own stderr stays this terminal's, and the progress
     # echo does not land in the notebook a second time.
-    nbclient.NotebookClient(nb, timeout=timeout_s, kernel_name="python3",
-                            extra_arguments=["--IPKernelApp.capture_fd_output=False"],
-                            resources={"metadata": {"path": HERE}}).execute()
+    nbclient.NotebookClient(
+        nb,
+        timeout=timeout_s,
+        kernel_name="python3",
+        extra_arguments=["--IPKernelApp.capture_fd_output=False"],
+        resources={"metadata": {"path": HERE}},
+    ).execute()
     nbformat.write(nb, os.path.join(HERE, name + ".ipynb"))
     return time.perf_counter() - t0
 

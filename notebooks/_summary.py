@@ -33,7 +33,9 @@ CENTRAL = [
     ("table5_decoder", A.Ordering("LLGGG > GGG", 4, 1)),
 ]
 
-RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "results", "ablations")
+RESULTS = os.path.join(
+    os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments", "results", "ablations"
+)
 
 
 def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
@@ -50,15 +52,21 @@ def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
                 runs.append((name, json.load(f)))
         else:
             missing.append(name)
+
     def seeds(r: dict) -> str:
         most = max((c.get("seeds", r["seeds"]) for c in r["orderings"]), default=r["seeds"])
         return f"{r['seeds']} seeds" if most == r["seeds"] else f"{r['seeds']} to {most} seeds (sequential)"
 
-    lines = [f"- `{name}`: {r['wall_s'] / 60:.1f} min, {seeds(r)} x {r['steps']} steps, commit {r['commit']}"
-             for name, r in runs]
+    lines = [
+        f"- `{name}`: {r['wall_s'] / 60:.1f} min, {seeds(r)} x {r['steps']} steps, commit {r['commit']}"
+        for name, r in runs
+    ]
     lines += [f"- `{name}`: not executed at the {scale} scale" for name in missing]
-    lines += ["", "| table | paper ordering | metric | paper diff | our diff (± interval) | level | seeds | verdict |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| table | paper ordering | metric | paper diff | our diff (± interval) | level | seeds | verdict |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for name, r in runs:
         number = re.match(r"table(\d+)", name).group(1)
         for c in r["orderings"]:
@@ -66,8 +74,10 @@ def summary(scale: str = "cpu", folder: str = RESULTS) -> str:
             level = f"{100 * c.get('confidence', 0.95):g}%"
             count = c.get("seeds", r["seeds"])
             stopped = f", stopped by {c['stopped']}" if "stopped" in c else ""
-            lines.append(f"| {number} | {c['ordering']} | {c['metric']} | {paper} | {ours} | {level} | {count} | "
-                         f"{c['verdict']}{stopped} |")
+            lines.append(
+                f"| {number} | {c['ordering']} | {c['metric']} | {paper} | {ours} | {level} | {count} | "
+                f"{c['verdict']}{stopped} |"
+            )
     return "\n".join(lines + ["", central(dict(runs))])
 
 
@@ -76,9 +86,11 @@ def central(runs: dict[str, dict]) -> str:
     rows ran, its interval at the table's level, the verdict, the paired standard deviation
     and the seeds at which that spread resolves the paper's difference and ours (median
     case; "-" where the table has not run or a row has fewer than 2 seeds)."""
-    lines = ["| table | central claim | paper diff | our diff (± interval) | level | seeds | verdict | "
-             "paired std | seeds to resolve the paper's diff | seeds to resolve ours |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| table | central claim | paper diff | our diff (± interval) | level | seeds | verdict | "
+        "paired std | seeds to resolve the paper's diff | seeds to resolve ours |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, ordering in CENTRAL:
         number = re.match(r"table(\d+)", name).group(1)
         r = runs.get(name)
@@ -92,11 +104,14 @@ def central(runs: dict[str, dict]) -> str:
             lines.append(f"| {number} | {ordering.text} | {paper} | {ours} | | | {c['verdict']} | | | |")
             continue
         sd = float(np.std(c["diff_seeds"], ddof=1))
-        need = [A.seeds_to_resolve(sd, e, level, cap=1000) if e is not None else None
-                for e in (c["paper_diff"], c["diff"])]
+        need = [
+            A.seeds_to_resolve(sd, e, level, cap=1000) if e is not None else None for e in (c["paper_diff"], c["diff"])
+        ]
         need_cells = [str(n) if n is not None else "over 1,000" for n in need]
-        lines.append(f"| {number} | {ordering.text} | {paper} | {ours} | {100 * level:g}% | {c['seeds']} | "
-                     f"{c['verdict']} | {sd:.3f} | {need_cells[0]} | {need_cells[1]} |")
+        lines.append(
+            f"| {number} | {ordering.text} | {paper} | {ours} | {100 * level:g}% | {c['seeds']} | "
+            f"{c['verdict']} | {sd:.3f} | {need_cells[0]} | {need_cells[1]} |"
+        )
     return "\n".join(lines)
 
 

@@ -35,8 +35,7 @@ def feature_splat(k: int, f: int, canvas: float):
     return lambda base: replace(
         base,
         head=replace(base.head, gaussians_per_token=k, feature_dim=f),
-        decoder=replace(base.decoder, blocks="LLG", dim=scale.width(256), canvas_ratio=round(1 / canvas),
-                          partitions=1),
+        decoder=replace(base.decoder, blocks="LLG", dim=scale.width(256), canvas_ratio=round(1 / canvas), partitions=1),
     )
 
 
@@ -73,12 +72,22 @@ results = run.results
 # untrained chosen row and the two baselines on the same scenes.
 
 # %%
-print(A.format_run(run, ["K", "F", "canvas"], [
-    A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
-    A.Column("ssim", "SSIM", 3), A.Column("lpips", "LPIPS", 3),
-    A.Column("gaussians", "Gaussians"), A.Column("params", "params"),
-    A.Column("recon_s", "recon ms", 1, 1000.0), A.Column("render_s", "render ms/frame", 1, 1000.0),
-]))
+print(
+    A.format_run(
+        run,
+        ["K", "F", "canvas"],
+        [
+            A.Column("psnr", "PSNR"),
+            A.Column("paper:PSNR", "paper PSNR"),
+            A.Column("ssim", "SSIM", 3),
+            A.Column("lpips", "LPIPS", 3),
+            A.Column("gaussians", "Gaussians"),
+            A.Column("params", "params"),
+            A.Column("recon_s", "recon ms", 1, 1000.0),
+            A.Column("render_s", "render ms/frame", 1, 1000.0),
+        ],
+    )
+)
 
 # %% [markdown]
 # The paper's orderings: our paired difference over seeds (> 0: the paper's ordering holds)

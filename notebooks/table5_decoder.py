@@ -41,18 +41,26 @@ def colour(base: C.ModelConfig) -> C.ModelConfig:
 
 
 def decoder(blocks: str, dim: int, absolute_positions: bool = False):
-    return lambda base: replace(base, decoder=replace(base.decoder, blocks=blocks, dim=scale.width(dim),
-                                                          absolute_positions=absolute_positions, partitions=1))
+    return lambda base: replace(
+        base,
+        decoder=replace(
+            base.decoder, blocks=blocks, dim=scale.width(dim), absolute_positions=absolute_positions, partitions=1
+        ),
+    )
 
 
 VARIANTS = [
     A.Variant({"splat": "Color", "blocks": "/", "dim": "/"}, colour, {"PSNR": "27.32"}),
-    A.Variant({"splat": "Feature", "blocks": "GGG", "dim": "256"}, decoder("GGG", 256, absolute_positions=True),
-              {"PSNR": "27.78"}),
+    A.Variant(
+        {"splat": "Feature", "blocks": "GGG", "dim": "256"},
+        decoder("GGG", 256, absolute_positions=True),
+        {"PSNR": "27.78"},
+    ),
     A.Variant({"splat": "Feature", "blocks": "LLL", "dim": "256"}, decoder("LLL", 256), {"PSNR": "28.23"}),
     A.Variant({"splat": "Feature", "blocks": "LLG", "dim": "256"}, decoder("LLG", 256), {"PSNR": "28.37"}),
-    A.Variant({"splat": "Feature", "blocks": "LLGGG", "dim": "256"}, decoder("LLGGG", 256), {"PSNR": "28.74"},
-              chosen=True),
+    A.Variant(
+        {"splat": "Feature", "blocks": "LLGGG", "dim": "256"}, decoder("LLGGG", 256), {"PSNR": "28.74"}, chosen=True
+    ),
     A.Variant({"splat": "Feature", "blocks": "LLGGG", "dim": "768"}, decoder("LLGGG", 768), {"PSNR": "29.09"}),
 ]
 # The paper's claims, as (better row, worse row) pairs of the list above.
@@ -74,12 +82,23 @@ results = run.results
 # decode per target frame), then the untrained chosen row and the two baselines.
 
 # %%
-print(A.format_run(run, ["splat", "blocks", "dim"], [
-    A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
-    A.Column("ssim", "SSIM", 3), A.Column("lpips", "LPIPS", 3),
-    A.Column("decoder_dim", "E here"), A.Column("decoder_params", "decoder params"), A.Column("params", "params"),
-    A.Column("recon_s", "recon ms", 1, 1000.0), A.Column("render_s", "render ms/frame", 1, 1000.0),
-]))
+print(
+    A.format_run(
+        run,
+        ["splat", "blocks", "dim"],
+        [
+            A.Column("psnr", "PSNR"),
+            A.Column("paper:PSNR", "paper PSNR"),
+            A.Column("ssim", "SSIM", 3),
+            A.Column("lpips", "LPIPS", 3),
+            A.Column("decoder_dim", "E here"),
+            A.Column("decoder_params", "decoder params"),
+            A.Column("params", "params"),
+            A.Column("recon_s", "recon ms", 1, 1000.0),
+            A.Column("render_s", "render ms/frame", 1, 1000.0),
+        ],
+    )
+)
 
 # %% [markdown]
 # The paper's orderings: our paired difference over seeds (> 0: the paper's ordering holds)
@@ -91,5 +110,6 @@ print(A.format_run(run, ["splat", "blocks", "dim"], [
 # %%
 comparisons = run.comparisons
 print(A.format_orderings(comparisons))
-A.save("table5_decoder", run, comparisons,
-       A.plot(run, ["splat", "blocks", "dim"], title="Table 5: splat type and decoder"))
+A.save(
+    "table5_decoder", run, comparisons, A.plot(run, ["splat", "blocks", "dim"], title="Table 5: splat type and decoder")
+)

@@ -31,19 +31,23 @@ print(f"commit {A.revision()} | {A.machine()}")
 
 # %%
 def partitions(s: int):
-    return lambda base: replace(
-        base, decoder=replace(base.decoder, blocks="LLGGG", dim=scale.width(256), partitions=s))
+    return lambda base: replace(base, decoder=replace(base.decoder, blocks="LLGGG", dim=scale.width(256), partitions=s))
 
 
 PAPER_KEYS = ("PSNR", "SSIM", "LPIPS", "PSNR 540p", "SSIM 540p", "LPIPS 540p", "recon 540p", "FPS 540p")
 VARIANTS = [
-    A.Variant({"S": "1"}, partitions(1),
-              dict(zip(PAPER_KEYS, ("28.74", "0.906", "0.093", "26.08", "0.836", "0.191", "4.7sec", "18")))),
-    A.Variant({"S": "2"}, partitions(2),
-              dict(zip(PAPER_KEYS, ("29.73", "0.919", "0.084", "26.43", "0.846", "0.180", "4.7sec", "14"))),
-              chosen=True),
-    A.Variant({"S": "3"}, partitions(3),
-              dict(zip(PAPER_KEYS, ("29.82", "0.922", "0.074", "-", "-", "-", "-", "-")))),
+    A.Variant(
+        {"S": "1"},
+        partitions(1),
+        dict(zip(PAPER_KEYS, ("28.74", "0.906", "0.093", "26.08", "0.836", "0.191", "4.7sec", "18"))),
+    ),
+    A.Variant(
+        {"S": "2"},
+        partitions(2),
+        dict(zip(PAPER_KEYS, ("29.73", "0.919", "0.084", "26.43", "0.846", "0.180", "4.7sec", "14"))),
+        chosen=True,
+    ),
+    A.Variant({"S": "3"}, partitions(3), dict(zip(PAPER_KEYS, ("29.82", "0.922", "0.074", "-", "-", "-", "-", "-")))),
 ]
 # The paper's claims, as (better row, worse row) pairs of the list above.
 ORDERINGS = [
@@ -63,14 +67,25 @@ results = run.results
 # 32-view 960x540 A100 timings.
 
 # %%
-print(A.format_run(run, ["S"], [
-    A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
-    A.Column("ssim", "SSIM", 3), A.Column("paper:SSIM", "paper SSIM"),
-    A.Column("lpips", "LPIPS", 3), A.Column("paper:LPIPS", "paper LPIPS"),
-    A.Column("params", "params"),
-    A.Column("recon_s", "recon ms", 1, 1000.0), A.Column("paper:recon 540p", "paper recon (540p)"),
-    A.Column("render_s", "render ms/frame", 1, 1000.0), A.Column("paper:FPS 540p", "paper FPS (540p)"),
-]))
+print(
+    A.format_run(
+        run,
+        ["S"],
+        [
+            A.Column("psnr", "PSNR"),
+            A.Column("paper:PSNR", "paper PSNR"),
+            A.Column("ssim", "SSIM", 3),
+            A.Column("paper:SSIM", "paper SSIM"),
+            A.Column("lpips", "LPIPS", 3),
+            A.Column("paper:LPIPS", "paper LPIPS"),
+            A.Column("params", "params"),
+            A.Column("recon_s", "recon ms", 1, 1000.0),
+            A.Column("paper:recon 540p", "paper recon (540p)"),
+            A.Column("render_s", "render ms/frame", 1, 1000.0),
+            A.Column("paper:FPS 540p", "paper FPS (540p)"),
+        ],
+    )
+)
 
 # %% [markdown]
 # The paper's orderings: our paired difference over seeds (> 0: the paper's ordering holds)

@@ -55,14 +55,25 @@ def colour(base: C.ModelConfig) -> C.ModelConfig:
 
 PAPER_KEYS = ("PSNR", "SSIM", "LPIPS", "Abs Diff", "delta<1.25")
 VARIANTS = [
-    A.Variant({"method": "Long-LRM 2DGS"}, None, dict(zip(PAPER_KEYS, ("23.89", "0.744", "0.344", "0.227", "0.821"))),
-              note="no 2D Gaussian splatter in this project"),
-    A.Variant({"method": "Long-LRM 3DGS"}, colour,
-              dict(zip(PAPER_KEYS, ("24.30", "0.759", "0.321", "0.243", "0.818")))),
-    A.Variant({"method": "Ours w/o aux losses"}, lambda base: base,
-              dict(zip(PAPER_KEYS, ("28.28", "0.835", "0.226", "0.157", "0.911"))), grad_weight=0.0, normal_weight=0.0),
-    A.Variant({"method": "Ours"}, lambda base: base,
-              dict(zip(PAPER_KEYS, ("27.86", "0.826", "0.234", "0.135", "0.916")))),
+    A.Variant(
+        {"method": "Long-LRM 2DGS"},
+        None,
+        dict(zip(PAPER_KEYS, ("23.89", "0.744", "0.344", "0.227", "0.821"))),
+        note="no 2D Gaussian splatter in this project",
+    ),
+    A.Variant(
+        {"method": "Long-LRM 3DGS"}, colour, dict(zip(PAPER_KEYS, ("24.30", "0.759", "0.321", "0.243", "0.818")))
+    ),
+    A.Variant(
+        {"method": "Ours w/o aux losses"},
+        lambda base: base,
+        dict(zip(PAPER_KEYS, ("28.28", "0.835", "0.226", "0.157", "0.911"))),
+        grad_weight=0.0,
+        normal_weight=0.0,
+    ),
+    A.Variant(
+        {"method": "Ours"}, lambda base: base, dict(zip(PAPER_KEYS, ("27.86", "0.826", "0.234", "0.135", "0.916")))
+    ),
 ]
 # The paper's claims, as (better row, worse row) pairs of the list above.
 ORDERINGS = [
@@ -82,14 +93,26 @@ results = run.results
 # own units) next to the paper's numbers (ScanNetv2, metres).
 
 # %%
-print(A.format_run(run, ["method"], [
-    A.Column("psnr", "PSNR"), A.Column("paper:PSNR", "paper PSNR"),
-    A.Column("ssim", "SSIM", 3), A.Column("paper:SSIM", "paper SSIM"),
-    A.Column("lpips", "LPIPS", 3), A.Column("paper:LPIPS", "paper LPIPS"),
-    A.Column("abs_diff", "Abs Diff", 3), A.Column("paper:Abs Diff", "paper Abs Diff"),
-    A.Column("delta_1_25", "delta<1.25", 3), A.Column("paper:delta<1.25", "paper delta<1.25"),
-    A.Column("params", "params"), A.Column("render_s", "render ms/frame", 1, 1000.0),
-]))
+print(
+    A.format_run(
+        run,
+        ["method"],
+        [
+            A.Column("psnr", "PSNR"),
+            A.Column("paper:PSNR", "paper PSNR"),
+            A.Column("ssim", "SSIM", 3),
+            A.Column("paper:SSIM", "paper SSIM"),
+            A.Column("lpips", "LPIPS", 3),
+            A.Column("paper:LPIPS", "paper LPIPS"),
+            A.Column("abs_diff", "Abs Diff", 3),
+            A.Column("paper:Abs Diff", "paper Abs Diff"),
+            A.Column("delta_1_25", "delta<1.25", 3),
+            A.Column("paper:delta<1.25", "paper delta<1.25"),
+            A.Column("params", "params"),
+            A.Column("render_s", "render ms/frame", 1, 1000.0),
+        ],
+    )
+)
 
 # %% [markdown]
 # The paper's orderings: our paired difference over seeds (> 0: the paper's ordering holds)
@@ -101,5 +124,6 @@ print(A.format_run(run, ["method"], [
 # %%
 comparisons = run.comparisons
 print(A.format_orderings(comparisons))
-A.save("table7_depth_losses", run, comparisons,
-       A.plot(run, ["method"], metric="abs_diff", title="Table 7: depth Abs Diff"))
+A.save(
+    "table7_depth_losses", run, comparisons, A.plot(run, ["method"], metric="abs_diff", title="Table 7: depth Abs Diff")
+)

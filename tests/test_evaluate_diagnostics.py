@@ -110,8 +110,17 @@ def test_refined_rows_with_the_perceptual_term():
     refined = rows[1]
     b = {k: x[None] for k, x in sample.items()}
     g = reconstruct(params, cfg, b["input_images"], b["input_c2w"], b["input_intrinsics"])
-    g, info = refine(params, cfg, g, b["input_images"], b["input_c2w"], b["input_intrinsics"], steps=3, rc=rc,
-                     vgg_params=lpips_params["vgg"])
+    g, info = refine(
+        params,
+        cfg,
+        g,
+        b["input_images"],
+        b["input_c2w"],
+        b["input_intrinsics"],
+        steps=3,
+        rc=rc,
+        vgg_params=lpips_params["vgg"],
+    )
     assert info.losses[-1] < info.losses[0]
     targets = render(params, cfg, g, b["target_c2w"], b["target_intrinsics"], h, w).images["rgb"]
     np.testing.assert_allclose(refined["psnr"], _psnr(targets[0], sample["target_images"]), rtol=1e-4)

@@ -102,8 +102,9 @@ def test_rows_match_paper_table(name, monkeypatch, capsys, tmp_path):
     assert "|" in capsys.readouterr().out  # the (empty) table's header was printed
     for o in g["ORDERINGS"]:  # each claim names two rows, in the paper's direction
         a, b = variants[o.better].paper, variants[o.worse].paper
-        key = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "abs_diff": "Abs Diff",
-               "delta_1_25": "delta<1.25"}[o.metric]
+        key = {"psnr": "PSNR", "ssim": "SSIM", "lpips": "LPIPS", "abs_diff": "Abs Diff", "delta_1_25": "delta<1.25"}[
+            o.metric
+        ]
         higher = o.metric in ("psnr", "ssim", "delta_1_25")
         assert (float(a[key]) > float(b[key])) == higher, o.text
 
@@ -142,8 +143,9 @@ def _run_notebook(name: str, tmp_path, rows: str, **env: str) -> tuple[subproces
         XLA_FLAGS=QUICK_XLA_FLAGS,
         **env,
     )
-    proc = subprocess.run([sys.executable, "-c", runner], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", runner], cwd=ROOT, env=env, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     return proc, json.loads(out.read_text())
 
@@ -159,16 +161,17 @@ def test_smoke_run(name, tmp_path):
     assert [r["row"] for r in results] == wanted
     lines = proc.stdout.splitlines()
     first = next(i for i, ln in enumerate(lines) if ln.startswith("| "))
-    table = [ln for ln in lines[first:first + 3 + len(wanted) + 3] if ln.startswith("| ")][1:]  # minus the header
-    table_lines, reference_lines = table[:len(wanted)], table[len(wanted):]
+    table = [ln for ln in lines[first : first + 3 + len(wanted) + 3] if ln.startswith("| ")][1:]  # minus the header
+    table_lines, reference_lines = table[: len(wanted)], table[len(wanted) :]
     runnable = any(r["status"] == "ok" for r in results)
     # the untrained chosen row and the two baselines follow the rows
     assert [ln.split("|")[2].strip() for ln in reference_lines] == (
-        ["untrained", "mean colour", "nearest view"] if runnable else [])
+        ["untrained", "mean colour", "nearest view"] if runnable else []
+    )
     for r, line in zip(results, table_lines, strict=True):
         assert {k: r[k] for k in label_keys} == labels[r["row"]]
         cells = [c.strip() for c in line.strip("|").split("|")]
-        assert cells[1:1 + len(label_keys)] == [r[k] for k in label_keys]
+        assert cells[1 : 1 + len(label_keys)] == [r[k] for k in label_keys]
         if r["status"] != "ok":
             assert r["status"].startswith("not run: ") and f"row {r['row']}: not run" in proc.stdout
             continue
@@ -194,8 +197,9 @@ def test_workers_give_the_same_numbers(tmp_path):
     score as the same trainings run one after another in the notebook's process (the oracle):
     same seeds, same batches, so equal up to float reassociation (<= 1e-4 dB, 1e-5 relative
     loss). Also checks that the workers do not re-run the notebook script (one table)."""
-    runs = {w: _run_notebook("table6_partitions", tmp_path / f"w{w}", "0", LLRMPP_NOTEBOOK_WORKERS=str(w))
-            for w in (1, 2)}
+    runs = {
+        w: _run_notebook("table6_partitions", tmp_path / f"w{w}", "0", LLRMPP_NOTEBOOK_WORKERS=str(w)) for w in (1, 2)
+    }
     (_, one), (proc, two) = runs[1], runs[2]
     assert proc.stdout.count("| paper ordering ") == 1 and "2 worker(s)" in proc.stdout
     a, b = one["results"][0], two["results"][0]
@@ -243,8 +247,15 @@ def test_seeds_to_resolve_is_where_the_interval_first_excludes_zero(ablation):
 
 
 def _row(i: int, psnr_seeds, lpips_seeds, paper_psnr: str, paper_lpips: str, status: str = "ok") -> dict:
-    return {"row": i, "status": status, "psnr_seeds": psnr_seeds, "lpips_seeds": lpips_seeds, "psnr": 0.0,
-            "lpips": 0.0, "paper": {"PSNR": paper_psnr, "LPIPS": paper_lpips}}
+    return {
+        "row": i,
+        "status": status,
+        "psnr_seeds": psnr_seeds,
+        "lpips_seeds": lpips_seeds,
+        "psnr": 0.0,
+        "lpips": 0.0,
+        "paper": {"PSNR": paper_psnr, "LPIPS": paper_lpips},
+    }
 
 
 def test_compare_verdicts(ablation):
@@ -255,8 +266,10 @@ def test_compare_verdicts(ablation):
         _row(2, [19.0, 21.9, 20.0], [0.5, 0.4, 0.45], "28.9", "0.07"),  # -1/+1.4/-1: straddles 0
         {"row": 3, "status": "not run: no splatter", "paper": {}},
     ]
-    got = ablation.compare(results, [Od("1 > 0", 1, 0), Od("0 > 1", 0, 1), Od("1 > 0 lpips", 1, 0, "lpips"),
-                                     Od("2 > 0", 2, 0), Od("3 > 0", 3, 0)])
+    got = ablation.compare(
+        results,
+        [Od("1 > 0", 1, 0), Od("0 > 1", 0, 1), Od("1 > 0 lpips", 1, 0, "lpips"), Od("2 > 0", 2, 0), Od("3 > 0", 3, 0)],
+    )
     assert [c["verdict"] for c in got] == ["reproduced", "reversed", "reproduced", "not resolved", "not run"]
     assert got[0]["diff"] == pytest.approx(0.3) and got[0]["paper_diff"] == pytest.approx(0.5)
     assert got[1]["diff"] == pytest.approx(-0.3) and got[0]["diff_ci"] == pytest.approx(got[1]["diff_ci"])
@@ -285,7 +298,9 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
         row = cfg.decoder.dim // 8 - 1
         calls.append((row, seed))
         psnr = 20.0 + {0: 0.0, 1: 1.0 + 0.1 * rng.standard_normal(), 2: rng.standard_normal(), 3: 5.0}[row]
-        return tables.SeedRun({"psnr": psnr, "eval_dropped": 0}, np.zeros(4, np.float32), 1.0, 0, {} if keep_params else None)
+        return tables.SeedRun(
+            {"psnr": psnr, "eval_dropped": 0}, np.zeros(4, np.float32), 1.0, 0, {} if keep_params else None
+        )
 
     monkeypatch.setattr(tables, "run_seed", fake_run_seed)
     monkeypatch.setattr(tables, "time_model", lambda *a: {})
@@ -294,8 +309,10 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     monkeypatch.delenv("LLRMPP_NOTEBOOK_ROWS", raising=False)
     scale = dataclasses.replace(ablation.make_scale("smoke", paper_views=4), seeds=3, max_seeds=6, workers=1)
     V, Od = ablation.Variant, ablation.Ordering
-    variants = [V({"x": str(i)}, lambda base, i=i: replace(base, decoder=replace(base.decoder, dim=8 * (i + 1))),
-                  {}) for i in range(4)]
+    variants = [
+        V({"x": str(i)}, lambda base, i=i: replace(base, decoder=replace(base.decoder, dim=8 * (i + 1))), {})
+        for i in range(4)
+    ]
     orderings = [Od("1 > 0", 1, 0), Od("2 > 0", 2, 0)]
     monkeypatch.setattr(tables, "count_params", lambda p: 0)
     run = ablation.run_table(variants, scale, orderings)
@@ -311,16 +328,21 @@ def test_sequential_table_adds_seeds_only_where_an_ordering_is_unresolved(ablati
     calls.clear()
     run = ablation.run_table(variants, dataclasses.replace(scale, budget_min=0.0), orderings)
     assert len(calls) == 12 and {c["stopped"] for c in run.comparisons} == {
-        "resolved at 3 seeds", "the 0-minute budget, at 3 seeds"}
+        "resolved at 3 seeds",
+        "the 0-minute budget, at 3 seeds",
+    }
 
 
-@pytest.mark.parametrize("env, value, message", [
-    ("LLRMPP_NOTEBOOK_SCALE", "huge", "LLRMPP_NOTEBOOK_SCALE='huge': expected one of smoke, cpu, paper"),
-    ("LLRMPP_NOTEBOOK_SEEDS", "0", "LLRMPP_NOTEBOOK_SEEDS='0': expected an integer >= 1, got 0"),
-    ("LLRMPP_NOTEBOOK_SEEDS", "three", "LLRMPP_NOTEBOOK_SEEDS='three': expected an integer >= 1"),
-    ("LLRMPP_NOTEBOOK_STEPS", "-5", "LLRMPP_NOTEBOOK_STEPS='-5': expected an integer >= 0, got -5"),
-    ("LLRMPP_NOTEBOOK_WORKERS", "0", "LLRMPP_NOTEBOOK_WORKERS='0': expected an integer >= 1, got 0"),
-])
+@pytest.mark.parametrize(
+    "env, value, message",
+    [
+        ("LLRMPP_NOTEBOOK_SCALE", "huge", "LLRMPP_NOTEBOOK_SCALE='huge': expected one of smoke, cpu, paper"),
+        ("LLRMPP_NOTEBOOK_SEEDS", "0", "LLRMPP_NOTEBOOK_SEEDS='0': expected an integer >= 1, got 0"),
+        ("LLRMPP_NOTEBOOK_SEEDS", "three", "LLRMPP_NOTEBOOK_SEEDS='three': expected an integer >= 1"),
+        ("LLRMPP_NOTEBOOK_STEPS", "-5", "LLRMPP_NOTEBOOK_STEPS='-5': expected an integer >= 0, got -5"),
+        ("LLRMPP_NOTEBOOK_WORKERS", "0", "LLRMPP_NOTEBOOK_WORKERS='0': expected an integer >= 1, got 0"),
+    ],
+)
 def test_bad_environment_is_one_line(ablation, monkeypatch, env, value, message):
     monkeypatch.setenv(env, value)
     with pytest.raises(ValueError) as err:
@@ -328,10 +350,13 @@ def test_bad_environment_is_one_line(ablation, monkeypatch, env, value, message)
     assert str(err.value) == message
 
 
-@pytest.mark.parametrize("rows, message", [
-    ("0,9", "LLRMPP_NOTEBOOK_ROWS='0,9': rows [9] outside 0..2"),
-    ("1;2", "LLRMPP_NOTEBOOK_ROWS='1;2': expected comma-separated row indices or 'none'"),
-])
+@pytest.mark.parametrize(
+    "rows, message",
+    [
+        ("0,9", "LLRMPP_NOTEBOOK_ROWS='0,9': rows [9] outside 0..2"),
+        ("1;2", "LLRMPP_NOTEBOOK_ROWS='1;2': expected comma-separated row indices or 'none'"),
+    ],
+)
 def test_bad_rows_are_one_line(ablation, monkeypatch, rows, message):
     monkeypatch.setenv("LLRMPP_NOTEBOOK_ROWS", rows)
     variants = [ablation.Variant({"x": str(i)}, None, {}) for i in range(3)]
@@ -410,10 +435,18 @@ def test_procedural_tables_keep_world_units_and_reach_their_depths(ablation):
         assert paper.base.decoder.depth_bias == preset.decoder.depth_bias and paper.rescale
         assert paper.base.head.max_dist == C.GaussianHeadConfig().max_dist
     scale = ablation.make_scale("cpu", paper_views=4, depth=True)
-    source = ProceduralSource(ProceduralConfig(height=32, width=32, num_frames=scale.frames),
-                              size=ablation.TRAIN_SCENES)
-    cfg = BatchConfig(global_batch=scale.batch, num_inputs=scale.num_inputs, num_targets=scale.num_targets,
-                      with_depth=True, min_span=scale.min_span, max_span=scale.max_span, rescale=scale.rescale)
+    source = ProceduralSource(
+        ProceduralConfig(height=32, width=32, num_frames=scale.frames), size=ablation.TRAIN_SCENES
+    )
+    cfg = BatchConfig(
+        global_batch=scale.batch,
+        num_inputs=scale.num_inputs,
+        num_targets=scale.num_targets,
+        with_depth=True,
+        min_span=scale.min_span,
+        max_span=scale.max_span,
+        rescale=scale.rescale,
+    )
     logs, ray_distances = [], []
     with BatchIterator(source, cfg, seed=123, num_devices=1) as batches:
         for _ in range(64):
@@ -455,8 +488,15 @@ def test_rows_are_scored_on_the_ablations_held_out_views(ablation):
             if name == "smoke":
                 inputs, targets = eval_views(scene.c2w, scale.num_inputs)
             else:
-                inputs, targets = training_views(np.random.default_rng([7, i]), len(scene), scale.num_inputs,
-                                                 scale.num_targets, 8, 8, input_weight=0.0)
+                inputs, targets = training_views(
+                    np.random.default_rng([7, i]),
+                    len(scene),
+                    scale.num_inputs,
+                    scale.num_targets,
+                    8,
+                    8,
+                    input_weight=0.0,
+                )
             want = make_sample(scene, inputs, targets, ViewGeometry(), with_depth=True, rescale=False)
             assert set(s) == set(want)
             for k in want:
@@ -469,41 +509,69 @@ def test_summary_lists_every_table_and_ordering(tmp_path, monkeypatch):
     monkeypatch.syspath_prepend(NB_DIR)
     import _summary
 
-    record = {"wall_s": 1926.0, "seeds": 3, "steps": 400, "commit": "abc1234", "orderings": [
-        {"ordering": "S=2 > S=1 (PSNR)", "metric": "psnr", "diff": 0.9582, "diff_ci": 1.9061, "paper_diff": 0.99,
-         "verdict": "not resolved"},
-        {"ordering": "x > y", "metric": "lpips", "verdict": "not run"}],
-        "results": [_row(0, [20.0, 20.5, 21.0], [0.5] * 3, "28.0", "0.1"),
-                    _row(1, [20.3, 20.6, 21.4], [0.4] * 3, "29.0", "0.1")]}
+    record = {
+        "wall_s": 1926.0,
+        "seeds": 3,
+        "steps": 400,
+        "commit": "abc1234",
+        "orderings": [
+            {
+                "ordering": "S=2 > S=1 (PSNR)",
+                "metric": "psnr",
+                "diff": 0.9582,
+                "diff_ci": 1.9061,
+                "paper_diff": 0.99,
+                "verdict": "not resolved",
+            },
+            {"ordering": "x > y", "metric": "lpips", "verdict": "not run"},
+        ],
+        "results": [
+            _row(0, [20.0, 20.5, 21.0], [0.5] * 3, "28.0", "0.1"),
+            _row(1, [20.3, 20.6, 21.4], [0.4] * 3, "29.0", "0.1"),
+        ],
+    }
     (tmp_path / "table6_partitions_cpu.json").write_text(json.dumps(record))
     lines = _summary.summary("cpu", str(tmp_path)).splitlines()
     assert "- `table6_partitions`: 32.1 min, 3 seeds x 400 steps, commit abc1234" in lines
     assert {ln for ln in lines if "not executed at" in ln} == {
-        f"- `{n}`: not executed at the cpu scale" for n in NOTEBOOKS if n != "table6_partitions"}
+        f"- `{n}`: not executed at the cpu scale" for n in NOTEBOOKS if n != "table6_partitions"
+    }
     assert "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | 95% | 3 | not resolved |" in lines
     assert "| 6 | x > y | lpips | - | - | 95% | 3 | not run |" in lines
     # The central claims: Table 6's from its rows' seeds (diffs 0.3, 0.1, 0.4: mean 0.267, sd
     # 0.153; 95% half-width 4.303 x 0.153 / sqrt(3) = 0.379); the others not executed.
-    assert ("| 6 | S=2 > S=1 | +1.000 | +0.267 ± 0.379 | 95% | 3 | not resolved | 0.153 | 3 | 4 |" in lines)
+    assert "| 6 | S=2 > S=1 | +1.000 | +0.267 ± 0.379 | 95% | 3 | not resolved | 0.153 | 3 | 4 |" in lines
     assert "| 5 | feature (LLGGG) > colour | | | | | not executed | | | |" in lines
     # A sequential table: its level, each ordering's seeds and what stopped it.
     record["orderings"][0].update(confidence=0.99, seeds=7, stopped="10 seeds")
     (tmp_path / "table6_partitions_cpu.json").write_text(json.dumps(record))
     lines = _summary.summary("cpu", str(tmp_path)).splitlines()
     assert "- `table6_partitions`: 32.1 min, 3 to 7 seeds (sequential) x 400 steps, commit abc1234" in lines
-    assert ("| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | 99% | 7 | not resolved, stopped by 10 seeds |"
-            in lines)
+    assert (
+        "| 6 | S=2 > S=1 (PSNR) | psnr | +0.990 | +0.958 ± 1.906 | 99% | 7 | not resolved, stopped by 10 seeds |"
+        in lines
+    )
 
 
 def test_table_reports_splat_overflow(ablation):
     """A row whose splat buffer overflowed gets a note with the dropped intersections per
     training step and per held-out scene; a row without overflow gets none."""
     scale = ablation.make_scale("smoke", paper_views=4)  # 40 steps, 4 held-out scenes
-    rows = [{"row": 0, "x": "a", "chosen": False, "paper": {}, "status": "ok", "train_dropped": 8000.0,
-             "eval_dropped": 8.0},
-            {"row": 1, "x": "b", "chosen": True, "paper": {}, "status": "ok", "train_dropped": 0.0,
-             "eval_dropped": 0.0}]
+    rows = [
+        {
+            "row": 0,
+            "x": "a",
+            "chosen": False,
+            "paper": {},
+            "status": "ok",
+            "train_dropped": 8000.0,
+            "eval_dropped": 8.0,
+        },
+        {"row": 1, "x": "b", "chosen": True, "paper": {}, "status": "ok", "train_dropped": 0.0, "eval_dropped": 0.0},
+    ]
     text = ablation.format_run(ablation.TableRun(scale, rows, [], {}, 60.0), ["x"])
-    assert ("row 0: the splat buffer overflowed: 200 intersections dropped per training step, "
-            "2 per held-out scene (mean over seeds)") in text.splitlines()
+    assert (
+        "row 0: the splat buffer overflowed: 200 intersections dropped per training step, "
+        "2 per held-out scene (mean over seeds)"
+    ) in text.splitlines()
     assert "row 1:" not in text

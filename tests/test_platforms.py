@@ -20,8 +20,9 @@ def test_without_a_tpu_the_tpu_plugin_is_not_started():
     assert done.stdout.strip() == "cpu"
     assert "TPU" not in done.stderr, done.stderr
     # The oracle that the probe means something: without the call, the plugin starts and warns.
-    bare = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], capture_output=True, text=True,
-                          env=env, timeout=120)
+    bare = subprocess.run(
+        [sys.executable, "-c", "import jax; jax.devices()"], capture_output=True, text=True, env=env, timeout=120
+    )
     assert "TPU" in bare.stderr
 
 

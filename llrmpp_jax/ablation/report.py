@@ -40,20 +40,29 @@ def format_run(run: TableRun, label_keys: Sequence[str], columns: Sequence[Colum
     show their status, rows whose splat buffer overflowed say by how much; a last line gives
     the scale, seeds, wall time and :func:`revision`.
     ``±``: half-width of the 95% interval over seeds."""
-    records = ([_row_record(r, label_keys, columns) for r in run.results]
-               + [_reference_record(ref, label_keys, columns) for ref in run.references])
+    records = [_row_record(r, label_keys, columns) for r in run.results] + [
+        _reference_record(ref, label_keys, columns) for ref in run.references
+    ]
     table = format_table(records, [Column(""), *(Column(k) for k in label_keys), *columns])
     notes = [f"row {r['row']}: {r['status']}" for r in run.results if r["status"] != "ok"]
     # Splat capacity overflow (SplatConfig.max_intersections) loses Gaussians: say so by row.
-    notes += [f"row {r['row']}: the splat buffer overflowed: {r['train_dropped'] / max(run.scale.steps, 1):,.0f} "
-              f"intersections dropped per training step, {r['eval_dropped'] / run.scale.eval_scenes:,.0f} "
-              "per held-out scene (mean over seeds)"
-              for r in run.results if r["status"] == "ok" and (r["train_dropped"] > 0 or r["eval_dropped"] > 0)]
+    notes += [
+        f"row {r['row']}: the splat buffer overflowed: {r['train_dropped'] / max(run.scale.steps, 1):,.0f} "
+        f"intersections dropped per training step, {r['eval_dropped'] / run.scale.eval_scenes:,.0f} "
+        "per held-out scene (mean over seeds)"
+        for r in run.results
+        if r["status"] == "ok" and (r["train_dropped"] > 0 or r["eval_dropped"] > 0)
+    ]
     counts = sorted({r.get("seeds", run.scale.seeds) for r in run.results if r["status"] == "ok"}) or [run.scale.seeds]
-    seeds = (f"{counts[0]} seed(s) per row" if len(counts) == 1 else
-             f"{counts[0]}-{counts[-1]} seeds per row (added while an ordering was unresolved)")
-    footer = (f"{run.scale.name} scale, {seeds}, {run.scale.steps} steps, "
-              f"wall time {run.seconds / 60:.1f} min, commit {revision()}")
+    seeds = (
+        f"{counts[0]} seed(s) per row"
+        if len(counts) == 1
+        else f"{counts[0]}-{counts[-1]} seeds per row (added while an ordering was unresolved)"
+    )
+    footer = (
+        f"{run.scale.name} scale, {seeds}, {run.scale.steps} steps, "
+        f"wall time {run.seconds / 60:.1f} min, commit {revision()}"
+    )
     return "\n".join([table, ""] + notes + ([""] if notes else []) + [footer])
 
 
@@ -61,8 +70,13 @@ def ordering_cells(c: dict[str, Any]) -> tuple[str, str]:
     """The paper's difference and ours (mean paired difference over seeds ± the half-width
     of its interval)
     of one :func:`compare` entry, as printed ("-" where there is none)."""
-    ours = (f"{c['diff']:+.3f} ± {c['diff_ci']:.3f}" if "diff" in c and np.isfinite(c["diff_ci"])
-            else f"{c['diff']:+.3f}" if "diff" in c else "-")
+    ours = (
+        f"{c['diff']:+.3f} ± {c['diff_ci']:.3f}"
+        if "diff" in c and np.isfinite(c["diff_ci"])
+        else f"{c['diff']:+.3f}"
+        if "diff" in c
+        else "-"
+    )
     paper = f"{c['paper_diff']:+.3f}" if c.get("paper_diff") is not None else "-"
     return paper, ours
 
@@ -71,18 +85,37 @@ def format_orderings(comparisons: Sequence[dict[str, Any]]) -> str:
     """A Markdown table of :func:`compare`'s verdicts: the paper's difference, ours
     (:func:`ordering_cells`; > 0 = the paper's ordering holds), the seeds paired and, for a
     :func:`run_table` result, what stopped them; a last line gives the interval's level."""
-    records = [{"ordering": c["ordering"], "metric": c["metric"], "paper_diff": paper, "diff": ours,
-                "seeds": c.get("seeds", "-"), "verdict": c["verdict"], "stopped": c.get("stopped", "")}
-               for c, (paper, ours) in zip(comparisons, map(ordering_cells, comparisons))]
-    columns = [Column("ordering", "paper ordering"), Column("metric"), Column("paper_diff", "paper diff"),
-               Column("diff", "our diff (± interval)"), Column("seeds"), Column("verdict")]
+    records = [
+        {
+            "ordering": c["ordering"],
+            "metric": c["metric"],
+            "paper_diff": paper,
+            "diff": ours,
+            "seeds": c.get("seeds", "-"),
+            "verdict": c["verdict"],
+            "stopped": c.get("stopped", ""),
+        }
+        for c, (paper, ours) in zip(comparisons, map(ordering_cells, comparisons))
+    ]
+    columns = [
+        Column("ordering", "paper ordering"),
+        Column("metric"),
+        Column("paper_diff", "paper diff"),
+        Column("diff", "our diff (± interval)"),
+        Column("seeds"),
+        Column("verdict"),
+    ]
     if any("stopped" in c for c in comparisons):
         columns.append(Column("stopped", "stopped by"))
     lines = [format_table(records, columns)]
     levels = sorted({c["confidence"] for c in comparisons if "confidence" in c})
     if levels:
-        lines += ["", "Intervals: paired differences over seeds, Student-t, "
-                  + " / ".join(f"{100 * lv:g}%" for lv in levels) + " two-sided."]
+        lines += [
+            "",
+            "Intervals: paired differences over seeds, Student-t, "
+            + " / ".join(f"{100 * lv:g}%" for lv in levels)
+            + " two-sided.",
+        ]
     return "\n".join(lines)
 
 
@@ -136,8 +169,10 @@ def revision() -> str:
 def machine() -> str:
     """One line: CPU / accelerator, core count, JAX backend and version."""
     dev = jax.devices()[0]
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"jax {jax.__version__} on {dev.platform} ({dev.device_kind})")
+    return (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"jax {jax.__version__} on {dev.platform} ({dev.device_kind})"
+    )
 
 
 def save(name: str, run: TableRun, comparisons: Sequence[dict[str, Any]], figure: Any = None) -> str:
@@ -148,9 +183,17 @@ def save(name: str, run: TableRun, comparisons: Sequence[dict[str, Any]], figure
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, f"{name}_{run.scale.name}.json")
     record = {
-        "table": name, "scale": str(run.scale), "scale_name": run.scale.name, "seeds": run.scale.seeds,
-        "steps": run.scale.steps, "commit": revision(), "machine": machine(), "wall_s": run.seconds,
-        "results": run.results, "references": run.references, "orderings": list(comparisons),
+        "table": name,
+        "scale": str(run.scale),
+        "scale_name": run.scale.name,
+        "seeds": run.scale.seeds,
+        "steps": run.scale.steps,
+        "commit": revision(),
+        "machine": machine(),
+        "wall_s": run.seconds,
+        "results": run.results,
+        "references": run.references,
+        "orderings": list(comparisons),
         "curves": {str(k): v for k, v in run.curves.items()},
     }
     with open(path, "w") as f:

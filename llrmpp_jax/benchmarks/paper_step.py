@@ -81,8 +81,9 @@ GIB = 2.0**30
 PAPER_STAGE4_DEVICES = 64  # paper Table 8: stage 4 trains a global batch of 64 on 64 GPUs
 
 
-def make_step(exp: ExperimentConfig, stage: StageConfig, vgg_params: dict | None, mesh: Mesh | None = None,
-              donate: bool = True) -> tuple[T.Runner, optax.GradientTransformation]:
+def make_step(
+    exp: ExperimentConfig, stage: StageConfig, vgg_params: dict | None, mesh: Mesh | None = None, donate: bool = True
+) -> tuple[T.Runner, optax.GradientTransformation]:
     """The trainer's runner for ``stage`` (``trainer.stage_runner``: settings as
     ``trainer.train``; ``donate``d state) over ``mesh`` (default: a mesh of the first device)
     and its optimizer."""
@@ -110,9 +111,13 @@ def perceptual_for_compile(exp: ExperimentConfig) -> dict | None:
     if exp.perceptual_net != "vgg19" or exp.vgg19_path or not exp.perceptual_weight:
         return load_perceptual(exp)
     rng = np.random.default_rng(0)
-    return {name: {"kernel": jnp.asarray(rng.normal(0.0, np.sqrt(2.0 / (9 * cin)), (3, 3, cin, cout)), jnp.float32),
-                   "bias": jnp.zeros((cout,), jnp.float32)}
-            for name, _, cin, cout in vgg_layers("vgg19")[:14]}
+    return {
+        name: {
+            "kernel": jnp.asarray(rng.normal(0.0, np.sqrt(2.0 / (9 * cin)), (3, 3, cin, cout)), jnp.float32),
+            "bias": jnp.zeros((cout,), jnp.float32),
+        }
+        for name, _, cin, cout in vgg_layers("vgg19")[:14]
+    }
 
 
 def progress(line: str) -> None:
@@ -133,8 +138,14 @@ def experiment(scale: str, impl: str, block: tuple[int, int] | None = None):
     return replace(exp, model=C.with_attention(model, impl, block)), stage
 
 
-def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int],
-            block: tuple[int, int] | None = None, scale: str = "paper") -> dict:
+def measure(
+    impl: str,
+    steps: int,
+    views: tuple[int, int],
+    size: tuple[int, int],
+    block: tuple[int, int] | None = None,
+    scale: str = "paper",
+) -> dict:
     """Compile and run stage 4 with ``impl`` in every global-attention block (own process);
     ``views`` (inputs, targets) and ``size`` (h, w) of every view, ``block`` (the blockwise
     kernel's query and key block) replacing the config's (512, 512)."""
@@ -163,8 +174,10 @@ def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int]
         jax.block_until_ready((state, metrics))
         times.append(time.perf_counter() - t0)
         peak_now = (jax.local_devices()[0].memory_stats() or {}).get("peak_bytes_in_use")
-        progress(f"{impl}: call {i + 1}/{steps + 1} took {times[-1]:.1f} s"
-                 + (f", device peak so far {peak_now / GIB:.2f} GiB" if peak_now is not None else ""))
+        progress(
+            f"{impl}: call {i + 1}/{steps + 1} took {times[-1]:.1f} s"
+            + (f", device peak so far {peak_now / GIB:.2f} GiB" if peak_now is not None else "")
+        )
     first_s, times = times[0], times[1:]
     stats = jax.local_devices()[0].memory_stats() or {}
     peak, limit = stats.get("peak_bytes_in_use"), stats.get("bytes_limit")
@@ -174,16 +187,26 @@ def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int]
     step_s = float(np.median(times))
     flops = train_step_model_flops(exp, vgg, host_batches[0])
     return {
-        "attention_impl": impl, "attention_block": [model.backbone.transformer.attention_block_q,
-                                                    model.backbone.transformer.attention_block_k],
+        "attention_impl": impl,
+        "attention_block": [model.backbone.transformer.attention_block_q, model.backbone.transformer.attention_block_k],
         "model": "paper_dl3dv" if scale == "paper" else "tiny",
-        "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w],
-        "params": count_params(params), "bf16": exp.bf16, "perceptual_weight": exp.perceptual_weight,
-        "first_call_s": first_s, "compile_s": first_s - step_s,
-        "aot_compile_s": aot_compile_s, "memory_analysis": memory_analysis_bytes(compiled),
-        "device_peak_bytes_in_use": peak, "device_bytes_limit": limit,
-        "step_s_median": step_s, "step_s_all": times,
-        "xla_flops": xla_cost(compiled)["flops"], "model_flops": flops,
+        "per_device_batch": b,
+        "inputs": v,
+        "targets": t,
+        "size": [h, w],
+        "params": count_params(params),
+        "bf16": exp.bf16,
+        "perceptual_weight": exp.perceptual_weight,
+        "first_call_s": first_s,
+        "compile_s": first_s - step_s,
+        "aot_compile_s": aot_compile_s,
+        "memory_analysis": memory_analysis_bytes(compiled),
+        "device_peak_bytes_in_use": peak,
+        "device_bytes_limit": limit,
+        "step_s_median": step_s,
+        "step_s_all": times,
+        "xla_flops": xla_cost(compiled)["flops"],
+        "model_flops": flops,
         **throughput(flops, step_s, jax.devices()[0].device_kind),
         "loss": float(metrics["loss"]),
         "splat_dropped": float(metrics["splat_dropped"]),
@@ -191,8 +214,9 @@ def measure(impl: str, steps: int, views: tuple[int, int], size: tuple[int, int]
     }
 
 
-def profile_step(impl: str, views: tuple[int, int], size: tuple[int, int], block: tuple[int, int] | None = None,
-                 scale: str = "paper") -> dict:
+def profile_step(
+    impl: str, views: tuple[int, int], size: tuple[int, int], block: tuple[int, int] | None = None, scale: str = "paper"
+) -> dict:
     """``profile_program`` of one undonated step of :func:`measure`'s program at ``views``
     and ``size`` (one repeat: each traced call of a paper-sized step is seconds and
     hundreds of MB of trace)."""
@@ -204,22 +228,34 @@ def profile_step(impl: str, views: tuple[int, int], size: tuple[int, int], block
     runner, optimizer = make_step(exp, stage, perceptual_for_compile(exp), donate=False)
     state = runner.place_state(T.init_train_state(host_init_params(exp.model), optimizer, jax.random.key(1)))
     prof = profile_program(runner.step, (state, runner.place_batch(synthetic_batch(b, v, t, h, w))), repeats=1)
-    return {"program": "train_step", "attention_impl": impl, "model": "paper_dl3dv" if scale == "paper" else "tiny",
-            "per_device_batch": b, "inputs": v, "targets": t, "size": [h, w], "environment": environment(),
-            "profile": prof.to_json()}
+    return {
+        "program": "train_step",
+        "attention_impl": impl,
+        "model": "paper_dl3dv" if scale == "paper" else "tiny",
+        "per_device_batch": b,
+        "inputs": v,
+        "targets": t,
+        "size": [h, w],
+        "environment": environment(),
+        "profile": prof.to_json(),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default=os.path.join("runs", "bench", "bench_paper_step.json"), help="JSON file written")
     ap.add_argument("--scale", default="paper", help=f"one of {sorted(SCALES)}: the paper model, or config.tiny()")
-    ap.add_argument("--impls", default=None,
-                    help=f"comma-separated attention kernels, each of {ATTENTION_IMPLEMENTATIONS} "
-                         f"(default: the scale's, {SCALES['paper'][2]} at paper scale)")
+    ap.add_argument(
+        "--impls",
+        default=None,
+        help=f"comma-separated attention kernels, each of {ATTENTION_IMPLEMENTATIONS} "
+        f"(default: the scale's, {SCALES['paper'][2]} at paper scale)",
+    )
     ap.add_argument("--steps", type=int, default=2, help="timed steps per kernel (after one warm-up step)")
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per kernel (compile and steps)")
-    ap.add_argument("--views", default="", help="inputs,targets per scene (default: the scale's, stage 4: 32,8; "
-                                                "--profile: 8,8)")
+    ap.add_argument(
+        "--views", default="", help="inputs,targets per scene (default: the scale's, stage 4: 32,8; --profile: 8,8)"
+    )
     ap.add_argument("--size", default="", help="HxW of every view (default: the scale's, stage 4: 544x960)")
     ap.add_argument("--block", default="", help="Q,K: the blockwise kernel's query and key block (config: 512,512)")
     ap.add_argument("--profile", action="store_true", help="profile one step of the first kernel instead of timing")
@@ -235,15 +271,20 @@ def main() -> None:
         if impl not in ATTENTION_IMPLEMENTATIONS:
             raise SystemExit(f"--impls: unknown attention kernel {impl!r}, expected one of {ATTENTION_IMPLEMENTATIONS}")
     try:
-        views = tuple(int(x) for x in args.views.split(",")) if args.views else \
-            ((8, 8) if args.profile and args.scale == "paper" else scale_views)
+        views = (
+            tuple(int(x) for x in args.views.split(","))
+            if args.views
+            else ((8, 8) if args.profile and args.scale == "paper" else scale_views)
+        )
         size = tuple(int(x) for x in args.size.lower().split("x")) if args.size else scale_size
         block = tuple(int(x) for x in args.block.split(",")) if args.block else None
         assert len(views) == 2 and len(size) == 2 and min(views + size) >= 1
         assert block is None or (len(block) == 2 and min(block) >= 1)
     except (ValueError, AssertionError):
-        raise SystemExit(f"--views/--size/--block: expected 'inputs,targets', 'HxW' and 'Q,K' of positive "
-                         f"integers, got {args.views!r}, {args.size!r} and {args.block!r}") from None
+        raise SystemExit(
+            f"--views/--size/--block: expected 'inputs,targets', 'HxW' and 'Q,K' of positive "
+            f"integers, got {args.views!r}, {args.size!r} and {args.block!r}"
+        ) from None
     try:
         check_case(C.paper_dl3dv() if args.scale == "paper" else C.tiny(), views, *size)
     except ValueError as e:
@@ -260,15 +301,36 @@ def main() -> None:
         print("wrote", args.out)
         return
     dev = jax.devices()[0]
-    result = {"benchmark": "paper_step", "scale": args.scale, "device": str(dev), "device_kind": dev.device_kind,
-              "platform": dev.platform, "jax_version": jax.__version__,
-              "xla_flags": os.environ.get("XLA_FLAGS", ""),
-              "compilation_cache_dir": os.environ.get("JAX_COMPILATION_CACHE_DIR", ""),
-              "paper_a100_step_s": PAPER_A100["train_step_s"], "cases": {}}
+    result = {
+        "benchmark": "paper_step",
+        "scale": args.scale,
+        "device": str(dev),
+        "device_kind": dev.device_kind,
+        "platform": dev.platform,
+        "jax_version": jax.__version__,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "compilation_cache_dir": os.environ.get("JAX_COMPILATION_CACHE_DIR", ""),
+        "paper_a100_step_s": PAPER_A100["train_step_s"],
+        "cases": {},
+    }
     for impl in impls:
-        cmd = [sys.executable, "-m", "llrmpp_jax.benchmarks.paper_step", "--_impl", impl,
-               "--steps", str(args.steps), "--scale", args.scale, "--views", ",".join(map(str, views)), "--size", f"{size[0]}x{size[1]}",
-               "--block", args.block]
+        cmd = [
+            sys.executable,
+            "-m",
+            "llrmpp_jax.benchmarks.paper_step",
+            "--_impl",
+            impl,
+            "--steps",
+            str(args.steps),
+            "--scale",
+            args.scale,
+            "--views",
+            ",".join(map(str, views)),
+            "--size",
+            f"{size[0]}x{size[1]}",
+            "--block",
+            args.block,
+        ]
         t0 = time.time()
         try:
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=args.timeout)  # stderr: through

@@ -57,8 +57,10 @@ class BakeConfig:
         if not 0 <= self.sh_degree <= MAX_DEGREE:
             raise UserError(f"--sh-degree must be in 0..{MAX_DEGREE}, got {self.sh_degree}")
         if self.steps < 1 or self.views_per_step < 1 or self.views_between < 0:
-            raise UserError(f"bake needs steps >= 1, views per step >= 1 and views between >= 0, got "
-                            f"{self.steps}, {self.views_per_step}, {self.views_between}")
+            raise UserError(
+                f"bake needs steps >= 1, views per step >= 1 and views between >= 0, got "
+                f"{self.steps}, {self.views_per_step}, {self.views_between}"
+            )
 
 
 @dataclass(frozen=True)
@@ -76,15 +78,19 @@ class Baked:
     seconds: float
 
     def lines(self) -> list[str]:
-        out = [f"baked {self.gaussians.means.shape[0]:,} Gaussians to SH degree {self.cfg.head.sh_degree} in "
-               f"{self.info.steps} updates of {self.info.views_per_step}/{self.fit_views} views ({self.seconds:.0f} s); "
-               f"fitted views {self.info_psnr(0):.2f} -> {self.info_psnr(-1):.2f} dB"]
+        out = [
+            f"baked {self.gaussians.means.shape[0]:,} Gaussians to SH degree {self.cfg.head.sh_degree} in "
+            f"{self.info.steps} updates of {self.info.views_per_step}/{self.fit_views} views ({self.seconds:.0f} s); "
+            f"fitted views {self.info_psnr(0):.2f} -> {self.info_psnr(-1):.2f} dB"
+        ]
         if np.isfinite(self.psnr_vs_model):
             out.append(f"held-out views: baked vs the model's renders {self.psnr_vs_model:.2f} dB")
         if np.isfinite(self.psnr_baked_vs_photos):
-            out.append(f"held-out photos: baked {self.psnr_baked_vs_photos:.2f} dB, the model "
-                       f"{self.psnr_model_vs_photos:.2f} dB (baking costs "
-                       f"{self.psnr_model_vs_photos - self.psnr_baked_vs_photos:.2f} dB)")
+            out.append(
+                f"held-out photos: baked {self.psnr_baked_vs_photos:.2f} dB, the model "
+                f"{self.psnr_model_vs_photos:.2f} dB (baking costs "
+                f"{self.psnr_model_vs_photos - self.psnr_baked_vs_photos:.2f} dB)"
+            )
         return out
 
     def info_psnr(self, i: int) -> float:
@@ -104,9 +110,12 @@ def _renders(params, saved: SavedScene, c2w: np.ndarray, intrinsics: np.ndarray)
     return jnp.asarray(render_views(params, saved, c2w, intrinsics, [""] * len(c2w), progress=False).rgb)
 
 
-def initial_colours(means: Float[np.ndarray, "N 3"], c2w: Float[np.ndarray, "V 4 4"],
-                    intrinsics: Float[np.ndarray, "V 4"], images: Float[np.ndarray, "V H W 3"]
-                    ) -> Float[np.ndarray, "N 3"]:
+def initial_colours(
+    means: Float[np.ndarray, "N 3"],
+    c2w: Float[np.ndarray, "V 4 4"],
+    intrinsics: Float[np.ndarray, "V 4"],
+    images: Float[np.ndarray, "V H W 3"],
+) -> Float[np.ndarray, "N 3"]:
     """Mean colour of the pixels each centre projects to over the views in front of it and
     inside the frame (OpenCV cameras, pixel centres at +0.5); 0.5 grey where there are none."""
     w2c = np.linalg.inv(c2w.astype(np.float64))
@@ -125,8 +134,9 @@ def initial_colours(means: Float[np.ndarray, "N 3"], c2w: Float[np.ndarray, "V 4
     return np.where(count > 0, total / np.maximum(count, 1), 0.5)
 
 
-def canvas_footprint_scales(gaussians: Gaussians, c2w: Float[np.ndarray, "V 4 4"],
-                            intrinsics: Float[np.ndarray, "V 4"], cfg: ModelConfig) -> Float[np.ndarray, "N 3"]:
+def canvas_footprint_scales(
+    gaussians: Gaussians, c2w: Float[np.ndarray, "V 4 4"], intrinsics: Float[np.ndarray, "V 4"], cfg: ModelConfig
+) -> Float[np.ndarray, "N 3"]:
     """Scales that draw at full resolution as wide as the model drew them on its canvas.
 
     The model splats onto a canvas ``canvas_ratio`` = r times coarser than the image, and the
@@ -160,8 +170,13 @@ def views_between(saved: SavedScene, per_gap: int) -> tuple[Float[np.ndarray, "V
     return spline_at(inputs, positions), k
 
 
-def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig(), progress: bool = False,
-                scene_path: str | None = None) -> Baked:
+def bake_colour(
+    params: dict,
+    saved: SavedScene,
+    bake: BakeConfig = BakeConfig(),
+    progress: bool = False,
+    scene_path: str | None = None,
+) -> Baked:
     """Colour Gaussians that render like the feature-mode ``saved`` scene (module
     docstring). ``params``: the model that made it (its decoder renders the targets);
     ``scene_path``: where the photos are (default: the path in the .gs file), for the
@@ -184,11 +199,24 @@ def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig()
     colour_g = feature_g._replace(features=jnp.asarray(features), scales=jnp.asarray(scales)[None])
     still = 0.0 if not bake.geometry else 1.0
     base = RefineConfig()
-    rc = RefineConfig(lr_means=base.lr_means * still, lr_log_scales=base.lr_log_scales * still,
-                      lr_quats=base.lr_quats * still, rate_scale=bake.rate_scale,
-                      views_per_step=bake.views_per_step)
-    baked, info = refine({}, cfg, colour_g, targets[None], jnp.asarray(c2w)[None], jnp.asarray(intr)[None],
-                         steps=bake.steps, rc=rc, progress=progress)
+    rc = RefineConfig(
+        lr_means=base.lr_means * still,
+        lr_log_scales=base.lr_log_scales * still,
+        lr_quats=base.lr_quats * still,
+        rate_scale=bake.rate_scale,
+        views_per_step=bake.views_per_step,
+    )
+    baked, info = refine(
+        {},
+        cfg,
+        colour_g,
+        targets[None],
+        jnp.asarray(c2w)[None],
+        jnp.asarray(intr)[None],
+        steps=bake.steps,
+        rc=rc,
+        progress=progress,
+    )
 
     baked_scene = dataclasses.replace(saved, model=cfg, gaussians=jax.tree.map(lambda x: np.asarray(x[0]), baked))
     vs_model = baked_vs_photos = model_vs_photos = float("nan")
@@ -204,5 +232,6 @@ def bake_colour(params: dict, saved: SavedScene, bake: BakeConfig = BakeConfig()
         if photos is not None:
             baked_vs_photos = float(jnp.mean(psnr(baked_rgb, photos)))
             model_vs_photos = float(jnp.mean(psnr(model_rgb, photos)))
-    return Baked(baked_scene.gaussians, cfg, vs_model, baked_vs_photos,
-                 model_vs_photos, len(c2w), info, time.perf_counter() - t0)
+    return Baked(
+        baked_scene.gaussians, cfg, vs_model, baked_vs_photos, model_vs_photos, len(c2w), info, time.perf_counter() - t0
+    )

@@ -73,8 +73,7 @@ def continuity_breaks(
         db_ids = {image.name: image.image_id for image in db.read_all_images()}
     inliers = dict(zip(pair_ids, counts))
     points = {
-        name: {p.point3D_id for p in reconstruction.image(i).points2D if p.has_point3D()}
-        for name, i in by_name.items()
+        name: {p.point3D_id for p in reconstruction.image(i).points2D if p.has_point3D()} for name, i in by_name.items()
     }
     names = sorted(by_name)
     breaks = []
@@ -139,8 +138,14 @@ def compare_poses(
     src = np.array([estimate[n][1] for n in names])
     dst = np.array([reference[n][1] for n in names])
     extent = float(np.linalg.norm(dst.max(0) - dst.min(0)))
-    _, inliers = ransac((src, dst), SimilarityTransform, min_samples=3, residual_threshold=position_tol * extent,
-                        max_trials=2000, rng=seed)
+    _, inliers = ransac(
+        (src, dst),
+        SimilarityTransform,
+        min_samples=3,
+        residual_threshold=position_tol * extent,
+        max_trials=2000,
+        rng=seed,
+    )
     inliers = np.ones(len(names), bool) if inliers is None or inliers.sum() < 3 else inliers
 
     def fit(use: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:

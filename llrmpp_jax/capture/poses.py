@@ -130,11 +130,14 @@ class PosesReport:
             "phases: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items()),
         ]
         if self.unregistered:
-            shown = ", ".join(self.unregistered[:8]) + (f" and {len(self.unregistered) - 8} more"
-                                                        if len(self.unregistered) > 8 else "")
+            shown = ", ".join(self.unregistered[:8]) + (
+                f" and {len(self.unregistered) - 8} more" if len(self.unregistered) > 8 else ""
+            )
             out.insert(1, f"not registered: {shown}")
         if len(self.matchers_tried) > 1:
-            out.append(f"matching: {' then '.join(self.matchers_tried)} (the first model was folded); kept {self.matcher}")
+            out.append(
+                f"matching: {' then '.join(self.matchers_tried)} (the first model was folded); kept {self.matcher}"
+            )
         if self.breaks:
             out.append(
                 f"warning: the model looks folded at {len(self.breaks)} place(s): {'; '.join(self.breaks[:3])}"
@@ -169,11 +172,14 @@ def extract_frames(video: str, out_dir: str, fps: float, progress: Callable[[str
         reader = imageio_ffmpeg.read_frames(video, output_params=["-vf", f"fps={fps}"])
         meta = next(reader)
     except (OSError, RuntimeError, StopIteration) as e:
-        raise UserError(f"--video {video}: not a video ffmpeg can read ({str(e).splitlines()[0] if str(e) else e})") from e
+        raise UserError(
+            f"--video {video}: not a video ffmpeg can read ({str(e).splitlines()[0] if str(e) else e})"
+        ) from e
     w, h = meta["size"]
     expected = int(meta.get("duration", 0) * fps) or None
-    progress(f"extracting frames from {video} ({w}x{h}, {fps:g} a second"
-             + (f", ~{expected} frames)" if expected else ")"))
+    progress(
+        f"extracting frames from {video} ({w}x{h}, {fps:g} a second" + (f", ~{expected} frames)" if expected else ")")
+    )
     names = []
     for raw in reader:
         frame = np.frombuffer(raw, np.uint8).reshape(h, w, 3)
@@ -227,8 +233,7 @@ def _match(pycolmap, database: str, matcher: str, n: int, cfg: PosesConfig, prog
         pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
 
 
-def _map(pycolmap, database: str, image_dir: str, scratch: str, cfg: PosesConfig,
-         progress: Callable[[str], None]):
+def _map(pycolmap, database: str, image_dir: str, scratch: str, cfg: PosesConfig, progress: Callable[[str], None]):
     """Incremental mapping into ``scratch``; ``(largest model or None, all models)``."""
     progress("mapping: incremental")
     os.makedirs(scratch, exist_ok=True)
@@ -287,12 +292,19 @@ def estimate_poses(
     extraction.max_image_size = cfg.max_image_size
     extraction.use_gpu = False
     extraction.num_threads = cfg.num_threads
-    progress(f"features: {len(names)} images at up to {cfg.max_image_size} px, camera {cfg.camera_model} "
-             + ("shared" if shared else "per image"))
+    progress(
+        f"features: {len(names)} images at up to {cfg.max_image_size} px, camera {cfg.camera_model} "
+        + ("shared" if shared else "per image")
+    )
     t = time.perf_counter()
-    pycolmap.extract_features(database, image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE,
-                              reader_options=reader, extraction_options=extraction)
+    pycolmap.extract_features(
+        database,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE if shared else pycolmap.CameraMode.PER_IMAGE,
+        reader_options=reader,
+        extraction_options=extraction,
+    )
     seconds["features"] = time.perf_counter() - t
 
     n = len(names)
@@ -319,7 +331,9 @@ def estimate_poses(
             _match(pycolmap, retry_db, "sequential", n, cfg, progress)
             seconds["matching (sequential)"] = time.perf_counter() - t
             t = time.perf_counter()
-            retry, retry_models = _map(pycolmap, retry_db, image_dir, os.path.join(scratch, "sequential"), cfg, progress)
+            retry, retry_models = _map(
+                pycolmap, retry_db, image_dir, os.path.join(scratch, "sequential"), cfg, progress
+            )
             seconds["mapping (sequential)"] = time.perf_counter() - t
             tried.append("sequential")
             retry_breaks = continuity_breaks(retry, retry_db) if retry is not None else []
@@ -341,13 +355,23 @@ def estimate_poses(
     centres = np.array([best.image(i).projection_center() for i in best.reg_image_ids()])
     points = np.array([p.xyz for p in best.points3D.values()]).reshape(-1, 3)
     report = PosesReport(
-        capture=out, given=n, registered=registered,
-        unregistered=tuple(x for x in names if x not in reg_names), models=len(models), matcher=matcher,
-        camera_model=cfg.camera_model, shared_camera=shared, points=int(best.num_points3D()),
+        capture=out,
+        given=n,
+        registered=registered,
+        unregistered=tuple(x for x in names if x not in reg_names),
+        models=len(models),
+        matcher=matcher,
+        camera_model=cfg.camera_model,
+        shared_camera=shared,
+        points=int(best.num_points3D()),
         mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
         mean_track_length=float(best.compute_mean_track_length()),
-        camera_spread=_diagonal(centres), points_extent=_diagonal(points, 5.0, 95.0), seconds=seconds,
-        matchers_tried=tuple(tried), breaks=tuple(str(b) for b in breaks), seed=cfg.seed,
+        camera_spread=_diagonal(centres),
+        points_extent=_diagonal(points, 5.0, 95.0),
+        seconds=seconds,
+        matchers_tried=tuple(tried),
+        breaks=tuple(str(b) for b in breaks),
+        seed=cfg.seed,
     )
     with open(os.path.join(out, "poses_report.json"), "w") as f:
         json.dump(dataclasses.asdict(report), f, indent=1)

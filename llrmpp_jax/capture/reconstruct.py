@@ -40,7 +40,9 @@ def select_views(
         idx = np.asarray(inputs, np.int64)
         bad = idx[(idx < 0) | (idx >= n)]
         if bad.size:
-            raise UserError(f"--inputs: index {int(bad[0])} is out of range; scene {scene.name!r} has {n} frames (0..{n - 1})")
+            raise UserError(
+                f"--inputs: index {int(bad[0])} is out of range; scene {scene.name!r} has {n} frames (0..{n - 1})"
+            )
         if len(set(idx.tolist())) != idx.size:
             raise UserError(f"--inputs: indices must be distinct, got {idx.tolist()}")
         return np.sort(idx), np.setdiff1d(every_nth(n, every), idx)
@@ -49,19 +51,24 @@ def select_views(
     targets = every_nth(n, every)
     rest = np.setdiff1d(np.arange(n), targets)
     if len(rest) < num_inputs:
-        raise UserError(f"scene {scene.name!r}: {n} usable frames leave {len(rest)} non-target frames, "
-                         f"fewer than the {num_inputs} inputs requested (--num-inputs)")
+        raise UserError(
+            f"scene {scene.name!r}: {n} usable frames leave {len(rest)} non-target frames, "
+            f"fewer than the {num_inputs} inputs requested (--num-inputs)"
+        )
     return kmeans_inputs(scene.c2w, rest, num_inputs), targets
 
 
-def view_size(scene: Scene, frame: int, size: tuple[int, int | None], multiple: int,
-              square_crop: bool = False) -> tuple[ViewGeometry, tuple[int, int], tuple[int, int, int, int], tuple[int, int]]:
+def view_size(
+    scene: Scene, frame: int, size: tuple[int, int | None], multiple: int, square_crop: bool = False
+) -> tuple[ViewGeometry, tuple[int, int], tuple[int, int, int, int], tuple[int, int]]:
     """``(geometry, resized_hw, crop_box, out_hw)`` for views of ``scene`` (sized from
     ``frame``). ``ValueError`` if a side given in ``size`` is not a multiple of ``multiple``."""
     h, w = size
     for name, side in (("height", h), ("width", w)):
         if side is not None and (side <= 0 or side % multiple):
-            raise UserError(f"--size: {name} {side} is not a positive multiple of the model's patch multiple {multiple}")
+            raise UserError(
+                f"--size: {name} {side} is not a positive multiple of the model's patch multiple {multiple}"
+            )
     geom = ViewGeometry(resize_h=h, resize_w=w, multiple=multiple, square_crop=square_crop)
     hw = tuple(int(v) for v in scene.hw[frame])
     resized = resized_size(hw, geom)
@@ -104,8 +111,14 @@ def _short(name: str) -> str:
     return os.path.basename(name)
 
 
-def camera_report(scene: Scene, inputs: np.ndarray, targets: np.ndarray, view_hw: tuple[int, int],
-                  missing: tuple[str, ...] = (), normalize: bool = True) -> CameraReport:
+def camera_report(
+    scene: Scene,
+    inputs: np.ndarray,
+    targets: np.ndarray,
+    view_hw: tuple[int, int],
+    missing: tuple[str, ...] = (),
+    normalize: bool = True,
+) -> CameraReport:
     """The camera sanity report of ``scene`` with the chosen views (host-side, no compile);
     ``normalize=False``: the capture's frame is kept (scale 1)."""
     sizes: dict[str, int] = {}
@@ -121,9 +134,16 @@ def camera_report(scene: Scene, inputs: np.ndarray, targets: np.ndarray, view_hw
     pos = scene.c2w[inputs, :3, 3]
     scale = normalize_scene(scene.c2w[inputs])[-1] if normalize else 1.0
     return CameraReport(
-        scene=scene.name, num_frames=len(scene), missing=tuple(missing), image_sizes=sizes, distortion=lens,
-        intrinsics_spread=spread, extent=float((pos.max(0) - pos.min(0)).max()), scale=float(scale),
-        view_hw=tuple(view_hw), inputs=tuple(_short(scene.frame_names[i]) for i in inputs),
+        scene=scene.name,
+        num_frames=len(scene),
+        missing=tuple(missing),
+        image_sizes=sizes,
+        distortion=lens,
+        intrinsics_spread=spread,
+        extent=float((pos.max(0) - pos.min(0)).max()),
+        scale=float(scale),
+        view_hw=tuple(view_hw),
+        inputs=tuple(_short(scene.frame_names[i]) for i in inputs),
         targets=tuple(_short(scene.frame_names[i]) for i in targets),
     )
 
@@ -170,16 +190,30 @@ def reconstruct_scene(
         raise UserError(f"repeats must be >= 1, got {repeats}")
     _, resized, box, out_hw = view_size(scene, int(inputs[0]), size, cfg.size_multiple, square_crop)
     in_img, in_k, _ = load_views(scene, inputs, resized, box, None, False)
-    tg_img = load_views(scene, targets, resized, box, None, False)[0] if len(targets) else \
-        np.zeros((0, *out_hw, 3), np.float32)
+    tg_img = (
+        load_views(scene, targets, resized, box, None, False)[0]
+        if len(targets)
+        else np.zeros((0, *out_hw, 3), np.float32)
+    )
     if normalize:
         _, all_c2w, transform, _ = normalize_scene(scene.c2w[inputs], scene.c2w)
     else:
         all_c2w, transform = scene.c2w.copy(), np.eye(4)
-    all_k = np.stack([resize_intrinsics(crop_intrinsics(resize_intrinsics(scene.intrinsics[i], tuple(scene.hw[i]), resized),
-                                                        box[0], box[1]), box[2:], out_hw) for i in range(len(scene))])
-    args = (jax.numpy.asarray(in_img[None]), jax.numpy.asarray(all_c2w[inputs][None], np.float32),
-            jax.numpy.asarray(in_k[None], np.float32))
+    all_k = np.stack(
+        [
+            resize_intrinsics(
+                crop_intrinsics(resize_intrinsics(scene.intrinsics[i], tuple(scene.hw[i]), resized), box[0], box[1]),
+                box[2:],
+                out_hw,
+            )
+            for i in range(len(scene))
+        ]
+    )
+    args = (
+        jax.numpy.asarray(in_img[None]),
+        jax.numpy.asarray(all_c2w[inputs][None], np.float32),
+        jax.numpy.asarray(in_k[None], np.float32),
+    )
     t0 = time.perf_counter()
     compiled = _reconstruct.lower(params, cfg, *args).compile()
     compile_s = time.perf_counter() - t0
@@ -189,9 +223,18 @@ def reconstruct_scene(
         g = jax.block_until_ready(compiled(params, *args))
         runs.append(time.perf_counter() - t0)
     saved = SavedScene(
-        gaussians=Gaussians(*(np.asarray(x[0]) for x in g)), model=cfg, c2w=all_c2w, intrinsics=all_k,
-        world_from_scene=np.linalg.inv(transform), frame_names=scene.frame_names,
-        inputs=np.asarray(inputs, np.int64), targets=np.asarray(targets, np.int64), image_hw=tuple(out_hw),
-        resized_hw=tuple(resized), crop_box=tuple(box), scene_path=scene_path, scene_format=scene_format,
+        gaussians=Gaussians(*(np.asarray(x[0]) for x in g)),
+        model=cfg,
+        c2w=all_c2w,
+        intrinsics=all_k,
+        world_from_scene=np.linalg.inv(transform),
+        frame_names=scene.frame_names,
+        inputs=np.asarray(inputs, np.int64),
+        targets=np.asarray(targets, np.int64),
+        image_hw=tuple(out_hw),
+        resized_hw=tuple(resized),
+        crop_box=tuple(box),
+        scene_path=scene_path,
+        scene_format=scene_format,
     )
     return Reconstruction(saved, in_img, tg_img, compile_s, float(np.median(runs)), tuple(runs))

@@ -58,9 +58,11 @@ def refine_scene(
     cfg = saved.model
     views = {}
     for what, idx in (("inputs", saved.inputs), ("targets", saved.targets)):
-        views[what] = (jnp.asarray(frame_photos(saved, idx, scene_path)[None]),
-                       jnp.asarray(saved.c2w[idx][None], jnp.float32),
-                       jnp.asarray(saved.intrinsics[idx][None], jnp.float32))
+        views[what] = (
+            jnp.asarray(frame_photos(saved, idx, scene_path)[None]),
+            jnp.asarray(saved.c2w[idx][None], jnp.float32),
+            jnp.asarray(saved.intrinsics[idx][None], jnp.float32),
+        )
     g = Gaussians(*(jnp.asarray(x)[None] for x in saved.gaussians))
     before = heldout_psnr(params, cfg, g, *views["targets"])
     log(f"PSNR before {before:.2f}")

@@ -39,7 +39,9 @@ from llrmpp_jax.splat import rasterize
 PATHS = ("targets", "inputs", "spline", "orbit")
 
 
-def spline_at(c2w: Float[np.ndarray, "V 4 4"], positions: Float[np.ndarray, " frames"]) -> Float[np.ndarray, "frames 4 4"]:
+def spline_at(
+    c2w: Float[np.ndarray, "V 4 4"], positions: Float[np.ndarray, " frames"]
+) -> Float[np.ndarray, "frames 4 4"]:
     """Poses on the spline through the ``V >= 2`` poses ``c2w`` in order, at ``positions``
     in ``[0, V - 1]`` (the integer ``i`` is pose ``i``): centres by a cubic spline, rotations
     by slerp (see the module doc)."""
@@ -122,8 +124,9 @@ def _render_rgb(params, cfg: ModelConfig, g: Gaussians, c2w, k, height: int, wid
 
 @functools.partial(jax.jit, static_argnames=("cfg", "height", "width"))
 def _render_depth(g: Gaussians, cfg: ModelConfig, c2w, k, height: int, width: int):
-    return rasterize(g.means, g.quats, g.scales, g.opacities, None, c2w, k, height, width, cfg.splat,
-                     render_mode="ED").depth
+    return rasterize(
+        g.means, g.quats, g.scales, g.opacities, None, c2w, k, height, width, cfg.splat, render_mode="ED"
+    ).depth
 
 
 def render_views(
@@ -142,8 +145,15 @@ def render_views(
     entry is dropped."""
     h, w = saved.image_hw
     g = Gaussians(*(jnp.asarray(x) for x in saved.gaussians))
-    cfg = fit_capacity(params, saved.model, jax.tree.map(lambda x: x[None], g),
-                       jnp.asarray(c2w, jnp.float32)[None], jnp.asarray(intrinsics, jnp.float32)[None], h, w)
+    cfg = fit_capacity(
+        params,
+        saved.model,
+        jax.tree.map(lambda x: x[None], g),
+        jnp.asarray(c2w, jnp.float32)[None],
+        jnp.asarray(intrinsics, jnp.float32)[None],
+        h,
+        w,
+    )
     rgb, dep = [], []
     for i in tqdm(range(len(c2w)), desc="render", disable=not progress, dynamic_ncols=True):
         cam = jnp.asarray(c2w[i], jnp.float32), jnp.asarray(intrinsics[i], jnp.float32)
@@ -161,8 +171,9 @@ def write_video(path: str, frames: Float[np.ndarray, "frames H W 3"], fps: float
 
     n, h, w, _ = frames.shape
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    writer = imageio_ffmpeg.write_frames(path, (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
-                                         macro_block_size=2, quality=8)
+    writer = imageio_ffmpeg.write_frames(
+        path, (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p", macro_block_size=2, quality=8
+    )
     with warnings.catch_warnings():  # the ffmpeg child exec()s at once: JAX's threads are not touched
         warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
         writer.send(None)  # starts the ffmpeg process
@@ -185,13 +196,16 @@ def frame_photos(saved: SavedScene, frames: np.ndarray, scene_path: str | None =
         scene = read_scene(scene_path or saved.scene_path, saved.scene_format)
     base = lambda names: [os.path.basename(n) for n in names]  # noqa: E731  the folder may have moved
     if base(scene.frame_names) != base(saved.frame_names):
-        raise UserError(f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
-                         f"({len(saved.frame_names)}); reconstruct again")
+        raise UserError(
+            f"{scene_path or saved.scene_path}: its frames ({len(scene)}) are no longer those reconstructed "
+            f"({len(saved.frame_names)}); reconstruct again"
+        )
     return load_views(scene, frames, saved.resized_hw, saved.crop_box, None, False)[0]
 
 
-def view_metrics(rgb: Float[np.ndarray, "T H W 3"], photos: Float[np.ndarray, "T H W 3"],
-                 lpips_params: dict | None) -> list[dict[str, float]]:
+def view_metrics(
+    rgb: Float[np.ndarray, "T H W 3"], photos: Float[np.ndarray, "T H W 3"], lpips_params: dict | None
+) -> list[dict[str, float]]:
     """Per view ``{"psnr", "ssim"[, "lpips"]}`` of renders against photos (all views at once)."""
     from llrmpp_jax.metrics import lpips, psnr, ssim
 

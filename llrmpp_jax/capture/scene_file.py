@@ -28,8 +28,18 @@ from llrmpp_jax.gaussians import Gaussians
 
 GS_FORMAT = "llrmpp-gaussians"
 GS_VERSION = 1
-_ARRAYS = ("means", "quats", "scales", "opacities", "features", "c2w", "intrinsics", "world_from_scene",
-           "inputs", "targets")
+_ARRAYS = (
+    "means",
+    "quats",
+    "scales",
+    "opacities",
+    "features",
+    "c2w",
+    "intrinsics",
+    "world_from_scene",
+    "inputs",
+    "targets",
+)
 
 
 @dataclass(frozen=True)
@@ -65,15 +75,25 @@ class SavedScene:
 def save_gs(path: str, scene: SavedScene) -> None:
     """Write ``scene`` to ``path`` (a ``.gs`` file, see the module doc)."""
     header = {
-        "format": GS_FORMAT, "version": GS_VERSION, "model": dataclasses.asdict(scene.model),
-        "frame_names": list(scene.frame_names), "image_hw": list(scene.image_hw),
-        "resized_hw": list(scene.resized_hw), "crop_box": list(scene.crop_box),
-        "scene_path": scene.scene_path, "scene_format": scene.scene_format,
+        "format": GS_FORMAT,
+        "version": GS_VERSION,
+        "model": dataclasses.asdict(scene.model),
+        "frame_names": list(scene.frame_names),
+        "image_hw": list(scene.image_hw),
+        "resized_hw": list(scene.resized_hw),
+        "crop_box": list(scene.crop_box),
+        "scene_path": scene.scene_path,
+        "scene_format": scene.scene_format,
     }
     g = scene.gaussians
     arrays = {name: np.asarray(getattr(g, name)) for name in Gaussians._fields}
-    arrays.update(c2w=scene.c2w, intrinsics=scene.intrinsics, world_from_scene=scene.world_from_scene,
-                  inputs=np.asarray(scene.inputs, np.int64), targets=np.asarray(scene.targets, np.int64))
+    arrays.update(
+        c2w=scene.c2w,
+        intrinsics=scene.intrinsics,
+        world_from_scene=scene.world_from_scene,
+        inputs=np.asarray(scene.inputs, np.int64),
+        targets=np.asarray(scene.targets, np.int64),
+    )
     with open(path, "wb") as f:
         np.savez(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
 
@@ -96,8 +116,15 @@ def load_gs(path: str) -> SavedScene:
     return SavedScene(
         gaussians=Gaussians(**{k: arrays[k] for k in Gaussians._fields}),
         model=from_dict(ModelConfig, header["model"]),
-        c2w=arrays["c2w"], intrinsics=arrays["intrinsics"], world_from_scene=arrays["world_from_scene"],
-        frame_names=tuple(header["frame_names"]), inputs=arrays["inputs"], targets=arrays["targets"],
-        image_hw=tuple(header["image_hw"]), resized_hw=tuple(header["resized_hw"]),
-        crop_box=tuple(header["crop_box"]), scene_path=header["scene_path"], scene_format=header["scene_format"],
+        c2w=arrays["c2w"],
+        intrinsics=arrays["intrinsics"],
+        world_from_scene=arrays["world_from_scene"],
+        frame_names=tuple(header["frame_names"]),
+        inputs=arrays["inputs"],
+        targets=arrays["targets"],
+        image_hw=tuple(header["image_hw"]),
+        resized_hw=tuple(header["resized_hw"]),
+        crop_box=tuple(header["crop_box"]),
+        scene_path=header["scene_path"],
+        scene_format=header["scene_format"],
     )

@@ -40,9 +40,29 @@ from dataclasses import dataclass, field
 import numpy as np
 
 DTYPE_BYTES = {
-    "pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "s32": 4, "u32": 4, "s64": 8, "u64": 8,
-    "bf16": 2, "f16": 2, "f32": 4, "f64": 8, "c64": 8, "c128": 16, "s4": 0.5, "u4": 0.5,
-    "f8e4m3fn": 1, "f8e5m2": 1, "f8e4m3b11fnuz": 1, "f8e4m3fnuz": 1, "f8e5m2fnuz": 1, "token": 0,
+    "pred": 1,
+    "s8": 1,
+    "u8": 1,
+    "s16": 2,
+    "u16": 2,
+    "s32": 4,
+    "u32": 4,
+    "s64": 8,
+    "u64": 8,
+    "bf16": 2,
+    "f16": 2,
+    "f32": 4,
+    "f64": 8,
+    "c64": 8,
+    "c128": 16,
+    "s4": 0.5,
+    "u4": 0.5,
+    "f8e4m3fn": 1,
+    "f8e5m2": 1,
+    "f8e4m3b11fnuz": 1,
+    "f8e4m3fnuz": 1,
+    "f8e5m2fnuz": 1,
+    "token": 0,
 }
 _ARRAY = re.compile(r"([a-z][a-z0-9]*)\[([0-9,]*)\](\{[^}]*\})?")
 _INSTR = re.compile(r"^\s*(?:ROOT\s+)?%([^\s=]+)\s*=\s*(.*)$")
@@ -50,8 +70,19 @@ _HEADER = re.compile(r"^(ENTRY\s+)?%([^\s(]+)\s*\(")
 _CALLS = re.compile(r"(?:calls|to_apply|body|condition)=%([^\s,)}]+)")
 _BRANCHES = re.compile(r"branch_computations=\{([^}]*)\}")
 _COLLECTIVES = ("all-reduce", "all-gather", "reduce-scatter", "collective-permute", "all-to-all")
-_FREE = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all", "partition-id",
-         "replica-id", "iota", "opt-barrier", "add-dependency"}
+_FREE = {
+    "parameter",
+    "constant",
+    "get-tuple-element",
+    "tuple",
+    "bitcast",
+    "after-all",
+    "partition-id",
+    "replica-id",
+    "iota",
+    "opt-barrier",
+    "add-dependency",
+}
 
 
 @dataclass
@@ -103,8 +134,21 @@ class Estimate:
         self.unknown_loops += [u for u in other.unknown_loops if u not in self.unknown_loops]
 
     def to_json(self) -> dict:
-        return {k: getattr(self, k) for k in ("seconds", "matmul_s", "memory_s", "gather_s", "collective_s",
-                                              "custom_call_s", "flops", "bytes", "loops", "unknown_loops")}
+        return {
+            k: getattr(self, k)
+            for k in (
+                "seconds",
+                "matmul_s",
+                "memory_s",
+                "gather_s",
+                "collective_s",
+                "custom_call_s",
+                "flops",
+                "bytes",
+                "loops",
+                "unknown_loops",
+            )
+        }
 
 
 def _split_shape(rest: str) -> tuple[str, str]:
@@ -115,7 +159,7 @@ def _split_shape(rest: str) -> tuple[str, str]:
             depth += ch == "("
             depth -= ch == ")"
             if depth == 0:
-                return rest[: i + 1], rest[i + 1:].lstrip()
+                return rest[: i + 1], rest[i + 1 :].lstrip()
     shape, _, tail = rest.partition(" ")
     return shape, tail
 
@@ -137,8 +181,8 @@ def _parse_instr(line: str) -> Instr | None:
         if depth == 0:
             end = i
             break
-    args = tail[paren + 1:end]
-    return Instr(name, shape, opcode, re.findall(r"%([^\s,)]+)", args), args, tail[end + 1:])
+    args = tail[paren + 1 : end]
+    return Instr(name, shape, opcode, re.findall(r"%([^\s,)]+)", args), args, tail[end + 1 :])
 
 
 def parse_module(text: str) -> tuple[dict[str, list[Instr]], str]:
@@ -215,7 +259,7 @@ def _conv_flops(ins: Instr, lhs: tuple[int, ...], rhs: tuple[int, ...], out: tup
     pairs = 1
     for ax, c in enumerate(spatial):
         n_in, n_k, n_out = lhs[ll.index(c)], size[ax] or rhs[rl.index(c)], out[ol.index(c)]
-        pos = (np.arange(n_out)[:, None] * stride[ax] + np.arange(n_k)[None, :] * rhs_dil[ax] - pad_lo[ax])
+        pos = np.arange(n_out)[:, None] * stride[ax] + np.arange(n_k)[None, :] * rhs_dil[ax] - pad_lo[ax]
         d = lhs_dil[ax]
         pairs *= int(np.sum((pos >= 0) & (pos <= (n_in - 1) * d) & (pos % d == 0)))
     bg = re.search(r"batch_group_count=(\d+)", ins.attrs)
@@ -345,7 +389,11 @@ class _Costing:
             if costs:
                 e.add(max(costs, key=lambda c: c.seconds))
             return e
-        if code in ("call", "async-start", "async-done", "async-update") or code.endswith("-start") and "calls=" in ins.attrs:
+        if (
+            code in ("call", "async-start", "async-done", "async-update")
+            or code.endswith("-start")
+            and "calls=" in ins.attrs
+        ):
             for callee in _CALLS.findall(ins.attrs):
                 e.add(self.computation(callee))
             return e

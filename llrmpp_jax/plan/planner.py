@@ -16,8 +16,18 @@ from llrmpp_jax.plan.hlo_cost import Chip, estimate_hlo
 from llrmpp_jax.plan.programs import Program, program
 from llrmpp_jax.plan.targets import TARGETS, Target, check_compiler, compile_devices, target
 
-__all__ = ["GROUPS", "PROGRAM_NAMES", "TARGETS", "Program", "chip_model", "compile_row", "plan", "resolve_programs",
-           "summary_line", "write_rows"]
+__all__ = [
+    "GROUPS",
+    "PROGRAM_NAMES",
+    "TARGETS",
+    "Program",
+    "chip_model",
+    "compile_row",
+    "plan",
+    "resolve_programs",
+    "summary_line",
+    "write_rows",
+]
 
 # libtpu: "... the total memory required for HLO temporaries (20.00G) exceeds available HBM (15.75G)."
 _NEEDS = re.compile(r"\(([0-9.]+)([KMGT])i?B?\)\s*exceeds available HBM\s*\(([0-9.]+)([KMGT])i?B?\)", re.I)
@@ -91,8 +101,15 @@ def compile_row(prog: Program, t: Target, flops_cache: dict[str, float | None] |
 
     from llrmpp_jax.benchmarks.measure import memory_analysis_bytes
 
-    row: dict = {"program": prog.name, "describe": prog.describe, "target": t.name, "chips": t.chips,
-                 "device_kind": t.device_kind, "hbm_bytes": t.hbm_bytes, "peak_flops": t.peak_flops}
+    row: dict = {
+        "program": prog.name,
+        "describe": prog.describe,
+        "target": t.name,
+        "chips": t.chips,
+        "device_kind": t.device_kind,
+        "hbm_bytes": t.hbm_bytes,
+        "peak_flops": t.peak_flops,
+    }
     mesh = Mesh(np.asarray(compile_devices(t)), ("batch",))
     t0 = time.perf_counter()
     try:
@@ -112,8 +129,13 @@ def compile_row(prog: Program, t: Target, flops_cache: dict[str, float | None] |
     row["compile_s"] = time.perf_counter() - t0
     mem = memory_analysis_bytes(compiled)
     needed = mem["xla_peak_bytes"]
-    row.update(compiled=True, memory=mem, hbm_needed_bytes=needed, fits=needed <= t.hbm_bytes,
-               margin=1.0 - needed / t.hbm_bytes)
+    row.update(
+        compiled=True,
+        memory=mem,
+        hbm_needed_bytes=needed,
+        fits=needed <= t.hbm_bytes,
+        margin=1.0 - needed / t.hbm_bytes,
+    )
     row["xla_flops"], row["xla_optimal_s"] = _cost_of(compiled)
     est = estimate_hlo(compiled.as_text(), chip_model(t.name))
     row["estimate"] = est.to_json()
@@ -131,8 +153,12 @@ def compile_row(prog: Program, t: Target, flops_cache: dict[str, float | None] |
     return row
 
 
-def plan(programs: Sequence[str], targets: Sequence[str], log: Callable[[str], None] = print,
-         save: Callable[[list[dict]], None] | None = None) -> list[dict]:
+def plan(
+    programs: Sequence[str],
+    targets: Sequence[str],
+    log: Callable[[str], None] = print,
+    save: Callable[[list[dict]], None] | None = None,
+) -> list[dict]:
     """One :func:`compile_row` per (program, target), programs' groups expanded; ``log`` gets a
     line per row and ``save`` the rows so far after each (a stopped run keeps what it did).
     Unknown names fail with one line before anything compiles."""
@@ -159,14 +185,19 @@ def summary_line(row: dict) -> str:
     if not row["compiled"]:
         need = row.get("needs_bytes")
         have = row.get("hbm_available_bytes") or row["hbm_bytes"]
-        what = f"does not fit: needs {need / gib:.1f} GiB of {have / gib:.2f}" if need else \
-            ("does not fit" if row.get("fits") is False else f"error: {row['error'][:200]}")
+        what = (
+            f"does not fit: needs {need / gib:.1f} GiB of {have / gib:.2f}"
+            if need
+            else ("does not fit" if row.get("fits") is False else f"error: {row['error'][:200]}")
+        )
         return head + f"{what} (compile {row['compile_s']:.0f} s)"
     est = row["estimate"]
     limit = row.get("matmul_limit_s")
-    return head + (f"{row['hbm_needed_bytes'] / gib:.2f} of {row['hbm_bytes'] / gib:.0f} GiB "
-                   f"({'fits' if row['fits'] else 'does NOT fit'}), compiled in {row['compile_s']:.0f} s, "
-                   f"estimate {est['seconds']:.3g} s" + (f", matmul limit {limit:.3g} s" if limit else ""))
+    return head + (
+        f"{row['hbm_needed_bytes'] / gib:.2f} of {row['hbm_bytes'] / gib:.0f} GiB "
+        f"({'fits' if row['fits'] else 'does NOT fit'}), compiled in {row['compile_s']:.0f} s, "
+        f"estimate {est['seconds']:.3g} s" + (f", matmul limit {limit:.3g} s" if limit else "")
+    )
 
 
 def write_rows(rows: list[dict], path: str) -> None:

@@ -66,14 +66,17 @@ def _params_shapes(cfg: C.ModelConfig, bf16: bool):
 
     shapes = jax.eval_shape(lambda k: init_params(k, C.with_attention(cfg, "xla"), 2, 32, 32), jax.random.key(0))
     dtype = jnp.bfloat16 if bf16 else jnp.float32
-    return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, dtype if jnp.issubdtype(s.dtype, jnp.floating)
-                                                       else s.dtype), shapes)
+    return jax.tree.map(
+        lambda s: jax.ShapeDtypeStruct(s.shape, dtype if jnp.issubdtype(s.dtype, jnp.floating) else s.dtype), shapes
+    )
 
 
 def _views(b: int, v: int, h: int, w: int, role: str) -> dict:
-    return {f"{role}_images": jax.ShapeDtypeStruct((b, v, h, w, 3), jnp.float32),
-            f"{role}_c2w": jax.ShapeDtypeStruct((b, v, 4, 4), jnp.float32),
-            f"{role}_intrinsics": jax.ShapeDtypeStruct((b, v, 4), jnp.float32)}
+    return {
+        f"{role}_images": jax.ShapeDtypeStruct((b, v, h, w, 3), jnp.float32),
+        f"{role}_c2w": jax.ShapeDtypeStruct((b, v, 4, 4), jnp.float32),
+        f"{role}_intrinsics": jax.ShapeDtypeStruct((b, v, 4), jnp.float32),
+    }
 
 
 def _round_up(x: int, m: int) -> int:
@@ -84,8 +87,9 @@ def _model(cfg: C.ModelConfig, backend: str) -> C.ModelConfig:
     return C.for_accelerators(cfg, backend=backend)
 
 
-def reconstruct_program(cfg: C.ModelConfig, views: int, size: tuple[int, int], bf16: bool,
-                        name: str | None = None) -> Program:
+def reconstruct_program(
+    cfg: C.ModelConfig, views: int, size: tuple[int, int], bf16: bool, name: str | None = None
+) -> Program:
     """``reconstruct`` of ``views`` inputs of ``size`` (h, w), one scene per device (``name``:
     ``reconstruct_<views>`` by default)."""
     from llrmpp_jax.benchmarks.measure import matmul_flops
@@ -99,8 +103,10 @@ def reconstruct_program(cfg: C.ModelConfig, views: int, size: tuple[int, int], b
         split = NamedSharding(mesh, PartitionSpec(AXIS)) if mesh else None
         inputs = _views(n, views, h, w, "input")
         params = _params_shapes(cfg, bf16)
-        return (params if rep is None else _abstract(params, rep),
-                *(x if split is None else _abstract(x, split) for x in inputs.values()))
+        return (
+            params if rep is None else _abstract(params, rep),
+            *(x if split is None else _abstract(x, split) for x in inputs.values()),
+        )
 
     def build(mesh: Mesh, backend: str) -> Built:
         model = _model(cfg, backend)
@@ -114,8 +120,9 @@ def reconstruct_program(cfg: C.ModelConfig, views: int, size: tuple[int, int], b
     return Program(name or f"reconstruct_{views}", f"reconstruct {views} inputs of {h}x{w} (one scene)", build, flops)
 
 
-def render_program(cfg: C.ModelConfig, from_views: int, size: tuple[int, int], bf16: bool,
-                   name: str = "render") -> Program:
+def render_program(
+    cfg: C.ModelConfig, from_views: int, size: tuple[int, int], bf16: bool, name: str = "render"
+) -> Program:
     """``render`` of one ``size`` target from the Gaussians of ``from_views`` inputs."""
     from llrmpp_jax.benchmarks.measure import matmul_flops
     from llrmpp_jax.benchmarks.paper import counting_config
@@ -155,8 +162,14 @@ def stage_size(cfg: C.ModelConfig, stage) -> tuple[int, int]:
     return _round_up(h, m), _round_up(w, m)
 
 
-def train_program(exp, stage, name: str, views: tuple[int, int] | None = None,
-                  size: tuple[int, int] | None = None, per_device_batch: int | None = None) -> Program:
+def train_program(
+    exp,
+    stage,
+    name: str,
+    views: tuple[int, int] | None = None,
+    size: tuple[int, int] | None = None,
+    per_device_batch: int | None = None,
+) -> Program:
     """The trainer's step of ``stage`` of experiment ``exp`` (``views`` = (inputs, targets),
     ``size`` and ``per_device_batch`` override the stage's)."""
     from llrmpp_jax import train as T
@@ -179,31 +192,40 @@ def train_program(exp, stage, name: str, views: tuple[int, int] | None = None,
     def build(mesh: Mesh, backend: str) -> Built:
         e = replace(exp, model=_model(exp.model, backend))
         optimizer = T.make_optimizer(opt_cfg)
-        params = jax.eval_shape(lambda k: init_params(k, C.with_attention(e.model, "xla"), 2, 32, 32),
-                                jax.random.key(0))
+        params = jax.eval_shape(
+            lambda k: init_params(k, C.with_attention(e.model, "xla"), 2, 32, 32), jax.random.key(0)
+        )
         state = jax.eval_shape(lambda p: T.init_train_state(p, optimizer, jax.random.key(1)), params)
 
         def per_device(state, batch, vgg_params):
             # The step is built inside the trace so that the perceptual weights are an
             # argument rather than constants folded into the program.
-            step = T.make_train_step(make_loss_fn(e, vgg_params, stage), optimizer, T.make_schedule(opt_cfg),
-                                     compute_dtype=jnp.bfloat16 if e.bf16 else jnp.float32,
-                                     skip_grad_norm_above=e.skip_grad_norm_above)
+            step = T.make_train_step(
+                make_loss_fn(e, vgg_params, stage),
+                optimizer,
+                T.make_schedule(opt_cfg),
+                compute_dtype=jnp.bfloat16 if e.bf16 else jnp.float32,
+                skip_grad_norm_above=e.skip_grad_norm_above,
+            )
             return step(state, batch)
 
         rep, split = PartitionSpec(), PartitionSpec(AXIS)
         mapped = jax.shard_map(per_device, mesh=mesh, in_specs=(rep, split, rep), out_specs=(rep, rep))
         fn = jax.jit(mapped, donate_argnums=(0,))
         r, s = NamedSharding(mesh, rep), NamedSharding(mesh, split)
-        return fn, (_abstract(state, r), _abstract(batch(b * mesh.size), s),
-                    None if vgg_shapes is None else _abstract(vgg_shapes, r))
+        return fn, (
+            _abstract(state, r),
+            _abstract(batch(b * mesh.size), s),
+            None if vgg_shapes is None else _abstract(vgg_shapes, r),
+        )
 
     def flops(backend: str) -> float:
         e = replace(exp, model=_model(exp.model, backend))
         return train_step_model_flops(e, vgg_shapes, batch(b))
 
-    return Program(name, f"train step of {exp.name}/{stage.name}: {b} x ({v} inputs + {t} targets) at {h}x{w}",
-                   build, flops)
+    return Program(
+        name, f"train step of {exp.name}/{stage.name}: {b} x ({v} inputs + {t} targets) at {h}x{w}", build, flops
+    )
 
 
 def _paper_programs() -> dict[str, Callable[[], Program]]:
@@ -215,10 +237,12 @@ def _paper_programs() -> dict[str, Callable[[], Program]]:
     out["render"] = lambda: render_program(C.paper_dl3dv(), 32, PAPER_SIZE, True)
     for recipe, n in (("dl3dv", 4), ("scannet", 3)):
         for i in range(n):
+
             def make(recipe=recipe, i=i) -> Program:
                 exp = load_experiment(recipe)
                 stage = exp.stages[i]
                 return train_program(exp, stage, f"train_{recipe}_{stage.name}")
+
             out[f"train_{recipe}_{i + 1}"] = make
     return out
 
@@ -228,12 +252,15 @@ def _tiny_programs() -> dict[str, Callable[[], Program]]:
 
     def tiny_train() -> Program:
         exp = load_experiment("dl3dv")
-        return train_program(replace(exp, model=C.tiny()), exp.stages[3], "tiny_train", views=(2, 1),
-                             size=(64, 96), per_device_batch=1)
+        return train_program(
+            replace(exp, model=C.tiny()), exp.stages[3], "tiny_train", views=(2, 1), size=(64, 96), per_device_batch=1
+        )
 
-    return {"tiny_reconstruct": lambda: reconstruct_program(C.tiny(), 2, (64, 96), True, name="tiny_reconstruct"),
-            "tiny_render": lambda: render_program(C.tiny(), 2, (64, 96), True, name="tiny_render"),
-            "tiny_train": tiny_train}
+    return {
+        "tiny_reconstruct": lambda: reconstruct_program(C.tiny(), 2, (64, 96), True, name="tiny_reconstruct"),
+        "tiny_render": lambda: render_program(C.tiny(), 2, (64, 96), True, name="tiny_render"),
+        "tiny_train": tiny_train,
+    }
 
 
 PROGRAMS: dict[str, Callable[[], Program]] = {**_paper_programs(), **_tiny_programs()}
@@ -243,6 +270,7 @@ assert tuple(PROGRAMS) == PROGRAM_NAMES, "plan/catalog.py names the programs PRO
 def program(name: str) -> Program:
     """The program ``name`` (a key of :data:`PROGRAMS`); one-line ``UserError`` listing them otherwise."""
     if name not in PROGRAMS:
-        raise UserError(f"plan: unknown program {name!r}; known programs: {', '.join(PROGRAM_NAMES)} "
-                        f"(groups: {', '.join(GROUPS)})")
+        raise UserError(
+            f"plan: unknown program {name!r}; known programs: {', '.join(PROGRAM_NAMES)} (groups: {', '.join(GROUPS)})"
+        )
     return PROGRAMS[name]()

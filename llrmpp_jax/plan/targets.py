@@ -45,20 +45,26 @@ class Target:
         return "tpu"
 
 
-def _tpu(name: str, topology: str, kind: str, hbm_gib: float, tflops: float, hbm_gbs: float, ici_gbs: float
-         ) -> list[Target]:
+def _tpu(
+    name: str, topology: str, kind: str, hbm_gib: float, tflops: float, hbm_gbs: float, ici_gbs: float
+) -> list[Target]:
     one = Target(name, topology, 1, kind, hbm_gib * GIB, tflops * 1e12, hbm_gbs * 1e9, ici_gbs * 1e9)
-    return [one, Target(f"{name}-4", topology, 4, kind, one.hbm_bytes, one.peak_flops, one.hbm_bytes_per_s,
-                        one.ici_bytes_per_s)]
+    return [
+        one,
+        Target(f"{name}-4", topology, 4, kind, one.hbm_bytes, one.peak_flops, one.hbm_bytes_per_s, one.ici_bytes_per_s),
+    ]
 
 
 # Data sheets (cloud.google.com/tpu/docs/system-architecture-tpu-vm and the per-version pages).
-TARGETS: dict[str, Target] = {t.name: t for t in [
-    *_tpu("v5e", "v5e:2x2", "TPU v5 lite", 16, 197, 819, 200),
-    *_tpu("v5p", "v5:2x2x1", "TPU v5", 95, 459, 2765, 600),
-    *_tpu("v6e", "v6e:2x2", "TPU v6 lite", 32, 918, 1640, 448),
-    *_tpu("tpu7x", "tpu7x:2x2x1", "TPU7x", 96, 2307 / 2, 7370 / 2, 600),
-]}
+TARGETS: dict[str, Target] = {
+    t.name: t
+    for t in [
+        *_tpu("v5e", "v5e:2x2", "TPU v5 lite", 16, 197, 819, 200),
+        *_tpu("v5p", "v5:2x2x1", "TPU v5", 95, 459, 2765, 600),
+        *_tpu("v6e", "v6e:2x2", "TPU v6 lite", 32, 918, 1640, 448),
+        *_tpu("tpu7x", "tpu7x:2x2x1", "TPU7x", 96, 2307 / 2, 7370 / 2, 600),
+    ]
+}
 
 
 def target(name: str) -> Target:

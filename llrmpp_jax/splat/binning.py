@@ -94,13 +94,25 @@ def _ellipse_terms(
     ``(x, y)`` and the level ``L = ln(o / alpha_min) + 0.01``."""
     conics, means = lax.stop_gradient(projected.conics), lax.stop_gradient(projected.means2d)
     level = jnp.log(jnp.maximum(lax.stop_gradient(opacities).astype(means.dtype), 1e-30) / cfg.alpha_min) + 0.01
-    return (jnp.maximum(conics[:, 0], 1e-30), conics[:, 1], jnp.maximum(conics[:, 2], 1e-30), means[:, 0], means[:, 1],
-            level)
+    return (
+        jnp.maximum(conics[:, 0], 1e-30),
+        conics[:, 1],
+        jnp.maximum(conics[:, 2], 1e-30),
+        means[:, 0],
+        means[:, 1],
+        level,
+    )
 
 
 def _reaches_block(
-    a: Float[Array, " isect"], b: Float[Array, " isect"], c: Float[Array, " isect"], mx: Float[Array, " isect"],
-    my: Float[Array, " isect"], level: Float[Array, " isect"], bx: Int[Array, " isect"], by: Int[Array, " isect"],
+    a: Float[Array, " isect"],
+    b: Float[Array, " isect"],
+    c: Float[Array, " isect"],
+    mx: Float[Array, " isect"],
+    my: Float[Array, " isect"],
+    level: Float[Array, " isect"],
+    bx: Int[Array, " isect"],
+    by: Int[Array, " isect"],
     cfg: SplatConfig,
 ) -> Bool[Array, " isect"]:
     """Whether a Gaussian (per slot: its conic ``a, b, c``, mean and level from
@@ -135,7 +147,10 @@ def _reaches_block(
 
 
 def tile_rects(
-    projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
+    projected: ProjectedGaussians,
+    height: int,
+    width: int,
+    cfg: SplatConfig,
     opacities: Float[Array, " N"] | None = None,
 ) -> tuple[Int[Array, " N"], Int[Array, " N"], Int[Array, " N"], Int[Array, " N"]]:
     """Half-open box ``(x0, x1, y0, y1)`` of compositor blocks for each Gaussian: the blocks
@@ -160,7 +175,10 @@ def tile_rects(
 
 
 def intersection_counts(
-    projected: ProjectedGaussians, height: int, width: int, cfg: SplatConfig,
+    projected: ProjectedGaussians,
+    height: int,
+    width: int,
+    cfg: SplatConfig,
     opacities: Float[Array, " N"] | None = None,
 ) -> Int[Array, " N"]:
     """Number of compositor blocks each Gaussian enters (0 when culled); without
@@ -173,7 +191,9 @@ def intersection_counts(
 _INF_BITS = 0x7F800000
 
 
-def _depth_order_by_key(depths: Float[Array, " N"], drawn: Bool[Array, " N"]) -> tuple[Int[Array, " N"], Int[Array, " N"]]:
+def _depth_order_by_key(
+    depths: Float[Array, " N"], drawn: Bool[Array, " N"]
+) -> tuple[Int[Array, " N"], Int[Array, " N"]]:
     """:func:`depth_positions` by one int32 sort.
 
     Drawn depths are > ``near`` > 0, so their float32 bit patterns order as the depths;
@@ -239,7 +259,11 @@ def _inclusive_prefix_sum(counts: Int[Array, " N"], num_tiles: int) -> Int[Array
 
 
 def bin_gaussians(
-    projected: ProjectedGaussians, height: int, width: int, capacity: int, cfg: SplatConfig,
+    projected: ProjectedGaussians,
+    height: int,
+    width: int,
+    capacity: int,
+    cfg: SplatConfig,
     opacities: Float[Array, " N"] | None = None,
 ) -> TileBins:
     """Bin projected Gaussians into depth-sorted per-tile lists of ``capacity`` slots.
@@ -266,6 +290,7 @@ def bin_gaussians(
     src = jnp.zeros((capacity,), jnp.int32).at[starts].max(jnp.arange(n, dtype=jnp.int32), mode="drop")
     src = lax.cummax(src)
     rank = slots - starts[src]
+
     # Per-Gaussian values are put in depth order once and read by ``src`` (non-decreasing,
     # so the reads are sequential). A scatter to ``position``, not a gather by ``order``:
     # XLA:CPU drops optimization barriers before fusing and would fuse ``v[order][src]``

@@ -91,7 +91,10 @@ def _running(
 
 
 def _cumulative(
-    x: Float[Array, "group chunk pix"], op: Callable, identity: float, exclusive: bool = False,
+    x: Float[Array, "group chunk pix"],
+    op: Callable,
+    identity: float,
+    exclusive: bool = False,
     reverse: bool = False,
 ) -> Float[Array, "group chunk pix"]:
     """Cumulative ``op`` (``jnp.multiply`` or ``jnp.add``) along the chunk axis.
@@ -357,8 +360,19 @@ def _backward_fn(height: int, width: int, cfg: SplatConfig) -> Callable:
         def step(grads, xs):
             group, t_fin, lst, gfe, gtr = xs
             new = _backward_group(
-                geometry, opacities, features, gaussian_ids, group, t_fin, lst, gfe, gtr, grads,
-                height, width, cfg,
+                geometry,
+                opacities,
+                features,
+                gaussian_ids,
+                group,
+                t_fin,
+                lst,
+                gfe,
+                gtr,
+                grads,
+                height,
+                width,
+                cfg,
             )
             return new, None
 

@@ -97,13 +97,10 @@ class SplatConfig:
                 f"radius_sigmas={self.radius_sigmas}"
             )
         if self.max_intersections is not None and not 1 <= self.max_intersections < 2**30:
-            raise UserError(
-                f"SplatConfig.max_intersections must be in [1, 2**30), got {self.max_intersections}"
-            )
+            raise UserError(f"SplatConfig.max_intersections must be in [1, 2**30), got {self.max_intersections}")
         if self.intersections_per_gaussian <= 0.0:
             raise UserError(
-                "SplatConfig.intersections_per_gaussian must be > 0, got "
-                f"{self.intersections_per_gaussian}"
+                f"SplatConfig.intersections_per_gaussian must be > 0, got {self.intersections_per_gaussian}"
             )
 
     def tile_grid(self, height: int, width: int) -> tuple[int, int]:

@@ -80,12 +80,7 @@ def quat_to_rotmat(quats: Float[Array, "N 4"]) -> Float[Array, "N 3 3"]:
 
 def camera_is_valid(c2w: Float[Array, "4 4"], intrinsics: Float[Array, " 4"]) -> Bool[Array, ""]:
     """True when the camera is usable: finite entries and positive focal lengths."""
-    return (
-        jnp.all(jnp.isfinite(c2w))
-        & jnp.all(jnp.isfinite(intrinsics))
-        & (intrinsics[0] > 0)
-        & (intrinsics[1] > 0)
-    )
+    return jnp.all(jnp.isfinite(c2w)) & jnp.all(jnp.isfinite(intrinsics)) & (intrinsics[0] > 0) & (intrinsics[1] > 0)
 
 
 def _cross(u: Float[Array, "N 3"], v: Float[Array, "N 3"]) -> Float[Array, "N 3"]:

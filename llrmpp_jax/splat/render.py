@@ -67,8 +67,9 @@ class SplatOutput(NamedTuple):
 EXPECTED_DEPTH_MIN_ALPHA = 1e-10
 
 
-def _expected_depth(depth: Float[Array, "*batch H W"], transmittance: Float[Array, "*batch H W"]
-                    ) -> Float[Array, "*batch H W"]:
+def _expected_depth(
+    depth: Float[Array, "*batch H W"], transmittance: Float[Array, "*batch H W"]
+) -> Float[Array, "*batch H W"]:
     """gsplat's "ED": accumulated camera z over accumulated alpha (``1 - transmittance``),
     0 where nothing was drawn."""
     alpha = 1.0 - transmittance
@@ -105,9 +106,7 @@ def _check_shapes(
     n_from: tuple[str, int, tuple[int, ...]] | None = None
     for name, (x, expected) in per_gaussian.items():
         shape = _shape(x, name)
-        ok = len(shape) == len(expected) and all(
-            e in ("N", "*") or s == e for s, e in zip(shape, expected)
-        )
+        ok = len(shape) == len(expected) and all(e in ("N", "*") or s == e for s, e in zip(shape, expected))
         if not ok:
             pretty = "(" + ", ".join(str(e) for e in expected) + ")"
             raise ValueError(f"{name} must have shape {pretty}, got {shape}")
@@ -116,8 +115,7 @@ def _check_shapes(
             n_from = (name, n, shape)
         elif n != n_from[1]:
             raise ValueError(
-                f"{name} has N={n} Gaussians (shape {shape}) but {n_from[0]} has "
-                f"N={n_from[1]} (shape {n_from[2]})"
+                f"{name} has N={n} Gaussians (shape {shape}) but {n_from[0]} has N={n_from[1]} (shape {n_from[2]})"
             )
         if not jnp.issubdtype(x.dtype, jnp.floating):
             raise ValueError(f"{name} must be floating point, got dtype {x.dtype}")
@@ -143,9 +141,7 @@ def _check_values(c2w: ArrayLike, intrinsics: ArrayLike, **arrays: ArrayLike) ->
         raise ValueError("c2w has non-finite entries")
 
 
-def _render_copies(
-    means, quats, scales, opacities, features, c2w, intrinsics, height, width, cfg, keep=None
-):
+def _render_copies(means, quats, scales, opacities, features, c2w, intrinsics, height, width, cfg, keep=None):
     """Shared core: ``opacities`` is ``[S, N]``; returns an output with a leading S axis.
 
     ``keep`` (optional ``[N]`` bool) drops more Gaussians, counted as non-finite.
@@ -205,8 +201,9 @@ def _check_inputs(
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     colour = render_mode.split("+")[0]
     opac_shape = ("N",) if len(_shape(opacities, "opacities")) == 1 else ("*", "N")
-    per_gaussian = dict(means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)),
-                        opacities=(opacities, opac_shape))
+    per_gaussian = dict(
+        means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)), opacities=(opacities, opac_shape)
+    )
     degree = None
     if colour in ("D", "ED"):
         if features is not None or background is not None:
@@ -218,8 +215,9 @@ def _check_inputs(
     else:
         m = _shape(features, "features")
         if len(m) != 3 or m[2] != 3:
-            raise ValueError(f"features must have shape (N, sh, 3) (SH coefficients) in render_mode "
-                             f"{render_mode!r}, got {m}")
+            raise ValueError(
+                f"features must have shape (N, sh, 3) (SH coefficients) in render_mode {render_mode!r}, got {m}"
+            )
         degree = round(m[1] ** 0.5) - 1 if sh_degree is None else sh_degree
         if not 0 <= degree <= MAX_DEGREE or num_sh_bases(degree) > m[1]:
             raise ValueError(
@@ -285,16 +283,19 @@ def rasterize(
     Called outside ``jit`` with ``cfg.max_intersections`` unset, the buffer is sized from
     this scene (:func:`fit_capacity`).
     """
-    degree = _check_inputs(means, quats, scales, opacities, features, c2w, intrinsics, height, width, background,
-                           render_mode, sh_degree)
+    degree = _check_inputs(
+        means, quats, scales, opacities, features, c2w, intrinsics, height, width, background, render_mode, sh_degree
+    )
     if not any(isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)):
         cfg = fit_capacity(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
-    return _rasterize_jit(means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg,
-                          render_mode, degree)
+    return _rasterize_jit(
+        means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, render_mode, degree
+    )
 
 
-def _rasterize(means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, mode,
-               degree):
+def _rasterize(
+    means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, mode, degree
+):
     dtype = _compute_dtype(means)
     copies = opacities.ndim == 2
     keep = None
@@ -307,8 +308,19 @@ def _rasterize(means, quats, scales, opacities, features, c2w, intrinsics, backg
         features = sh_colors(safe_means, coeffs, c2w.astype(dtype), degree)
     elif features is None:
         features = jnp.zeros((means.shape[0], 0), dtype)
-    out = _render_copies(means, quats, scales, opacities if copies else opacities[None, :], features, c2w, intrinsics,
-                         height, width, cfg, keep=keep)
+    out = _render_copies(
+        means,
+        quats,
+        scales,
+        opacities if copies else opacities[None, :],
+        features,
+        c2w,
+        intrinsics,
+        height,
+        width,
+        cfg,
+        keep=keep,
+    )
     if not copies:
         out = SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
     canvas, depth = out.features, out.depth
@@ -357,14 +369,25 @@ def fit_capacity(
     scenes = [x if lead else x[None] for x in arrays]
     cams = [jnp.asarray(x) for x in (c2w, intrinsics)]
     b = scenes[0].shape[0]
-    cams = [x.reshape(b, -1, *x.shape[x.ndim - tail:]) for x, tail in zip(cams, (2, 1))]
+    cams = [x.reshape(b, -1, *x.shape[x.ndim - tail :]) for x, tail in zip(cams, (2, 1))]
+
     def one(x, lead):  # a zero-size-in-memory stand-in of one scene's / camera's array
         return np.broadcast_to(np.zeros((), x.dtype), x.shape[lead:])
 
-    _check_shapes(height, width, one(cams[0], 2), one(cams[1], 2),
-                  **{name: (one(x, 1), shape) for name, x, shape in zip(
-                      ("means", "quats", "scales", "opacities"), scenes,
-                      (("N", 3), ("N", 4), ("N", 3), ("N",) if scenes[3].ndim == 2 else ("*", "N")))})
+    _check_shapes(
+        height,
+        width,
+        one(cams[0], 2),
+        one(cams[1], 2),
+        **{
+            name: (one(x, 1), shape)
+            for name, x, shape in zip(
+                ("means", "quats", "scales", "opacities"),
+                scenes,
+                (("N", 3), ("N", 4), ("N", 3), ("N",) if scenes[3].ndim == 2 else ("*", "N")),
+            )
+        },
+    )
     needed = int(jnp.max(_count_jit(*scenes, *cams, height, width, cfg)))
     return dataclasses.replace(cfg, max_intersections=max(_round_capacity(math.ceil(headroom * needed)), minimum))
 
@@ -387,7 +410,8 @@ def _count_views(means, quats, scales, opacities, c2w, intrinsics, height, width
     """``[B, T]`` slots of B scenes at each of their T cameras."""
     per_camera = jax.vmap(_count, (None, None, None, None, 0, 0, None, None, None))
     return jax.vmap(per_camera, (0, 0, 0, 0, 0, 0, None, None, None))(
-        means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
+        means, quats, scales, opacities, c2w, intrinsics, height, width, cfg
+    )
 
 
 _count_jit = jax.jit(_count_views, static_argnames=("height", "width", "cfg"))

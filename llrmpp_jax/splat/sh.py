@@ -58,18 +58,14 @@ def sh_basis(dirs: Float[Array, "N 3"], degree: int) -> Float[Array, "N bases"]:
     return jnp.stack(out, axis=-1)
 
 
-def eval_sh(
-    dirs: Float[Array, "N 3"], coeffs: Float[Array, "N sh 3"], degree: int
-) -> Float[Array, "N 3"]:
+def eval_sh(dirs: Float[Array, "N 3"], coeffs: Float[Array, "N sh 3"], degree: int) -> Float[Array, "N 3"]:
     """``sum_k Y_k(dir / |dir|) coeffs[:, k]`` over the first ``(degree+1)^2`` coefficients.
 
     ``dirs`` need not be unit length; a zero direction gives only the degree-0 term.
     """
     nb = num_sh_bases(degree)
     if coeffs.shape[1] < nb:
-        raise ValueError(
-            f"eval_sh: degree {degree} needs {nb} coefficients, sh_coeffs has shape {coeffs.shape}"
-        )
+        raise ValueError(f"eval_sh: degree {degree} needs {nb} coefficients, sh_coeffs has shape {coeffs.shape}")
     sq = jnp.sum(dirs * dirs, axis=-1, keepdims=True)
     unit = dirs * lax.rsqrt(jnp.maximum(sq, _DIR_EPS**2))
     basis = sh_basis(unit, degree)

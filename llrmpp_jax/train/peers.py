@@ -122,18 +122,24 @@ def watch_peers(
         while not stop.wait(interval_s / 2):
             now = time.monotonic()
             with lock:
-                silent = [(p, now - t, v) for p, (v, t) in seen.items()
-                          if not v.startswith(_DONE) and now - t > timeout_s]
+                silent = [
+                    (p, now - t, v) for p, (v, t) in seen.items() if not v.startswith(_DONE) and now - t > timeout_s
+                ]
                 store_silent = now - store_ok[0] > timeout_s
             if store_silent and me != 0:
                 silent = [(0, now - store_ok[0], seen.get(0, ("", 0))[0])]
             if silent:
                 p, age, last = silent[0]
-                who = f"process {p} of {count}" + (f" ({last.split(' ', 1)[1]})" if " " in last else "")  # "n host pid X"
+                who = f"process {p} of {count}" + (
+                    f" ({last.split(' ', 1)[1]})" if " " in last else ""
+                )  # "n host pid X"
                 hint = resume_hint()
-                on_lost(PeerLostError(
-                    f"lost {who}: no heartbeat for {age:.0f} s, so this process (process {me}) stops"
-                    + (f"; {hint}" if hint else "")))
+                on_lost(
+                    PeerLostError(
+                        f"lost {who}: no heartbeat for {age:.0f} s, so this process (process {me}) stops"
+                        + (f"; {hint}" if hint else "")
+                    )
+                )
                 return
 
     threads = [threading.Thread(target=f, name=f"llrmpp-peers-{f.__name__}", daemon=True) for f in (beat, judge)]

@@ -70,7 +70,8 @@ def skip_gradient_spikes(
         new_updates, new_inner = inner.update(updates, state.inner, params)
         out = jax.tree.map(lambda u: jnp.where(spike, jnp.zeros_like(u), u), new_updates)
         kept_inner = jax.tree.map(lambda new, old: jnp.where(spike, old, new), new_inner, state.inner)
-        return out, SpikeGuardState(kept_inner, ema, state.seen + finite.astype(jnp.int32),
-                                    state.spikes + spike.astype(jnp.int32))
+        return out, SpikeGuardState(
+            kept_inner, ema, state.seen + finite.astype(jnp.int32), state.spikes + spike.astype(jnp.int32)
+        )
 
     return optax.GradientTransformation(init, update)

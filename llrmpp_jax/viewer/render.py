@@ -109,8 +109,9 @@ def render_view(
         out = render(p, c, gaussians, c2w[None, None], intrinsics[None, None], height, width, (output,))
         return out.images[output][0, 0]
     g = jax.tree.map(lambda a: a[0], gaussians)
-    out = rasterize(g.means, g.quats, g.scales, g.opacities, None, c2w, intrinsics, height, width, cfg.splat,
-                    render_mode="ED")
+    out = rasterize(
+        g.means, g.quats, g.scales, g.opacities, None, c2w, intrinsics, height, width, cfg.splat, render_mode="ED"
+    )
     return out.depth[:, :, None]
 
 
@@ -159,8 +160,13 @@ class ViewRenderer:
     Thread-safe for one caller at a time per instance (the viewer's render worker).
     """
 
-    def __init__(self, params: dict, cfg: ModelConfig, gaussians: Gaussians,
-                 cameras: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None = None):
+    def __init__(
+        self,
+        params: dict,
+        cfg: ModelConfig,
+        gaussians: Gaussians,
+        cameras: tuple[np.ndarray, np.ndarray, tuple[int, int]] | None = None,
+    ):
         """``cameras``: ``(c2w [V, 4, 4], intrinsics [V, 4], (height, width))``, the scene's
         input cameras and the image size their intrinsics refer to; they size the splat
         buffer of each render size (module docstring). None: the config's buffer."""
@@ -180,8 +186,17 @@ class ViewRenderer:
         scale = np.array([width / w0, height / h0, width / w0, height / h0], np.float32)
         k = np.asarray(intrinsics, np.float32) * scale
         default = cfg.splat.capacity(self._gaussians.means.shape[1], height, width)
-        return fit_capacity(self._params, cfg, self._gaussians, jnp.asarray(c2w, jnp.float32)[None],
-                            jnp.asarray(k)[None], height, width, headroom=VIEW_HEADROOM, minimum=default)
+        return fit_capacity(
+            self._params,
+            cfg,
+            self._gaussians,
+            jnp.asarray(c2w, jnp.float32)[None],
+            jnp.asarray(k)[None],
+            height,
+            width,
+            headroom=VIEW_HEADROOM,
+            minimum=default,
+        )
 
     @property
     def max_partitions(self) -> int:
@@ -200,8 +215,9 @@ class ViewRenderer:
         fn = jax.jit(render_view, static_argnums=(1, 5, 6, 7, 8))
         cam = jax.ShapeDtypeStruct((4, 4), jnp.float32), jax.ShapeDtypeStruct((4,), jnp.float32)
         cfg = self.config_for(key.height, key.width)
-        self._compiled[key] = fn.lower(self._params, cfg, self._gaussians, *cam, key.height, key.width,
-                                       key.output, key.partitions).compile()
+        self._compiled[key] = fn.lower(
+            self._params, cfg, self._gaussians, *cam, key.height, key.width, key.output, key.partitions
+        ).compile()
         return time.perf_counter() - t0
 
     def render(self, key: ViewKey, c2w: np.ndarray, intrinsics: np.ndarray) -> Frame:
@@ -209,6 +225,5 @@ class ViewRenderer:
         compile_s = self.compile(key)
         c2w, intrinsics = np.asarray(c2w, np.float32), np.asarray(intrinsics, np.float32)
         t0 = time.perf_counter()
-        image = np.asarray(jax.block_until_ready(
-            self._compiled[key](self._params, self._gaussians, c2w, intrinsics)))
+        image = np.asarray(jax.block_until_ready(self._compiled[key](self._params, self._gaussians, c2w, intrinsics)))
         return Frame(image, key, c2w, intrinsics, time.perf_counter() - t0, compile_s)

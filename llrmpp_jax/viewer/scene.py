@@ -47,8 +47,10 @@ def check_gaussians(cfg: ModelConfig, gaussians: Gaussians, source: str) -> None
     want = {"means": (1, n, 3), "quats": (1, n, 4), "scales": (1, n, 3), "opacities": (1, n)}
     for name, shape in want.items():
         if shapes[name] != shape:
-            raise UserError(f"{source}: Gaussian field {name!r} has shape {shapes[name]}, expected {shape} "
-                             f"(one scene of N={n} Gaussians)")
+            raise UserError(
+                f"{source}: Gaussian field {name!r} has shape {shapes[name]}, expected {shape} "
+                f"(one scene of N={n} Gaussians)"
+            )
     f = shapes["features"]
     if cfg.head.mode == "feature":
         want_f, what = cfg.head.feature_dim, f"F={cfg.head.feature_dim} features (feature mode)"
@@ -56,8 +58,10 @@ def check_gaussians(cfg: ModelConfig, gaussians: Gaussians, source: str) -> None
         want_f = 3 * num_sh_bases(cfg.head.sh_degree)
         what = f"{want_f} SH coefficients of degree {cfg.head.sh_degree} (colour mode)"
     if f != (1, n, want_f):
-        raise UserError(f"{source}: Gaussians carry {f[-1]} values per Gaussian but the model config expects "
-                         f"{what}; the scene was made with another model")
+        raise UserError(
+            f"{source}: Gaussians carry {f[-1]} values per Gaussian but the model config expects "
+            f"{what}; the scene was made with another model"
+        )
 
 
 def _uint8(images: Float[np.ndarray, "V H W 3"]) -> np.ndarray:
@@ -77,8 +81,9 @@ def saved_view_scene(saved: SavedScene, input_images: Float[np.ndarray, "V H W 3
     )
 
 
-def procedural_view_scene(params: dict, cfg: ModelConfig, seed: int, num_inputs: int = 4, size: int = 64,
-                          num_frames: int = 16) -> ViewerScene:
+def procedural_view_scene(
+    params: dict, cfg: ModelConfig, seed: int, num_inputs: int = 4, size: int = 64, num_frames: int = 16
+) -> ViewerScene:
     """Reconstruct procedural scene ``seed`` (``size x size``, ``num_frames`` frames) from
     ``num_inputs`` evenly spread frames with the model ``(params, cfg)``."""
     if size % cfg.size_multiple:
@@ -91,8 +96,9 @@ def procedural_view_scene(params: dict, cfg: ModelConfig, seed: int, num_inputs:
     return ViewerScene(scene.name, gaussians, c2w, intrinsics, (size, size), _uint8(images))
 
 
-def gaussian_centres(cfg: ModelConfig, gaussians: Gaussians, max_points: int,
-                     rng: np.random.Generator) -> tuple[Float[np.ndarray, "pts 3"], np.ndarray]:
+def gaussian_centres(
+    cfg: ModelConfig, gaussians: Gaussians, max_points: int, rng: np.random.Generator
+) -> tuple[Float[np.ndarray, "pts 3"], np.ndarray]:
     """At most ``max_points`` Gaussian centres (a random subset if there are more) and a
     ``uint8 [pts, 3]`` colour each: the SH DC colour in colour mode; in feature mode the
     features' first three principal components, each stretched to [0, 255] (features have

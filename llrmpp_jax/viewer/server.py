@@ -161,15 +161,25 @@ class Viewer:
     starts.
     """
 
-    def __init__(self, renderer: ViewRenderer, scene: ViewerScene, *, host: str = "127.0.0.1", port: int = 8080,
-                 settings: ViewerSettings = ViewerSettings()):
+    def __init__(
+        self,
+        renderer: ViewRenderer,
+        scene: ViewerScene,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        settings: ViewerSettings = ViewerSettings(),
+    ):
         m, most = renderer.cfg.size_multiple, renderer.max_partitions
         if settings.height <= 0 or settings.moving_height <= 0 or settings.height % m or settings.moving_height % m:
-            raise UserError(f"viewer heights must be positive multiples of {m}, got {settings.height} and "
-                             f"{settings.moving_height}")
+            raise UserError(
+                f"viewer heights must be positive multiples of {m}, got {settings.height} and {settings.moving_height}"
+            )
         if settings.output not in OUTPUTS or not 1 <= (settings.partitions or most) <= most:
-            raise UserError(f"viewer output must be one of {OUTPUTS} and partitions in [1, {most}], got "
-                             f"{settings.output!r} and {settings.partitions}")
+            raise UserError(
+                f"viewer output must be one of {OUTPUTS} and partitions in [1, {most}], got "
+                f"{settings.output!r} and {settings.partitions}"
+            )
         check_port(host, port)
         self.renderer, self.scene, self.settings = renderer, scene, settings
         self._last: Frame | None = None  # the latest frame sent to any tab
@@ -201,15 +211,26 @@ class Viewer:
         h, w = sc.input_hw
         self._frustums = []
         for i, (c2w, k) in enumerate(zip(sc.input_c2w, sc.input_intrinsics)):
-            self._frustums.append(self.server.scene.add_camera_frustum(
-                f"/inputs/{i}", fov=float(2.0 * np.arctan(h / (2.0 * k[1]))), aspect=w / h, scale=0.08 * extent,
-                wxyz=vtf.SO3.from_matrix(c2w[:3, :3].astype(np.float64)).wxyz, position=c2w[:3, 3],
-                image=None if sc.thumbnails is None else sc.thumbnails[i], visible=s.show_cameras,
-                color=(200, 60, 40), thickness=1.5, thickness_units="screen"))
+            self._frustums.append(
+                self.server.scene.add_camera_frustum(
+                    f"/inputs/{i}",
+                    fov=float(2.0 * np.arctan(h / (2.0 * k[1]))),
+                    aspect=w / h,
+                    scale=0.08 * extent,
+                    wxyz=vtf.SO3.from_matrix(c2w[:3, :3].astype(np.float64)).wxyz,
+                    position=c2w[:3, 3],
+                    image=None if sc.thumbnails is None else sc.thumbnails[i],
+                    visible=s.show_cameras,
+                    color=(200, 60, 40),
+                    thickness=1.5,
+                    thickness_units="screen",
+                )
+            )
         points, colours = gaussian_centres(self.renderer.cfg, sc.gaussians, s.max_points, np.random.default_rng(0))
         size = float(np.median(np.asarray(sc.gaussians.scales[0]).max(axis=-1)))  # a typical Gaussian's radius
         self._points = self.server.scene.add_point_cloud(
-            "/gaussians", points, colours, point_size=size, point_shape="rounded", visible=s.show_points)
+            "/gaussians", points, colours, point_size=size, point_shape="rounded", visible=s.show_points
+        )
         # New tabs open at the first input camera.
         c2w, k = sc.input_c2w[0], sc.input_intrinsics[0]
         cam = self.server.initial_camera
@@ -226,9 +247,14 @@ class Viewer:
         self._height = gui.add_slider("height (still)", min=m, max=top, step=m, initial_value=s.height)
         self._moving = gui.add_slider("height (moving)", min=m, max=top, step=m, initial_value=s.moving_height)
         most = self.renderer.max_partitions  # 1 (colour mode, or S=1): a disabled slider, as min < max is needed
-        self._partitions = gui.add_slider("partitions S", min=1, max=max(most, 2), step=1,
-                                          initial_value=most if s.partitions is None else s.partitions,
-                                          disabled=most == 1)
+        self._partitions = gui.add_slider(
+            "partitions S",
+            min=1,
+            max=max(most, 2),
+            step=1,
+            initial_value=most if s.partitions is None else s.partitions,
+            disabled=most == 1,
+        )
         show_points = gui.add_checkbox("Gaussian centres", initial_value=s.show_points)
         show_cameras = gui.add_checkbox("input cameras", initial_value=s.show_cameras)
         self._readout = gui.add_markdown("waiting for the browser's camera...")
@@ -255,8 +281,11 @@ class Viewer:
 
     # -- clients ------------------------------------------------------------------------
     def _connect(self, client: viser.ClientHandle) -> None:
-        worker = RenderWorker(lambda req: self._render_safely(client, req), self.settings.still_seconds,
-                              name=f"llrmpp-view-{client.client_id}")
+        worker = RenderWorker(
+            lambda req: self._render_safely(client, req),
+            self.settings.still_seconds,
+            name=f"llrmpp-view-{client.client_id}",
+        )
         self._workers[client.client_id] = worker
 
         @client.camera.on_update
@@ -288,8 +317,9 @@ class Viewer:
         if not self.renderer.is_compiled(key):
             what = f"{width}x{height} {output}, S={partitions}"
             self._report(f"compiling the renderer for {what} (once per size)...")
-            note = client.add_notification("Compiling", f"first view at {what}; later views reuse it", loading=True,
-                                           with_close_button=False)
+            note = client.add_notification(
+                "Compiling", f"first view at {what}; later views reuse it", loading=True, with_close_button=False
+            )
             try:
                 compile_s = self.renderer.compile(key)
             finally:
@@ -300,8 +330,10 @@ class Viewer:
         frame = dataclasses.replace(frame, compile_s=compile_s)
         client.scene.set_background_image(display_image(frame.image, output), format=self.settings.image_format)
         compiled = f" (compiled in {compile_s:.1f} s)" if compile_s else ""
-        self._report(f"**{1e3 * frame.render_s:.0f} ms** per frame at {width}x{height} {output}, "
-                     f"S={partitions}{' (moving)' if req.moving else ''}{compiled}")
+        self._report(
+            f"**{1e3 * frame.render_s:.0f} ms** per frame at {width}x{height} {output}, "
+            f"S={partitions}{' (moving)' if req.moving else ''}{compiled}"
+        )
         with self._frame_cond:
             self._last = frame
             self._frame_count += 1

@@ -51,16 +51,49 @@ def feature_scene(tmp_path_factory):
     scene = procedural_scene(3, ProceduralConfig(height=64, width=64, num_frames=12))
     write_nerfstudio_scene(scene, str(d / "capture"))
     gs = str(d / "scene.gs")
-    assert main(["reconstruct", "--checkpoint", "pretrained:small", "--scene", str(d / "capture"), "--num-inputs",
-                 "6", "--size", "64", "--repeats", "1", "--out", gs]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--checkpoint",
+                "pretrained:small",
+                "--scene",
+                str(d / "capture"),
+                "--num-inputs",
+                "6",
+                "--size",
+                "64",
+                "--repeats",
+                "1",
+                "--out",
+                gs,
+            ]
+        )
+        == 0
+    )
     return gs
 
 
 def test_export_bake_writes_the_standard_layout_close_to_the_model(feature_scene, tmp_path, capsys):
     ply = str(tmp_path / "baked.ply")
     capsys.readouterr()
-    assert main(["export", "--gaussians", feature_scene, "--checkpoint", "pretrained:small", "--ply", ply, "--bake",
-                 "--bake-steps", "100"]) == 0
+    assert (
+        main(
+            [
+                "export",
+                "--gaussians",
+                feature_scene,
+                "--checkpoint",
+                "pretrained:small",
+                "--ply",
+                ply,
+                "--bake",
+                "--bake-steps",
+                "100",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     fitted = re.search(r"fitted views ([\d.]+) -> ([\d.]+) dB", out)
     held_out = re.search(r"baked vs the model's renders ([\d.]+) dB", out)
@@ -71,18 +104,34 @@ def test_export_bake_writes_the_standard_layout_close_to_the_model(feature_scene
     assert float(held_out[1]) > 17.0, out
     vertex = plyfile.PlyData.read(ply)["vertex"].data
     # 3DGS's own layout (its PLY writer's field order), as every viewer reads it.
-    assert list(vertex.dtype.names) == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-                                        + [f"f_rest_{i}" for i in range(45)]
-                                        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
-                                           "rot_3"])
+    assert list(vertex.dtype.names) == (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     assert len(vertex) == load_gs(feature_scene).gaussians.means.shape[0]
     assert read_ply(ply).mode == "color"
 
 
 def test_bad_bake_input_is_one_line(feature_scene, tmp_path, capsys):
     capsys.readouterr()
-    assert main(["export", "--gaussians", feature_scene, "--checkpoint", "pretrained:small", "--ply",
-                 str(tmp_path / "x.ply"), "--bake", "--sh-degree", "4"]) == 2
+    assert (
+        main(
+            [
+                "export",
+                "--gaussians",
+                feature_scene,
+                "--checkpoint",
+                "pretrained:small",
+                "--ply",
+                str(tmp_path / "x.ply"),
+                "--bake",
+                "--sh-degree",
+                "4",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--sh-degree must be in 0..3" in err[0], err
     assert main(["export", "--gaussians", feature_scene, "--ply", str(tmp_path / "x.ply"), "--bake"]) == 2

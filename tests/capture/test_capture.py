@@ -145,10 +145,20 @@ def test_gs_round_trip_is_exact(tmp_path, rng):
     n, m = 50, 7
     f32 = lambda *s: rng.normal(size=s).astype(np.float32)  # noqa: E731
     saved = SavedScene(
-        gaussians=Gaussians(f32(n, 3), f32(n, 4), f32(n, 3), f32(n), f32(n, 48)), model=C.long_lrm(),
-        c2w=_random_poses(rng, m), intrinsics=rng.uniform(10, 20, (m, 4)), world_from_scene=_random_poses(rng, 1)[0],
-        frame_names=tuple(f"images/{i}.jpg" for i in range(m)), inputs=np.array([1, 3]), targets=np.array([0]),
-        image_hw=(64, 32), resized_hw=(64, 36), crop_box=(0, 2, 64, 32), scene_path="/x", scene_format="colmap")
+        gaussians=Gaussians(f32(n, 3), f32(n, 4), f32(n, 3), f32(n), f32(n, 48)),
+        model=C.long_lrm(),
+        c2w=_random_poses(rng, m),
+        intrinsics=rng.uniform(10, 20, (m, 4)),
+        world_from_scene=_random_poses(rng, 1)[0],
+        frame_names=tuple(f"images/{i}.jpg" for i in range(m)),
+        inputs=np.array([1, 3]),
+        targets=np.array([0]),
+        image_hw=(64, 32),
+        resized_hw=(64, 36),
+        crop_box=(0, 2, 64, 32),
+        scene_path="/x",
+        scene_format="colmap",
+    )
     save_gs(str(tmp_path / "a.gs"), saved)
     back = load_gs(str(tmp_path / "a.gs"))
     for name in Gaussians._fields:
@@ -189,16 +199,41 @@ def test_render_views_sizes_the_splat_buffer_so_nothing_is_dropped(rng):
     g, cfg, c2w = wide_colour_scene(rng)
     n, h, w = g.means.shape[0], SIZE, SIZE
     intr = np.tile(INTRINSICS, (2, 1))
-    saved = SavedScene(gaussians=g, model=cfg, c2w=c2w, intrinsics=intr, world_from_scene=np.eye(4),
-                       frame_names=("a", "b"), inputs=np.array([0]), targets=np.array([1]), image_hw=(h, w),
-                       resized_hw=(h, w), crop_box=(0, 0, h, w), scene_path="/x", scene_format="colmap")
-    default = render({}, cfg, jax.tree.map(lambda x: x[None], g), c2w[None].astype(np.float32),
-                     intr[None].astype(np.float32), h, w)
+    saved = SavedScene(
+        gaussians=g,
+        model=cfg,
+        c2w=c2w,
+        intrinsics=intr,
+        world_from_scene=np.eye(4),
+        frame_names=("a", "b"),
+        inputs=np.array([0]),
+        targets=np.array([1]),
+        image_hw=(h, w),
+        resized_hw=(h, w),
+        crop_box=(0, 0, h, w),
+        scene_path="/x",
+        scene_format="colmap",
+    )
+    default = render(
+        {}, cfg, jax.tree.map(lambda x: x[None], g), c2w[None].astype(np.float32), intr[None].astype(np.float32), h, w
+    )
     assert int(default.dropped.max()) > 0  # the scene overflows the trace-time buffer
     got = render_views({}, saved, c2w, intr, ["a", "b"], progress=False).rgb
     room = SplatConfig(max_intersections=n * (h // 8) * (w // 8))
     for v in range(2):
-        want = rasterize(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :], c2w[v].astype(np.float32),
-                         intr[v].astype(np.float32), h, w, room, render_mode="RGB", background=np.ones(3, np.float32))
+        want = rasterize(
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.features[:, None, :],
+            c2w[v].astype(np.float32),
+            intr[v].astype(np.float32),
+            h,
+            w,
+            room,
+            render_mode="RGB",
+            background=np.ones(3, np.float32),
+        )
         assert not bool(want.stats.overflow)
         np.testing.assert_allclose(got[v], np.clip(np.asarray(want.features), 0.0, 1.0), atol=1e-5)

@@ -34,15 +34,19 @@ def golden(tmp_path_factory):
     d = tmp_path_factory.mktemp("golden")
     exp = d / "golden_exp.py"
     exp.write_text(
-        f"import sys\nsys.path.insert(0, {ROOT!r})\n"
-        + "from tests.helpers.golden import golden_model_config\n"
+        f"import sys\nsys.path.insert(0, {ROOT!r})\n" + "from tests.helpers.golden import golden_model_config\n"
         "from llrmpp_jax.experiment import ExperimentConfig, StageConfig\n"
         "def get_config():\n"
         "    return ExperimentConfig(name='golden', model=golden_model_config(), stages=(\n"
-        "        StageConfig('s', steps=1, global_batch=2, num_inputs=2, num_targets=1, resize_h=32),))\n")
+        "        StageConfig('s', steps=1, global_batch=2, num_inputs=2, num_targets=1, resize_h=32),))\n"
+    )
     out = d / "params"
-    assert main(["convert", "--checkpoint", os.path.join(GOLDEN, "state_dict.npz"), "--config", str(exp),
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            ["convert", "--checkpoint", os.path.join(GOLDEN, "state_dict.npz"), "--config", str(exp), "--out", str(out)]
+        )
+        == 0
+    )
     return str(out), str(exp)
 
 
@@ -55,11 +59,32 @@ def test_golden_through_the_cli(golden, tmp_path):
     inp = np.load(os.path.join(GOLDEN, "inputs.npz"))
     out = np.load(os.path.join(GOLDEN, "outputs.npz"))
     images = inp["images"][0].transpose(0, 2, 3, 1)
-    scene = in_memory_scene("golden", images, inp["c2ws"][0].astype(np.float64), inp["intrinsics"][0].astype(np.float64))
+    scene = in_memory_scene(
+        "golden", images, inp["c2ws"][0].astype(np.float64), inp["intrinsics"][0].astype(np.float64)
+    )
     write_nerfstudio_scene(scene, str(tmp_path / "scene"), image_ext=".exr")  # float EXR: lossless inputs
     gs = str(tmp_path / "g.gs")
-    assert main(["reconstruct", "--checkpoint", params_dir, "--scene", str(tmp_path / "scene"), "--inputs", "0,1",
-                 "--size", "32x48", "--no-normalize", "--repeats", "1", "--out", gs]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--checkpoint",
+                params_dir,
+                "--scene",
+                str(tmp_path / "scene"),
+                "--inputs",
+                "0,1",
+                "--size",
+                "32x48",
+                "--no-normalize",
+                "--repeats",
+                "1",
+                "--out",
+                gs,
+            ]
+        )
+        == 0
+    )
     saved = load_gs(gs)
     g = saved.gaussians
     assert _rel_err(g.means, out["xyz"][0]) < 1e-4
@@ -69,19 +94,47 @@ def test_golden_through_the_cli(golden, tmp_path):
     assert _rel_err(g.opacities, out["render_opacities"][0]) < 1e-4
 
     assert main(["render", "--gaussians", gs, "--path", "inputs", "--quiet", "--out", str(tmp_path / "f")]) == 0
-    want = render({}, saved.model, type(g)(*(jnp.asarray(x)[None] for x in g)),
-                  jnp.asarray(saved.c2w[None], jnp.float32), jnp.asarray(saved.intrinsics[None], jnp.float32),
-                  32, 48).images["rgb"][0]
+    want = render(
+        {},
+        saved.model,
+        type(g)(*(jnp.asarray(x)[None] for x in g)),
+        jnp.asarray(saved.c2w[None], jnp.float32),
+        jnp.asarray(saved.intrinsics[None], jnp.float32),
+        32,
+        48,
+    ).images["rgb"][0]
     for i, name in enumerate(("frame_00000", "frame_00001")):
         got = read_image(str(tmp_path / "f" / f"{name}.png"))
         assert np.max(np.abs(got - np.clip(np.asarray(want[i]), 0, 1))) <= 0.5 / 255 + 1e-6
     # straight from the capture: the same frames
-    assert main(["render", "--scene", str(tmp_path / "scene"), "--checkpoint", params_dir, "--inputs", "0,1",
-                 "--size", "32x48", "--no-normalize", "--repeats", "1", "--path", "inputs", "--quiet",
-                 "--out", str(tmp_path / "direct")]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--scene",
+                str(tmp_path / "scene"),
+                "--checkpoint",
+                params_dir,
+                "--inputs",
+                "0,1",
+                "--size",
+                "32x48",
+                "--no-normalize",
+                "--repeats",
+                "1",
+                "--path",
+                "inputs",
+                "--quiet",
+                "--out",
+                str(tmp_path / "direct"),
+            ]
+        )
+        == 0
+    )
     for name in ("frame_00000", "frame_00001"):
-        np.testing.assert_array_equal(read_image(str(tmp_path / "direct" / f"{name}.png")),
-                                      read_image(str(tmp_path / "f" / f"{name}.png")))
+        np.testing.assert_array_equal(
+            read_image(str(tmp_path / "direct" / f"{name}.png")), read_image(str(tmp_path / "f" / f"{name}.png"))
+        )
 
 
 @pytest.mark.slow
@@ -93,8 +146,28 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     falls; a negative weight is one line)."""
     params_dir, _ = golden
     gs = str(tmp_path / "s.gs")
-    assert main(["reconstruct", "--checkpoint", params_dir, "--scene", capture, "--num-inputs", "4",
-                 "--size", "64", "--repeats", "3", "--timing", str(tmp_path / "t.json"), "--out", gs]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--checkpoint",
+                params_dir,
+                "--scene",
+                capture,
+                "--num-inputs",
+                "4",
+                "--size",
+                "64",
+                "--repeats",
+                "3",
+                "--timing",
+                str(tmp_path / "t.json"),
+                "--out",
+                gs,
+            ]
+        )
+        == 0
+    )
     report = capsys.readouterr().out
     assert "inputs (4)" in report and "held-out targets" in report and "median of 3 synced runs" in report
     saved = load_gs(gs)
@@ -111,8 +184,28 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
     assert len(metrics["per_view"]) == len(stems) and np.isfinite(metrics["mean"]["psnr"])
 
     video = str(tmp_path / "path.mp4")
-    assert main(["render", "--gaussians", gs, "--path", "spline", "--frames", "7", "--video", video, "--fps", "10",
-                 "--depth", "--quiet", "--out", str(tmp_path / "spline")]) == 0
+    assert (
+        main(
+            [
+                "render",
+                "--gaussians",
+                gs,
+                "--path",
+                "spline",
+                "--frames",
+                "7",
+                "--video",
+                video,
+                "--fps",
+                "10",
+                "--depth",
+                "--quiet",
+                "--out",
+                str(tmp_path / "spline"),
+            ]
+        )
+        == 0
+    )
     reader = imageio_ffmpeg.read_frames(video)
     meta = next(reader)
     assert tuple(meta["size"]) == (w, h) and sum(1 for _ in reader) == 7
@@ -128,19 +221,44 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
 
     capsys.readouterr()
     refined = str(tmp_path / "r.gs")
-    assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--scene", capture, "--steps", "3",
-                 "--perceptual-weight", "0.5", "--quiet", "--out", refined]) == 0
+    assert (
+        main(
+            [
+                "refine",
+                "--checkpoint",
+                params_dir,
+                "--gaussians",
+                gs,
+                "--scene",
+                capture,
+                "--steps",
+                "3",
+                "--perceptual-weight",
+                "0.5",
+                "--quiet",
+                "--out",
+                refined,
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))
-    loss0, loss1 = (float(v) for v in re.search(r"input-view loss (\S+) -> (\S+) \(the first step's views\);", out).groups())
+    loss0, loss1 = (
+        float(v) for v in re.search(r"input-view loss (\S+) -> (\S+) \(the first step's views\);", out).groups()
+    )
     assert np.isfinite([before, after]).all() and loss1 < loss0  # 3 steps lower the loss on the inputs
     assert load_gs(refined).gaussians.means.shape == saved.gaussians.means.shape
-    assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--perceptual-weight", "-1",
-                 "--out", refined]) == 2
+    assert (
+        main(["refine", "--checkpoint", params_dir, "--gaussians", gs, "--perceptual-weight", "-1", "--out", refined])
+        == 2
+    )
     assert capsys.readouterr().err.strip().splitlines() == ["llrmpp: error: --perceptual-weight must be >= 0, got -1.0"]
-    for flags, line in ((["--steps", "0"], "--steps must be >= 1, got 0"),
-                        (["--views-per-step", "0"], "--views-per-step must be in [1, 4] (the input views), got 0"),
-                        (["--views-per-step", "5"], "--views-per-step must be in [1, 4] (the input views), got 5")):
+    for flags, line in (
+        (["--steps", "0"], "--steps must be >= 1, got 0"),
+        (["--views-per-step", "0"], "--views-per-step must be in [1, 4] (the input views), got 0"),
+        (["--views-per-step", "5"], "--views-per-step must be in [1, 4] (the input views), got 5"),
+    ):
         assert main(["refine", "--checkpoint", params_dir, "--gaussians", gs, *flags, "--out", refined]) == 2
         assert capsys.readouterr().err.strip().splitlines() == [f"llrmpp: error: {line}"]
 
@@ -170,8 +288,12 @@ def _bad_cases(tmp_path, golden):
     empty.mkdir()
     cases["unknown format"] = (["--scene", str(empty)], "no known scene format (looked for transforms.json")
     colmap = tmp_path / "colmap"
-    sparse = write_colmap_scene(in_memory_scene("c", np.full((2, 16, 16, 3), 0.5), np.tile(np.eye(4), (2, 1, 1)),
-                                                np.tile([[20.0, 20, 8, 8]], (2, 1))), str(colmap))
+    sparse = write_colmap_scene(
+        in_memory_scene(
+            "c", np.full((2, 16, 16, 3), 0.5), np.tile(np.eye(4), (2, 1, 1)), np.tile([[20.0, 20, 8, 8]], (2, 1))
+        ),
+        str(colmap),
+    )
     os.remove(os.path.join(sparse, "images.bin"))
     cases["colmap without images"] = (["--scene", str(colmap)], "has cameras but no images.bin or images.txt")
     nan = tmp_path / "nan"
@@ -191,16 +313,16 @@ def _bad_cases(tmp_path, golden):
     cases["inputs out of range"] = (["--scene", ns, "--inputs", "1,9"], "--inputs: index 9 is out of range")
     cases["size not a multiple"] = (["--scene", ns, "--size", "40"], "--size: height 40 is not a positive multiple of")
     cases["too few frames"] = (["--scene", ns, "--num-inputs", "6"], "fewer than the 6 inputs requested")
-    cases["another architecture"] = (["--scene", ns, "--config", "demo"],
-                                     "first mismatch")
+    cases["another architecture"] = (["--scene", ns, "--config", "demo"], "first mismatch")
     return ns, params_dir, cases
 
 
 def test_bad_inputs_are_one_line_before_compiling(golden, tmp_path, capsys):
     ns, params_dir, cases = _bad_cases(tmp_path, golden)
     for what, (args, message) in cases.items():
-        rc = main(["reconstruct", "--checkpoint", params_dir, "--num-inputs", "2", *args, "--out",
-                   str(tmp_path / "x.gs")])
+        rc = main(
+            ["reconstruct", "--checkpoint", params_dir, "--num-inputs", "2", *args, "--out", str(tmp_path / "x.gs")]
+        )
         captured = capsys.readouterr()
         lines = captured.err.strip().splitlines()
         assert rc == 2 and len(lines) == 1 and message in lines[0], (what, captured.err)
@@ -212,8 +334,26 @@ def test_gs_file_version_and_truncation(golden, tmp_path, capsys):
     params_dir, _ = golden
     ns = _tiny_scene(tmp_path)
     gs = str(tmp_path / "ok.gs")
-    assert main(["reconstruct", "--checkpoint", params_dir, "--scene", ns, "--num-inputs", "2", "--size", "32",
-                 "--repeats", "1", "--out", gs]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--checkpoint",
+                params_dir,
+                "--scene",
+                ns,
+                "--num-inputs",
+                "2",
+                "--size",
+                "32",
+                "--repeats",
+                "1",
+                "--out",
+                gs,
+            ]
+        )
+        == 0
+    )
     saved = load_gs(gs)
     data = open(gs, "rb").read()
     with open(tmp_path / "cut.gs", "wb") as f:
@@ -227,7 +367,10 @@ def test_gs_file_version_and_truncation(golden, tmp_path, capsys):
     finally:
         SF.GS_VERSION = old
     capsys.readouterr()
-    for name, message in (("cut.gs", "truncated or corrupt .gs file"), ("v99.gs", ".gs version 99, this llrmpp reads version 1")):
+    for name, message in (
+        ("cut.gs", "truncated or corrupt .gs file"),
+        ("v99.gs", ".gs version 99, this llrmpp reads version 1"),
+    ):
         rc = main(["render", "--gaussians", str(tmp_path / name), "--out", str(tmp_path / "r")])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and name in err[0] and message in err[0], err
@@ -262,8 +405,28 @@ def test_reconstruct_from_a_video_end_to_end(golden, tmp_path, capsys):
     video = str(tmp_path / "walk.mp4")
     frames = fox_video(video, size=320, fps=5)
     gs = str(tmp_path / "walk.gs")
-    assert main(["reconstruct", "--video", video, "--fps", "5", "--max-image-size", "320", "--checkpoint",
-                 params_dir, "--num-inputs", "4", "--size", "64", "--out", gs]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                "--video",
+                video,
+                "--fps",
+                "5",
+                "--max-image-size",
+                "320",
+                "--checkpoint",
+                params_dir,
+                "--num-inputs",
+                "4",
+                "--size",
+                "64",
+                "--out",
+                gs,
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "matching: sequential" in out and f"of {frames} images" in out, out
     capture = tmp_path / "walk_capture"

@@ -23,8 +23,9 @@ from tests.helpers.environment import shared_path
 def test_compare_poses_recovers_a_similarity_and_flags_the_perturbed_frames(request):
     rng = np.random.default_rng(zlib.crc32(request.node.nodeid.encode()))
     n = 24
-    reference = {f"{i:04d}.jpg": (Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * 3.0)
-                 for i in range(n)}
+    reference = {
+        f"{i:04d}.jpg": (Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * 3.0) for i in range(n)
+    }
     # The estimate lives in another frame: world_est = (world_ref - t) R / s.
     s, r, t = 0.37, Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
     estimate = {k: (r.T @ rot, (centre - t) @ r / s) for k, (rot, centre) in reference.items()}
@@ -32,8 +33,10 @@ def test_compare_poses_recovers_a_similarity_and_flags_the_perturbed_frames(requ
     turned, moved = names[:3], names[3:5]
     for k in turned:  # 5 degrees about a random axis: outside the 2 degree tolerance
         axis = rng.normal(size=3)
-        estimate[k] = (Rotation.from_rotvec(np.radians(5.0) * axis / np.linalg.norm(axis)).as_matrix() @ estimate[k][0],
-                       estimate[k][1])
+        estimate[k] = (
+            Rotation.from_rotvec(np.radians(5.0) * axis / np.linalg.norm(axis)).as_matrix() @ estimate[k][0],
+            estimate[k][1],
+        )
     for k in moved:  # half the camera extent away
         estimate[k] = (estimate[k][0], estimate[k][1] + 20.0)
     agreement = compare_poses(estimate, reference)
@@ -58,8 +61,9 @@ def test_beer_fold_is_found_in_the_shipped_model_and_absent_from_sequential_matc
         write_image(str(photos / name), resize_image(image, (640, 360)))
     out = str(tmp_path / "capture")
     # Seeded: one thread, so COLMAP's RANSAC and mapping repeat exactly.
-    report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=640, seed=0),
-                            progress=lambda s: None)
+    report = estimate_poses(
+        str(photos), out, PosesConfig(matcher="sequential", max_image_size=640, seed=0), progress=lambda s: None
+    )
     assert report.registered == len(FRAMES) and report.breaks == () and report.seed == 0
     ours = camera_poses(pycolmap.Reconstruction(os.path.join(out, "sparse", "0")))
 
@@ -95,8 +99,9 @@ def test_a_seeded_run_repeats_exactly(tmp_path):
     poses = []
     for run in range(3):
         out = str(tmp_path / f"capture{run}")
-        report = estimate_poses(str(photos), out, PosesConfig(matcher="sequential", max_image_size=320, seed=7),
-                                progress=lambda s: None)
+        report = estimate_poses(
+            str(photos), out, PosesConfig(matcher="sequential", max_image_size=320, seed=7), progress=lambda s: None
+        )
         assert report.seed == 7 and report.registered >= 6, report
         poses.append(camera_poses(pycolmap.Reconstruction(os.path.join(out, "sparse", "0"))))
     for other in poses[1:]:

@@ -59,8 +59,9 @@ def test_a_video_becomes_frames_and_poses(tmp_path):
     assert fox_video(video, size=320, fps=5) == FOX
     names = extract_frames(video, str(tmp_path / "frames"), fps=5, progress=lambda _: None)
     assert len(names) == FOX  # 2 s at 5 frames a second
-    report = estimate_poses(None, str(tmp_path / "capture"), PosesConfig(max_image_size=320), video=video, fps=5,
-                            progress=lambda _: None)
+    report = estimate_poses(
+        None, str(tmp_path / "capture"), PosesConfig(max_image_size=320), video=video, fps=5, progress=lambda _: None
+    )
     assert report.matcher == "sequential" and report.registered >= FOX - 2, report
 
 
@@ -76,15 +77,18 @@ def test_photos_that_share_nothing_fail_in_one_line(tmp_path, rng, capsys):
     assert not (out / "sparse").exists()
 
 
-@pytest.mark.parametrize("args, message", [
-    (["--images", "/nonexistent/photos"], "--images: folder not found"),
-    (["--video", "/nonexistent/walk.mp4"], "--video: file not found"),
-    (["--images", "{empty}"], "no images"),
-    (["--images", "{empty}", "--max-image-size", "8"], "--max-image-size must be >= 64"),
-    (["--images", "{empty}", "--threads", "0"], "--threads must be >= 1"),
-    (["--images", "{empty}", "--seed", "-1"], "--seed must be >= 0"),
-    (["--images", "{empty}", "--seed", "2", "--threads", "4"], "--seed repeats a run only on one thread"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--images", "/nonexistent/photos"], "--images: folder not found"),
+        (["--video", "/nonexistent/walk.mp4"], "--video: file not found"),
+        (["--images", "{empty}"], "no images"),
+        (["--images", "{empty}", "--max-image-size", "8"], "--max-image-size must be >= 64"),
+        (["--images", "{empty}", "--threads", "0"], "--threads must be >= 1"),
+        (["--images", "{empty}", "--seed", "-1"], "--seed must be >= 0"),
+        (["--images", "{empty}", "--seed", "2", "--threads", "4"], "--seed repeats a run only on one thread"),
+    ],
+)
 def test_bad_input_is_one_line(tmp_path, capsys, args, message):
     (tmp_path / "empty").mkdir()
     args = [a.format(empty=tmp_path / "empty") for a in args]
@@ -135,8 +139,10 @@ def test_too_few_photos_and_a_bad_fps_are_one_line(tmp_path, rng, capsys):
         write_image(str(two / f"{i}.png"), rng.uniform(size=(32, 48, 3)).astype(np.float32))
     video = tmp_path / "walk.mp4"
     video.write_bytes(b"whatever")
-    for args, message in ((["--images", str(two)], "2 images; poses need at least 3"),
-                          (["--video", str(video), "--fps", "0"], "--fps must be > 0, got 0.0")):
+    for args, message in (
+        (["--images", str(two)], "2 images; poses need at least 3"),
+        (["--video", str(video), "--fps", "0"], "--fps must be > 0, got 0.0"),
+    ):
         out = tmp_path / f"capture_{args[0][2:]}"
         assert main(["poses", *args, "--out", str(out)]) == 2
         err = capsys.readouterr().err.strip().splitlines()

@@ -84,7 +84,10 @@ def test_eager_bad_input_raises(rng):
             call(**{name: x})
     with pytest.raises(ValueError, match=re.escape("fx, fy > 0")):
         call(intrinsics=np.array([0.0, 30.0, 10.0, 10.0]))
-    with pytest.raises(ValueError, match=re.escape("scales has N=19 Gaussians (shape (19, 3)) but means has N=20")), unchecked():
+    with (
+        pytest.raises(ValueError, match=re.escape("scales has N=19 Gaussians (shape (19, 3)) but means has N=20")),
+        unchecked(),
+    ):
         call(scales=scales[:19])
     with pytest.raises(ValueError, match=re.escape("quats must have shape (N, 4), got (20, 3)")), unchecked():
         call(quats=quats[:, :3])
@@ -133,6 +136,7 @@ def test_fit_capacity_takes_the_most_any_camera_needs_with_headroom(rng):
     from llrmpp_jax.splat import fit_capacity
 
     scenes = [random_scene(np.random.default_rng(rng.integers(2**31)), N, F, H, W) for _ in range(2)]
+
     def away(c2w):  # 100 units ahead: every Gaussian behind it
         moved = c2w.copy()
         moved[:3, 3] += 100.0 * c2w[:3, 2]
@@ -141,8 +145,13 @@ def test_fit_capacity_takes_the_most_any_camera_needs_with_headroom(rng):
     c2w = np.stack([np.stack([s[5], s[5], away(s[5])]) for s in scenes])  # [B, T, 4, 4]
     intr = np.stack([np.stack([s[6], s[6] * [0.6, 0.6, 1.0, 1.0], s[6]]) for s in scenes])
     copies = [np.stack([s[3] * rng.uniform(0, 1, N), s[3]]) for s in scenes]
-    counts = [[oracle_tile_lists(oracle_project(*s[:3], c2w[b, t], intr[b, t], H, W), H, W, opacities=s[3],
-                                 block=BLOCK)[1] for t in range(3)] for b, s in enumerate(scenes)]
+    counts = [
+        [
+            oracle_tile_lists(oracle_project(*s[:3], c2w[b, t], intr[b, t], H, W), H, W, opacities=s[3], block=BLOCK)[1]
+            for t in range(3)
+        ]
+        for b, s in enumerate(scenes)
+    ]
     assert counts[0][2] == counts[1][2] == 0 and len({c for row in counts for c in row[:2]}) == 4
     stack = [np.stack([s[i] for s in scenes]) for i in range(3)]
     got = fit_capacity(*stack, np.stack(copies), c2w, intr, H, W, headroom=1.3)
@@ -162,8 +171,15 @@ def test_expected_depth_mode_is_the_oracles_depth_over_alpha(rng):
     n = 20  # small Gaussians in front of an identity camera: most of the canvas stays empty
     z = rng.uniform(2.0, 4.0, n)
     means = np.stack([rng.uniform(-0.4, 0.4, n) * z, rng.uniform(-0.3, 0.3, n) * z, z], -1)
-    scene = [means, rng.normal(size=(n, 4)), rng.uniform(0.02, 0.06, (n, 3)), rng.uniform(0.05, 1.0, n),
-             rng.normal(size=(n, F)), np.eye(4), np.array([40.0, 40.0, W / 2, H / 2])]
+    scene = [
+        means,
+        rng.normal(size=(n, 4)),
+        rng.uniform(0.02, 0.06, (n, 3)),
+        rng.uniform(0.05, 1.0, n),
+        rng.normal(size=(n, F)),
+        np.eye(4),
+        np.array([40.0, 40.0, W / 2, H / 2]),
+    ]
     feats, trans, depth = oracle_render(*scene, H, W)
     alpha = 1.0 - trans
     drawn = alpha > 0

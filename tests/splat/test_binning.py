@@ -133,8 +133,9 @@ def test_depth_order_is_a_stable_argsort_with_undrawn_last(rng, ties):
     got = jax.jit(jax.vmap(depth_order))(jnp.asarray(depths), jnp.asarray(drawn))
     for b in range(3):
         np.testing.assert_array_equal(np.asarray(got[b]), oracle(depths[b], drawn[b]))
-        np.testing.assert_array_equal(np.asarray(depth_order(jnp.asarray(depths[b]), jnp.asarray(drawn[b]))),
-                                      oracle(depths[b], drawn[b]))
+        np.testing.assert_array_equal(
+            np.asarray(depth_order(jnp.asarray(depths[b]), jnp.asarray(drawn[b]))), oracle(depths[b], drawn[b])
+        )
         want = oracle(depths[b], drawn[b])
         inverse = np.empty(n, np.int64)
         inverse[want] = np.arange(n)

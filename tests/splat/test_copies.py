@@ -38,8 +38,12 @@ def test_copies_grads_equal_sum_of_separate_renders(rng):
         return sum(jnp.sum(x * g) for x, g in zip(out[:3], cot))
 
     got = jax.jit(jax.grad(loss_copies, argnums=tuple(range(5))))(*args, copies, jnp.asarray(feats))
-    per_copy = [smooth.value_and_grad(*args, copies[s], jnp.asarray(feats), *camera, [g[s] for g in cot])[1] for s in range(2)]
+    per_copy = [
+        smooth.value_and_grad(*args, copies[s], jnp.asarray(feats), *camera, [g[s] for g in cot])[1] for s in range(2)
+    ]
     for i in (0, 1, 2, 4):  # shared inputs: gradients add up over the copies
-        np.testing.assert_allclose(np.asarray(got[i]), np.asarray(per_copy[0][i] + per_copy[1][i]), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(got[i]), np.asarray(per_copy[0][i] + per_copy[1][i]), rtol=1e-9, atol=1e-12
+        )
     for s in range(2):
         np.testing.assert_allclose(np.asarray(got[3][s]), np.asarray(per_copy[s][3]), rtol=1e-9, atol=1e-12)

@@ -88,8 +88,10 @@ def test_value_and_grad_value_matches_forward_and_reference_at_16k_gaussians(rng
     means = means_c @ c2w[:3, :3].T + c2w[:3, 3]
     scales = np.exp(rng.uniform(-5.0, -2.5, (n, 3)))
     scales[rng.random((n, 3)) < 0.1] = 0.3
-    scene32 = [jnp.asarray(a, jnp.float32) for a in (
-        means, rng.normal(size=(n, 4)), scales, rng.uniform(0.05, 0.9, n), rng.normal(size=(n, f)), c2w, intr)]
+    scene32 = [
+        jnp.asarray(a, jnp.float32)
+        for a in (means, rng.normal(size=(n, 4)), scales, rng.uniform(0.05, 0.9, n), rng.normal(size=(n, f)), c2w, intr)
+    ]
     cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((h, w, f), (h, w), (h, w))]
 
     def loss(means, quats, scales, opac, feats, c2w, intr):

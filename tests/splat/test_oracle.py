@@ -36,7 +36,15 @@ def test_oracle_stops_before_transmittance_limit():
     intr = np.array([30.0, 30.0, 8.5, 8.5])  # the means project onto the centre of pixel (8, 8)
     means = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]])
     out, trans, _ = oracle_render(
-        means, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), 0.1), [1.0, 1.0], [[1.0], [5.0]], np.eye(4), intr, 16, 16
+        means,
+        np.tile([1.0, 0, 0, 0], (2, 1)),
+        np.full((2, 3), 0.1),
+        [1.0, 1.0],
+        [[1.0], [5.0]],
+        np.eye(4),
+        intr,
+        16,
+        16,
     )
     assert trans[8, 8] == pytest.approx(1 - 0.999)
     assert out[8, 8, 0] == pytest.approx(0.999)

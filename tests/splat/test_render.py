@@ -31,7 +31,10 @@ def _compare(scene, out, height, width, atol, band_margin):
     for got, exp in zip((out.features, out.transmittance, out.depth), expected):
         err = np.abs(np.asarray(got, np.float64) - exp)
         err = err.max(-1) if err.ndim == 3 else err
-        assert err[~band].max() <= atol, (err[~band].max(), np.unravel_index(np.argmax(np.where(band, 0, err)), err.shape))
+        assert err[~band].max() <= atol, (
+            err[~band].max(),
+            np.unravel_index(np.argmax(np.where(band, 0, err)), err.shape),
+        )
     stats = out.stats
     assert not bool(stats.overflow) and int(stats.num_dropped) == 0
     assert int(stats.num_nonfinite) == 0 and not bool(stats.invalid_camera)
@@ -51,7 +54,10 @@ def test_matches_oracle_float64(rng, f, height, width):
 
 @pytest.mark.parametrize("f,height,width", [(3, 37, 53), (32, 21, 70)])
 def test_matches_oracle_float32(rng, f, height, width):
-    scene = [np.asarray(a, np.float32).astype(np.float64) for a in random_scene(rng, _n(height, width), f, height, width, conditioned=True)]
+    scene = [
+        np.asarray(a, np.float32).astype(np.float64)
+        for a in random_scene(rng, _n(height, width), f, height, width, conditioned=True)
+    ]
     out = rasterize(*(np.asarray(a, np.float32) for a in scene), height, width)
     assert out.features.shape == (height, width, f) and out.features.dtype == np.float32
     _compare(scene, out, height, width, atol=1e-5, band_margin=1e-4)

@@ -52,8 +52,12 @@ def test_rgb_mode_gradient_matches_finite_differences(rng):
     @jax.jit
     def value_and_grad(m, c):
         def loss(m, c):
-            return jnp.sum(cot * rasterize(m, quats, scales, opac, c, c2w, intr, H, W, render_mode="RGB",
-                                           background=jnp.ones(3)).features)
+            return jnp.sum(
+                cot
+                * rasterize(
+                    m, quats, scales, opac, c, c2w, intr, H, W, render_mode="RGB", background=jnp.ones(3)
+                ).features
+            )
 
         return jax.value_and_grad(loss, argnums=(0, 1))(m, c)
 

@@ -41,8 +41,15 @@ _render_view = jax.jit(render_view, static_argnums=(1, 5, 6, 7, 8))
 
 def _model_rgb(params, cfg, scene, c2w, intrinsics, height, width):
     """The model's own render of one camera, through the public API."""
-    out = _render(params, cfg, scene.gaussians, jnp.asarray(c2w, jnp.float32)[None, None],
-                  jnp.asarray(intrinsics, jnp.float32)[None, None], height, width)
+    out = _render(
+        params,
+        cfg,
+        scene.gaussians,
+        jnp.asarray(c2w, jnp.float32)[None, None],
+        jnp.asarray(intrinsics, jnp.float32)[None, None],
+        height,
+        width,
+    )
     return np.asarray(out.images["rgb"][0, 0])
 
 
@@ -84,12 +91,22 @@ def test_depth_without_head_is_the_splatted_depth(demo):
     params, cfg, scene = demo
     assert "depth" not in cfg.outputs
     c2w, k = scene.input_c2w[2], np.array([30.0, 30.0, 16.0, 16.0], np.float32)
-    got = np.asarray(_render_view(params, cfg, scene.gaussians, jnp.asarray(c2w), jnp.asarray(k), 32, 32, "depth",
-                                  None))
+    got = np.asarray(
+        _render_view(params, cfg, scene.gaussians, jnp.asarray(c2w), jnp.asarray(k), 32, 32, "depth", None)
+    )
     g = jax.tree.map(lambda a: jnp.asarray(a[0], jnp.float64), scene.gaussians)
-    _, trans, depth = render_features_reference(g.means, g.quats, g.scales, g.opacities, g.means[:, :1] * 0,
-                                                jnp.asarray(c2w, jnp.float64), jnp.asarray(k, jnp.float64), 32, 32,
-                                                cfg.splat)
+    _, trans, depth = render_features_reference(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.means[:, :1] * 0,
+        jnp.asarray(c2w, jnp.float64),
+        jnp.asarray(k, jnp.float64),
+        32,
+        32,
+        cfg.splat,
+    )
     alpha = 1.0 - np.asarray(trans)
     covered = alpha > 1e-3
     assert covered.mean() > 0.5
@@ -181,8 +198,9 @@ def test_port_in_use_names_it_and_a_free_one():
         s.bind(("127.0.0.1", 0))
         s.listen()
         taken = s.getsockname()[1]
-        with pytest.raises(PortInUseError, match=rf"port {taken} on 127.0.0.1 is already in use; try --port (\d+)") \
-                as e:
+        with pytest.raises(
+            PortInUseError, match=rf"port {taken} on 127.0.0.1 is already in use; try --port (\d+)"
+        ) as e:
             check_port("127.0.0.1", taken)
         suggested = int(str(e.value).rsplit(" ", 1)[1])
         check_port("127.0.0.1", suggested)  # free indeed
@@ -212,12 +230,20 @@ def browser():
 
     opts = webdriver.ChromeOptions()
     opts.binary_location = chromium
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--enable-unsafe-swiftshader",
-                "--use-angle=swiftshader", f"--window-size={VIEWPORT[0]},{VIEWPORT[1] + 200}"):
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-dev-shm-usage",
+        "--enable-unsafe-swiftshader",
+        "--use-angle=swiftshader",
+        f"--window-size={VIEWPORT[0]},{VIEWPORT[1] + 200}",
+    ):
         opts.add_argument(arg)
     d = webdriver.Chrome(service=Service(driver), options=opts)
-    d.execute_cdp_cmd("Emulation.setDeviceMetricsOverride",
-                      {"width": VIEWPORT[0], "height": VIEWPORT[1], "deviceScaleFactor": 1, "mobile": False})
+    d.execute_cdp_cmd(
+        "Emulation.setDeviceMetricsOverride",
+        {"width": VIEWPORT[0], "height": VIEWPORT[1], "deviceScaleFactor": 1, "mobile": False},
+    )
     yield d
     d.quit()
 
@@ -389,8 +415,10 @@ def test_four_tabs_under_load(demo, browser):
         while any(w.alive for w in closed) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert len(closed) == 2 and not any(w.alive for w in closed)
-        print(f"four tabs: latency per tab (s) {[[round(x, 2) for x in latencies[t]] for t in tabs]}, "
-              f"RSS {rss_before / 2**20:.0f} -> {(rss_before + grown) / 2**20:.0f} MiB")
+        print(
+            f"four tabs: latency per tab (s) {[[round(x, 2) for x in latencies[t]] for t in tabs]}, "
+            f"RSS {rss_before / 2**20:.0f} -> {(rss_before + grown) / 2**20:.0f} MiB"
+        )
     finally:
         viewer.stop()
 
@@ -411,9 +439,20 @@ def test_renderer_sizes_its_splat_buffer_from_the_input_cameras(rng):
         k = (INTRINSICS * size / SIZE).astype(np.float32)
         frame = renderer.render(ViewKey(size, size, "rgb", 1), c2w[1], k)
         room = SplatConfig(max_intersections=g.means.shape[0] * (size // 8) ** 2)
-        want = rasterize(g.means, g.quats, g.scales, g.opacities, g.features[:, None, :],
-                         c2w[1].astype(np.float32), k, size, size, room, render_mode="RGB",
-                         background=np.ones(3, np.float32)).features
+        want = rasterize(
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.features[:, None, :],
+            c2w[1].astype(np.float32),
+            k,
+            size,
+            size,
+            room,
+            render_mode="RGB",
+            background=np.ones(3, np.float32),
+        ).features
         np.testing.assert_allclose(frame.image, np.asarray(want), atol=1e-5)
 
 
@@ -424,14 +463,31 @@ def _saved_scene(rng, cfg, feature_dim: int):
     from llrmpp_jax.capture import SavedScene
 
     n, v = 64, 3
-    g = Gaussians(rng.normal(size=(n, 3)).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
-                  np.full((n, 3), 0.05, np.float32), np.full((n,), 0.5, np.float32),
-                  rng.normal(size=(n, feature_dim)).astype(np.float32))
+    g = Gaussians(
+        rng.normal(size=(n, 3)).astype(np.float32),
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), 0.05, np.float32),
+        np.full((n,), 0.5, np.float32),
+        rng.normal(size=(n, feature_dim)).astype(np.float32),
+    )
     c2w = np.tile(np.eye(4, dtype=np.float32), (v, 1, 1))
     c2w[:, 2, 3] = -3.0 - np.arange(v)
     intr = np.float32([32, 32, 16, 16]) * np.arange(1, v + 1, dtype=np.float32)[:, None]
-    return SavedScene(g, cfg, c2w, intr, np.eye(4), ("a", "b", "c"), np.array([0, 2]), np.array([1]),
-                      (32, 32), (32, 32), (0, 0, 32, 32), "/no/capture", "colmap")
+    return SavedScene(
+        g,
+        cfg,
+        c2w,
+        intr,
+        np.eye(4),
+        ("a", "b", "c"),
+        np.array([0, 2]),
+        np.array([1]),
+        (32, 32),
+        (32, 32),
+        (0, 0, 32, 32),
+        "/no/capture",
+        "colmap",
+    )
 
 
 def test_saved_view_scene(rng):
@@ -467,18 +523,23 @@ def test_cli_bad_input_is_one_line(tmp_path, rng, capsys):
         s.bind(("127.0.0.1", 0))
         s.listen()
         taken = s.getsockname()[1]
-        one_line(["view", "--procedural", "0", "--random-init", "--host", "127.0.0.1", "--port", str(taken)],
-                 rf"port {taken} on 127.0.0.1 is already in use; try --port \d+")
+        one_line(
+            ["view", "--procedural", "0", "--random-init", "--host", "127.0.0.1", "--port", str(taken)],
+            rf"port {taken} on 127.0.0.1 is already in use; try --port \d+",
+        )
     good, bad = str(tmp_path / "good.gs"), str(tmp_path / "bad.gs")
     save_gs(good, _saved_scene(rng, cfg, cfg.head.feature_dim))
     save_gs(bad, _saved_scene(rng, cfg, 8))
     one_line(["view", "--gaussians", good], r"good.gs: a feature-mode scene needs --checkpoint")
     one_line(["view", "--gaussians", bad], r"bad.gs: Gaussians carry 8 values per Gaussian .* expects F=16 features")
     narrow = replace(cfg, head=replace(cfg.head, feature_dim=8))
-    save_params(str(tmp_path / "narrow"), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), expected_shapes(narrow)),
-                narrow)
-    one_line(["view", "--gaussians", good, "--checkpoint", str(tmp_path / "narrow")],
-             r"narrow: parameters do not fit the model config: first mismatch")
+    save_params(
+        str(tmp_path / "narrow"), jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), expected_shapes(narrow)), narrow
+    )
+    one_line(
+        ["view", "--gaussians", good, "--checkpoint", str(tmp_path / "narrow")],
+        r"narrow: parameters do not fit the model config: first mismatch",
+    )
 
 
 def _other_address() -> str:
@@ -500,11 +561,30 @@ def _view(*args: str):
     import subprocess
     import sys
 
-    return subprocess.Popen([sys.executable, "-m", "llrmpp_jax.cli", "view", "--procedural", "1", "--random-init",
-                             "--port", "0", "--height", "64", "--moving-height", "32", *args],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            # xdist workers ignore SIGINT and a child inherits that: restore Ctrl-C
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "llrmpp_jax.cli",
+            "view",
+            "--procedural",
+            "1",
+            "--random-init",
+            "--port",
+            "0",
+            "--height",
+            "64",
+            "--moving-height",
+            "32",
+            *args,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        # xdist workers ignore SIGINT and a child inherits that: restore Ctrl-C
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
 
 
 def test_cli_serves_the_page_to_this_machine_only(tmp_path):
