@@ -46,14 +46,14 @@ def _one(piece: str, target: str, grad: bool) -> dict:
         fn = lambda q, k, v: multi_head_attention(q, k, v, implementation="blockwise")  # noqa: E731
     elif piece == "ssd_scan":
         m = CT.MAMBA
-        fn = lambda x, dt, a, b, c, d: ssd_scan(
+        fn = lambda x, dt, a, b, c, d: ssd_scan(  # noqa: E731
             x,
             dt,
             a,
             b,
             c,
             chunk_size=m.chunk_size,
-            D=d,  # noqa: E731
+            D=d,
             inter_chunk="sequential",
         )
     if grad:

@@ -10,7 +10,8 @@ Metrics are per target view, then averaged per scene, then over scenes (Long-LRM
 PSNR and SSIM (scikit-image defaults, as Long-LRM evaluates) and LPIPS-VGG; with a depth
 head, the depth metrics in metres (the sample's scene normalisation undone first). The
 model's rows also carry ``gaussian_usage`` (Long-LRM's ``metrics.csv`` column, ``pruning.py``),
-``splat_dropped`` (splat intersections lost to capacity) and diagnostics (so a blur shows in numbers): the PSNR of the input views re-rendered from
+``splat_dropped`` (splat intersections lost to capacity) and diagnostics (so a blur shows in numbers): the PSNR of
+the input views re-rendered from
 the Gaussians, the mean predicted scale and opacity, and the fraction of Gaussians with
 opacity above 0.01. Optionally a ``refined_<n>`` method beside the model: the same Gaussians
 refined ``n`` steps against the scene's inputs first (``refine.py``; the paper's Table 1

@@ -27,7 +27,8 @@ print(f"commit {A.revision()} | {A.machine()}")
 # %% [markdown]
 # One config per row. Colour: Long-LRM's head (one Gaussian per pixel, SH degree 3) on the
 # same backbone, no decoder. Feature: the scale's base model with the row's decoder
-# blocks, one partition (S = 1: Table 5's `LLGGG` row, 28.74, is Table 6's S = 1 row) and width E (divided by `scale.width_divisor` at the small scales; the `E here`
+# blocks, one partition (S = 1: Table 5's `LLGGG` row, 28.74, is Table 6's S = 1 row) and width E (divided by
+# `scale.width_divisor` at the small scales; the `E here`
 # column shows the width actually used). `GGG` is the paper's "global attention with
 # absolute positional embeddings": its tokens get a fixed 2-D sin-cos embedding of their
 # grid coordinates (`absolute_positions`; defined at any canvas size). The rows with `L`

@@ -28,6 +28,9 @@ def test_without_a_tpu_the_tpu_plugin_is_not_started():
 
 def test_a_platform_the_user_chose_is_kept():
     env = {**os.environ, "JAX_PLATFORMS": "tpu,cpu"}  # would read "cpu" had the call overridden it
-    probe = "import jax; from llrmpp_jax.platforms import skip_absent_tpu; skip_absent_tpu(); print(jax.config.jax_platforms)"
+    probe = (
+        "import jax; from llrmpp_jax.platforms import skip_absent_tpu; skip_absent_tpu(); "
+        "print(jax.config.jax_platforms)"
+    )
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=120)
     assert done.stdout.strip() == "tpu,cpu", done.stderr

@@ -128,7 +128,10 @@ def camera_report(
         lens = "pinhole (no distortion)"
     else:
         d = scene.distortion
-        lens = f"OpenCV distortion removed on load (k1 {d[:, 0].min():.4g}..{d[:, 0].max():.4g}, k2 {d[:, 1].min():.4g}..{d[:, 1].max():.4g})"
+        lens = (
+            f"OpenCV distortion removed on load (k1 {d[:, 0].min():.4g}..{d[:, 0].max():.4g}, "
+            f"k2 {d[:, 1].min():.4g}..{d[:, 1].max():.4g})"
+        )
     k = scene.intrinsics
     spread = {name: (float(k[:, i].min()), float(k[:, i].max())) for i, name in enumerate(("fx", "fy", "cx", "cy"))}
     pos = scene.c2w[inputs, :3, 3]

@@ -44,8 +44,8 @@ def skip_gradient_spikes(
     bias-corrected, over every finite gradient, each entering at most at ``log(factor)``
     above the current mean: a spike moves it a little, and a lasting rise of the norm by
     ``r > factor`` is accepted after about ``log(r / factor) / ((1 - decay) log(factor))``
-    steps (10 for r = 30, 20 for r = 100 at the defaults) instead of being skipped forever. Nothing is skipped during the first
-    ``warmup`` gradients, whose norms fall fast. Non-finite gradients are left to the train
+    steps (10 for r = 30, 20 for r = 100 at the defaults) instead of being skipped forever. Nothing is skipped
+    during the first ``warmup`` gradients, whose norms fall fast. Non-finite gradients are left to the train
     step's guard outside it (:func:`~llrmpp_jax.train.guards.skip_nonfinite`; they do not enter the mean).
     """
     if factor <= 1.0:
