@@ -32,7 +32,6 @@ import jax.numpy as jnp
 
 from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.config import GaussianHeadConfig
-from llrmpp_jax.geometry import rays_through_pixels
 from llrmpp_jax.nn.initializers import linear_init
 from llrmpp_jax.nn.norms import LayerNorm
 
@@ -103,11 +102,12 @@ def head_kernel_init(cfg: GaussianHeadConfig, k: int) -> nn.initializers.Initial
     return init
 
 
-def _unit_quat(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
-    n2 = jnp.sum(jnp.square(q), axis=-1, keepdims=True)
-    ident = jnp.zeros_like(q).at[..., 0].set(1.0)
+def _unit_quat(q: Float[Array, "B 4 ..."]) -> Float[Array, "B 4 ..."]:
+    """Normalise quaternions stored channel-major (axis 1); a zero one becomes the identity."""
+    n2 = jnp.sum(jnp.square(q), axis=1, keepdims=True)
+    ident = jnp.zeros_like(q).at[:, 0].set(1.0)
     safe = jnp.where(n2 > 1e-24, q, ident)
-    return safe * jax.lax.rsqrt(jnp.sum(jnp.square(safe), axis=-1, keepdims=True))
+    return safe * jax.lax.rsqrt(jnp.sum(jnp.square(safe), axis=1, keepdims=True))
 
 
 def decode_gaussians(
@@ -123,47 +123,78 @@ def decode_gaussians(
     In colour mode ``K == token_stride**2``, Gaussian ``k`` of a token sits on pixel
     ``(k // token_stride, k % token_stride)`` of its patch, and the output is in pixel
     raster order (view, row, column); in feature mode the order is (view, token row,
-    token column, k).
+    token column, k). :func:`decode_channel_major` with the channels moved to axis 1.
     """
-    b, v, h, w, k, _ = raw.shape
+    return decode_channel_major(jnp.moveaxis(jnp.asarray(raw), -1, 1), c2w, intrinsics, token_stride, cfg)
+
+
+def decode_channel_major(
+    raw: Float[ArrayLike, "B C V h w K"],
+    c2w: Float[ArrayLike, "B V 4 4"],
+    intrinsics: Float[ArrayLike, "B V 4"],
+    token_stride: int,
+    cfg: GaussianHeadConfig,
+) -> Gaussians:
+    """:func:`decode_gaussians` of raw outputs laid out channel-major, ``[B, C, V, h, w, K]``.
+
+    Every channel group is a slice along axis 1 and every activation works on whole
+    ``[B, V, h, w, K]`` planes; each field becomes ``[B, N, c]`` once, at the end. Why: the TPU
+    compiler's code for slicing a 43-channel minor axis into groups of 1 to 32 grows with the
+    image area (minutes at 32 views of 544x960); along a major axis the slices are free.
+    """
+    raw = jnp.asarray(raw)
+    b, _, v, h, w, k = raw.shape
     s = token_stride
-    # Patch top-left corners in pixels, shaped [1, 1, h, w, 1] to meet [B, V, h, w, K].
+    # Patch top-left corners in pixels, shaped [1, 1, h, 1, 1] / [1, 1, 1, w, 1] to meet [B, V, h, w, K].
     rows = (jnp.arange(h, dtype=raw.dtype) * s).reshape(1, 1, h, 1, 1)
     cols = (jnp.arange(w, dtype=raw.dtype) * s).reshape(1, 1, 1, w, 1)
     if cfg.mode == "color":
         nsh = 3 * (cfg.sh_degree + 1) ** 2
-        xyz, feat, logs, quat, opac = jnp.split(raw, [3, 3 + nsh, 6 + nsh, 10 + nsh], axis=-1)
-        dist_raw = jnp.mean(xyz, axis=-1)
+        xyz, feat = raw[:, :3], raw[:, 3 : 3 + nsh]
+        logs, quat, opac = raw[:, 3 + nsh : 6 + nsh], raw[:, 6 + nsh : 10 + nsh], raw[:, 10 + nsh : 11 + nsh]
+        dist_raw = jnp.mean(xyz, axis=1)
         sub = jnp.arange(k, dtype=raw.dtype).reshape(1, 1, 1, 1, k)
         u = jnp.broadcast_to(cols + sub % s + 0.5, (b, v, h, w, k))  # pixel centres
         vv = jnp.broadcast_to(rows + sub // s + 0.5, (b, v, h, w, k))
     else:
-        feat, off, dist_raw, quat, opac, logs = jnp.split(raw, _feature_splits(cfg.feature_dim), axis=-1)
-        dist_raw = dist_raw[..., 0]
+        f = cfg.feature_dim
+        feat, off, dist_raw = raw[:, :f], raw[:, f : f + 2], raw[:, f + 2]
+        quat, opac, logs = raw[:, f + 3 : f + 7], raw[:, f + 7 : f + 8], raw[:, f + 8 : f + 11]
         off = s * off if cfg.offset_scale is None else cfg.offset_scale * s * jnp.tanh(off)
-        anchor = anchor_offsets(cfg, s).astype(raw.dtype).reshape(1, 1, 1, 1, k, 2)  # pixels from the corner
-        u = cols + anchor[..., 0] + off[..., 0]
-        vv = rows + anchor[..., 1] + off[..., 1]
-    uv = jnp.stack([u, vv], axis=-1)  # [B, V, h, w, K, 2]
-    cam = lambda a: a[:, :, None, None, None]  # noqa: E731  broadcast cameras over h, w, K
-    origins, dirs = rays_through_pixels(cam(c2w), cam(intrinsics), uv)
+        anchor = anchor_offsets(cfg, s).astype(raw.dtype)  # [K, 2] pixels from the corner
+        u = cols + anchor[:, 0].reshape(1, 1, 1, 1, k) + off[:, 0]
+        vv = rows + anchor[:, 1].reshape(1, 1, 1, 1, k) + off[:, 1]
+    origins, dirs = _rays(jnp.asarray(c2w, raw.dtype), jnp.asarray(intrinsics, raw.dtype), u, vv)
     dist = jax.nn.sigmoid(dist_raw) * cfg.max_dist
-    means = origins + dist[..., None] * dirs
+    means = jnp.stack([o + dist * d for o, d in zip(origins, dirs)], axis=1)
     log_scale = jnp.minimum(logs + cfg.scale_bias, cfg.scale_max)
     n = v * h * w * k
 
-    def flat(a: Array) -> Array:  # [B, V, h, w, K, C] -> [B, N, C]
+    def flat(a: Array) -> Array:  # [B, c, V, h, w, K] -> [B, N, c]
+        c = a.shape[1]
         if cfg.mode == "color":  # pixel raster order (v, row, col), as Long-LRM's unpatchify
-            a = a.reshape(b, v, h, w, s, s, -1).transpose(0, 1, 2, 4, 3, 5, 6)
-        return a.reshape(b, n, -1)
+            a = a.reshape(b, c, v, h, w, s, s).transpose(0, 1, 2, 3, 5, 4, 6)
+        return jnp.swapaxes(a.reshape(b, c, n), 1, 2)
 
     return Gaussians(
-        means=flat(means),  # pyright: ignore[reportArgumentType] -- jnp operations give a jax.Array; the ArrayLike input type carries through
+        means=flat(means),
         quats=flat(_unit_quat(quat)),
         scales=flat(jnp.exp(log_scale)),
         opacities=flat(jax.nn.sigmoid(opac + cfg.opacity_bias))[..., 0],
         features=flat(feat),
     )
+
+
+def _rays(c2w: Array, intrinsics: Array, u: Array, v: Array) -> tuple[list[Array], list[Array]]:
+    """Origins and unit directions, one ``[B, V, h, w, K]`` plane per axis, of the rays through
+    pixel coordinates ``(u, v)`` of each view: :func:`llrmpp_jax.geometry.rays_through_pixels`
+    computed per axis (``d = normalize(R @ [(u - cx) / fx, (v - cy) / fy, 1])``)."""
+    per_view = lambda a: a[:, :, None, None, None]  # noqa: E731  [B, V] -> [B, V, 1, 1, 1]
+    x = (u - per_view(intrinsics[..., 2])) / per_view(intrinsics[..., 0])
+    y = (v - per_view(intrinsics[..., 3])) / per_view(intrinsics[..., 1])
+    d = [per_view(c2w[..., i, 0]) * x + per_view(c2w[..., i, 1]) * y + per_view(c2w[..., i, 2]) for i in range(3)]
+    norm = jnp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return [jnp.broadcast_to(per_view(c2w[..., i, 3]), u.shape) for i in range(3)], [di / norm for di in d]
 
 
 class GaussianHead(nn.Module):
@@ -190,10 +221,24 @@ class GaussianHead(nn.Module):
             raise ValueError(f"GaussianHead: {length} tokens != V*h*w = {v}*{h}*{w} from cameras and grid")
         k = gaussians_per_token(self.cfg, self.token_stride)
         x = LayerNorm(name="norm")(tokens)
-        raw = nn.Dense(k * _channels(self.cfg), use_bias=False, name="proj", kernel_init=head_kernel_init(self.cfg, k))(
-            x
-        )
+        raw = _ChannelMajorLinear(k, _channels(self.cfg), head_kernel_init(self.cfg, k), name="proj")(x)
         # Geometry in float32 at least: bf16 tokens (bf16 compute) would put pixel
         # coordinates on a grid of 4 above 512 and ray depths to 3 digits.
         raw = raw.astype(jnp.float64 if raw.dtype == jnp.float64 else jnp.float32)
-        return decode_gaussians(raw.reshape(b, v, h, w, k, -1), c2w, intrinsics, self.token_stride, self.cfg)
+        return decode_channel_major(raw.reshape(b, -1, v, h, w, k), c2w, intrinsics, self.token_stride, self.cfg)
+
+
+class _ChannelMajorLinear(nn.Module):
+    """A bias-free linear layer ``[B, L, D] -> [B, C, L, K]``: ``nn.Dense(K * C)``'s parameter
+    (``kernel [D, K * C]``, Gaussian-major, as Long-LRM's checkpoints hold it) and product, with
+    the output laid out channel-major for :func:`decode_channel_major`."""
+
+    k: int
+    channels: int
+    kernel_init: nn.initializers.Initializer
+
+    @nn.compact
+    def __call__(self, x: Float[ArrayLike, "B L D"]) -> Float[Array, "B C L K"]:
+        kernel = self.param("kernel", self.kernel_init, (jnp.shape(x)[-1], self.k * self.channels), jnp.float32)
+        x, kernel = nn.dtypes.promote_dtype(x, kernel, dtype=None)
+        return jnp.einsum("bld,dkc->bclk", x, kernel.reshape(-1, self.k, self.channels))

@@ -137,8 +137,14 @@ def compile_row(prog: Program, t: Target, flops_cache: dict[str, float | None] |
         margin=1.0 - needed / t.hbm_bytes,
     )
     row["xla_flops"], row["xla_optimal_s"] = _cost_of(compiled)
-    est = estimate_hlo(compiled.as_text(), chip_model(t.name))
-    row["estimate"] = est.to_json()
+    text = compiled.as_text()
+    try:
+        est = estimate_hlo(text, chip_model(t.name))
+    except ValueError as e:  # an HLO form the reader does not know: the fit stands without an estimate
+        row.update(estimate=None, estimate_error=str(e))
+        est = None
+    else:
+        row["estimate"] = est.to_json()
     cache = {} if flops_cache is None else flops_cache
     if prog.name not in cache:
         with _as_run():
@@ -147,7 +153,7 @@ def compile_row(prog: Program, t: Target, flops_cache: dict[str, float | None] |
     row["model_flops"] = flops
     if flops:
         row["matmul_limit_s"] = flops / t.peak_flops
-        row["peak_fraction"] = row["matmul_limit_s"] / est.seconds if est.seconds > 0 else None
+        row["peak_fraction"] = row["matmul_limit_s"] / est.seconds if est is not None and est.seconds > 0 else None
     del compiled
     jax.clear_caches()
     return row
@@ -196,7 +202,8 @@ def summary_line(row: dict) -> str:
     return head + (
         f"{row['hbm_needed_bytes'] / gib:.2f} of {row['hbm_bytes'] / gib:.0f} GiB "
         f"({'fits' if row['fits'] else 'does NOT fit'}), compiled in {row['compile_s']:.0f} s, "
-        f"estimate {est['seconds']:.3g} s" + (f", matmul limit {limit:.3g} s" if limit else "")
+        + (f"estimate {est['seconds']:.3g} s" if est else f"no estimate ({row.get('estimate_error')})")
+        + (f", matmul limit {limit:.3g} s" if limit else "")
     )
 
 
