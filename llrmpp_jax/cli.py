@@ -108,7 +108,7 @@ def _read_capture(path: str, kind: str):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        scene = read_scene(path, kind)
+        scene = read_scene(path, kind)  # pyright: ignore[reportArgumentType] -- --format's choices are the Format names
     return scene, tuple(str(w.message) for w in caught)
 
 
@@ -573,7 +573,7 @@ def cmd_render(args) -> int:
         params, rec = _reconstruct(args)
         saved = rec.saved
     c2w, intr, names, idx = path_cameras(saved, args.path, args.frames)
-    photos = frame_photos(saved, idx) if args.path == "targets" else None  # read before compiling
+    photos = frame_photos(saved, idx) if args.path == "targets" else None  # read before compiling  # pyright: ignore[reportArgumentType] -- path_cameras gives the frame indices for 'targets'
     views = render_views(params, saved, c2w, intr, names, depth=args.depth, progress=not args.quiet)
     _write_views(args.out, views, saved, args.depth)
     kind = args.path[:-1] if args.path in ("targets", "inputs") else args.path  # "9 target views"

@@ -107,7 +107,7 @@ class LongLRMPP(nn.Module):
                 raise ValueError(f"colour mode renders 'rgb' and/or 'depth', asked for {outputs}")
             bg = jnp.asarray(cfg.background, jnp.float32)
 
-            def one(g, cam, k):
+            def one(g, cam, k):  # pyright: ignore[reportRedeclaration] -- one per render mode, in exclusive branches
                 out = splat.rasterize(
                     g.means,
                     g.quats,
@@ -187,7 +187,7 @@ def reconstruct(
 ) -> Gaussians:
     """Images in [0, 1] + input cameras -> Gaussians (``N = V * h * w * K`` per scene)."""
     _check_views(images, c2w, intrinsics)
-    return LongLRMPP(cfg).apply({"params": params}, images, c2w, intrinsics, method="reconstruct")
+    return LongLRMPP(cfg).apply({"params": params}, images, c2w, intrinsics, method="reconstruct")  # pyright: ignore[reportReturnType] -- flax's apply is typed as maybe (out, variables); without mutable= it is out
 
 
 def render(
@@ -206,7 +206,7 @@ def render(
         raise ValueError(f"target c2w must be [B={b}, T, 4, 4], got {c2w.shape}")
     if intrinsics.shape != (*c2w.shape[:2], 4):
         raise ValueError(f"target intrinsics must be {(*c2w.shape[:2], 4)}, got {intrinsics.shape}")
-    return LongLRMPP(cfg).apply(
+    return LongLRMPP(cfg).apply(  # pyright: ignore[reportReturnType] -- as above
         {"params": params}, gaussians, c2w, intrinsics, height, width, tuple(outputs), method="render"
     )
 
@@ -237,7 +237,7 @@ def fit_capacity(
         gaussians.means,
         gaussians.quats,
         gaussians.scales,
-        opacities,
+        opacities,  # pyright: ignore[reportArgumentType] -- as above
         c2w,
         jnp.asarray(intrinsics) / float(r),
         height // r,
@@ -254,7 +254,7 @@ def partition_logits(params: dict, cfg: ModelConfig, gaussians: Gaussians) -> Fl
     softmax); the Gaussians may be batched ``[B, N]`` or one scene's ``[N]`` (a .gs file)."""
     if cfg.head.mode != "feature":
         raise ValueError(f"partition logits exist only in feature mode, the model is in {cfg.head.mode!r} mode")
-    return LongLRMPP(cfg).apply({"params": params}, gaussians.features, method=lambda m, f: m.partition(f))
+    return LongLRMPP(cfg).apply({"params": params}, gaussians.features, method=lambda m, f: m.partition(f))  # pyright: ignore[reportReturnType] -- as above
 
 
 def flatten_params(tree) -> dict[str, object]:
@@ -277,8 +277,8 @@ def check_params_fit(params, cfg: ModelConfig, source: str) -> None:
     between ``params`` (arrays or shape structs) and the model of ``cfg``, with both shapes."""
     want, got = flatten_params(expected_shapes(cfg)), flatten_params(params)
     for path in sorted(set(want) | set(got)):
-        w = tuple(want[path].shape) if path in want else None
-        g = tuple(got[path].shape) if path in got else None
+        w = tuple(want[path].shape) if path in want else None  # pyright: ignore[reportAttributeAccessIssue] -- the leaves of a params tree are arrays
+        g = tuple(got[path].shape) if path in got else None  # pyright: ignore[reportAttributeAccessIssue] -- as above
         if w != g:
             w_txt = "absent" if w is None else str(w)
             g_txt = "absent" if g is None else str(g)

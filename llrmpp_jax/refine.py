@@ -173,7 +173,7 @@ def _optimizer(rc: RefineConfig) -> optax.GradientTransformation:
         "sh_dc": rc.lr_features,
         "sh_rest": rc.lr_features * rc.sh_rest_lr_factor,
     }
-    tx = optax.multi_transform({k: optax.adam(v * rc.rate_scale) for k, v in lrs.items()}, lambda y: {k: k for k in y})
+    tx = optax.multi_transform({k: optax.adam(v * rc.rate_scale) for k, v in lrs.items()}, lambda y: {k: k for k in y})  # pyright: ignore[reportOperatorIssue] -- refine resolves rate_scale before this (the docstring's contract)
 
     def update(updates, state, params=None, **extra):
         # optax mixes Python floats with its int32 count (``b1 ** count``), which strict
@@ -330,7 +330,7 @@ def refine(
         taken,
         dropped,
         rc.views_per_step,
-        int(cfg.splat.max_intersections),
+        int(cfg.splat.max_intersections),  # pyright: ignore[reportArgumentType] -- fit_capacity above sets the capacity
         compile_s,
         float(np.median(times[1:])) if len(times) > 1 else (times[0] if times else 0.0),
     )

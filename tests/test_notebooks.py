@@ -507,7 +507,7 @@ def test_summary_lists_every_table_and_ordering(tmp_path, monkeypatch):
     """``notebooks/_summary.py``: one line per ordering of an executed table, with the
     numbers of its JSON record; every other table is listed as not executed."""
     monkeypatch.syspath_prepend(NB_DIR)
-    import _summary
+    import _summary  # pyright: ignore[reportMissingImports] -- notebooks/ is put on sys.path by the monkeypatch above
 
     record = {
         "wall_s": 1926.0,

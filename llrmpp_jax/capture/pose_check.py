@@ -146,7 +146,7 @@ def compare_poses(
         max_trials=2000,
         rng=seed,
     )
-    inliers = np.ones(len(names), bool) if inliers is None or inliers.sum() < 3 else inliers
+    inliers = np.ones(len(names), bool) if inliers is None or inliers.sum() < 3 else inliers  # pyright: ignore[reportAttributeAccessIssue] -- ransac's inliers: a bool array or None
 
     def fit(use: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         """Rotation errors (degrees), position errors (fractions) of every frame and the scale of
@@ -164,7 +164,7 @@ def compare_poses(
     # the centres of a short arc of cameras pin it down only loosely. Then scale and
     # translation by least squares of their centres given that rotation. A second fit leaves
     # out the frames whose orientation is off by more than the tolerance.
-    angles, position, scale = fit(inliers)
+    angles, position, scale = fit(inliers)  # pyright: ignore[reportArgumentType] -- as above
     agreeing = inliers & (angles <= rotation_tol_deg)
     if agreeing.sum() >= 3:
         angles, position, scale = fit(agreeing)

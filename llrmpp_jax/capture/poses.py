@@ -269,8 +269,8 @@ def estimate_poses(
         names = extract_frames(video, image_dir, fps, progress)
         seconds["frames"] = time.perf_counter() - t
     else:
-        names = list_images(images)
-        _copy_images(images, names, image_dir)
+        names = list_images(images)  # pyright: ignore[reportArgumentType] -- exactly one of images and video is given (checked above)
+        _copy_images(images, names, image_dir)  # pyright: ignore[reportArgumentType] -- as above
     if len(names) < cfg.min_registered:
         raise UserError(f"{len(names)} images; poses need at least {cfg.min_registered}")
     sizes = {image_size(os.path.join(image_dir, n)) for n in names}
@@ -349,11 +349,11 @@ def estimate_poses(
                 + (", or a higher --fps" if video is not None else " (for ordered photos or frames)")
             )
         os.makedirs(sparse)
-        best.write_binary(sparse)
+        best.write_binary(sparse)  # pyright: ignore[reportOptionalMemberAccess] -- registered >= min_registered >= 1 above, so best is set
 
-    reg_names = {best.image(i).name for i in best.reg_image_ids()}
-    centres = np.array([best.image(i).projection_center() for i in best.reg_image_ids()])
-    points = np.array([p.xyz for p in best.points3D.values()]).reshape(-1, 3)
+    reg_names = {best.image(i).name for i in best.reg_image_ids()}  # pyright: ignore[reportOptionalMemberAccess] -- as above
+    centres = np.array([best.image(i).projection_center() for i in best.reg_image_ids()])  # pyright: ignore[reportOptionalMemberAccess] -- as above
+    points = np.array([p.xyz for p in best.points3D.values()]).reshape(-1, 3)  # pyright: ignore[reportOptionalMemberAccess] -- as above
     report = PosesReport(
         capture=out,
         given=n,
@@ -363,9 +363,9 @@ def estimate_poses(
         matcher=matcher,
         camera_model=cfg.camera_model,
         shared_camera=shared,
-        points=int(best.num_points3D()),
-        mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),
-        mean_track_length=float(best.compute_mean_track_length()),
+        points=int(best.num_points3D()),  # pyright: ignore[reportOptionalMemberAccess] -- as above
+        mean_reprojection_error_px=float(best.compute_mean_reprojection_error()),  # pyright: ignore[reportOptionalMemberAccess] -- as above
+        mean_track_length=float(best.compute_mean_track_length()),  # pyright: ignore[reportOptionalMemberAccess] -- as above
         camera_spread=_diagonal(centres),
         points_extent=_diagonal(points, 5.0, 95.0),
         seconds=seconds,

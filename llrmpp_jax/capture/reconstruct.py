@@ -71,8 +71,8 @@ def view_size(
             )
     geom = ViewGeometry(resize_h=h, resize_w=w, multiple=multiple, square_crop=square_crop)
     hw = tuple(int(v) for v in scene.hw[frame])
-    resized = resized_size(hw, geom)
-    return geom, resized, crop_box(resized, geom), output_size(hw, geom)
+    resized = resized_size(hw, geom)  # pyright: ignore[reportArgumentType] -- an image's two sides
+    return geom, resized, crop_box(resized, geom), output_size(hw, geom)  # pyright: ignore[reportArgumentType] -- as above
 
 
 @dataclass(frozen=True)
@@ -145,7 +145,7 @@ def camera_report(
         intrinsics_spread=spread,
         extent=float((pos.max(0) - pos.min(0)).max()),
         scale=float(scale),
-        view_hw=tuple(view_hw),
+        view_hw=tuple(view_hw),  # pyright: ignore[reportArgumentType] -- an image's two sides
         inputs=tuple(_short(scene.frame_names[i]) for i in inputs),
         targets=tuple(_short(scene.frame_names[i]) for i in targets),
     )
@@ -226,17 +226,17 @@ def reconstruct_scene(
         g = jax.block_until_ready(compiled(params, *args))
         runs.append(time.perf_counter() - t0)
     saved = SavedScene(
-        gaussians=Gaussians(*(np.asarray(x[0]) for x in g)),
+        gaussians=Gaussians(*(np.asarray(x[0]) for x in g)),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
         model=cfg,
-        c2w=all_c2w,
+        c2w=all_c2w,  # pyright: ignore[reportArgumentType] -- NumPy arrays
         intrinsics=all_k,
         world_from_scene=np.linalg.inv(transform),
         frame_names=scene.frame_names,
         inputs=np.asarray(inputs, np.int64),
         targets=np.asarray(targets, np.int64),
-        image_hw=tuple(out_hw),
-        resized_hw=tuple(resized),
-        crop_box=tuple(box),
+        image_hw=tuple(out_hw),  # pyright: ignore[reportArgumentType] -- an image's two sides
+        resized_hw=tuple(resized),  # pyright: ignore[reportArgumentType] -- as above
+        crop_box=tuple(box),  # pyright: ignore[reportArgumentType] -- the crop box's four numbers
         scene_path=scene_path,
         scene_format=scene_format,
     )

@@ -68,5 +68,5 @@ def refine_scene(
     log(f"PSNR before {before:.2f}")
     g, info = refine(params, cfg, g, *views["inputs"], steps=steps, rc=rc, vgg_params=vgg_params, progress=progress)
     after = heldout_psnr(params, cfg, g, *views["targets"])
-    refined = dataclasses.replace(saved, gaussians=Gaussians(*(np.asarray(x[0]) for x in g)))
+    refined = dataclasses.replace(saved, gaussians=Gaussians(*(np.asarray(x[0]) for x in g)))  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     return RefinedScene(refined, before, after, info)

@@ -172,7 +172,13 @@ def write_video(path: str, frames: Float[np.ndarray, "frames H W 3"], fps: float
     n, h, w, _ = frames.shape
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     writer = imageio_ffmpeg.write_frames(
-        path, (w, h), fps=fps, codec="libx264", pix_fmt_out="yuv420p", macro_block_size=2, quality=8
+        path,
+        (w, h),
+        fps=fps,  # pyright: ignore[reportArgumentType] -- ffmpeg takes a fractional frame rate
+        codec="libx264",
+        pix_fmt_out="yuv420p",
+        macro_block_size=2,
+        quality=8,
     )
     with warnings.catch_warnings():  # the ffmpeg child exec()s at once: JAX's threads are not touched
         warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
@@ -193,7 +199,7 @@ def frame_photos(saved: SavedScene, frames: np.ndarray, scene_path: str | None =
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # dropped frames were reported at reconstruction
-        scene = read_scene(scene_path or saved.scene_path, saved.scene_format)
+        scene = read_scene(scene_path or saved.scene_path, saved.scene_format)  # pyright: ignore[reportArgumentType] -- the saved scene's format is a Format name
     base = lambda names: [os.path.basename(n) for n in names]  # noqa: E731  the folder may have moved
     if base(scene.frame_names) != base(saved.frame_names):
         raise UserError(

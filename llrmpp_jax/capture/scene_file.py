@@ -95,7 +95,7 @@ def save_gs(path: str, scene: SavedScene) -> None:
         targets=np.asarray(scene.targets, np.int64),
     )
     with open(path, "wb") as f:
-        np.savez(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+        np.savez(f, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)  # pyright: ignore[reportArgumentType] -- arrays by keyword; pyright matches the ** to allow_pickle
 
 
 def load_gs(path: str) -> SavedScene:

@@ -307,7 +307,7 @@ def bin_gaussians(
     used = slots < needed
     if opacities is not None:  # the box's blocks that the ellipse misses hold nothing
         ellipse = to_depth_order(list(_ellipse_terms(projected, opacities, cfg)))
-        used = used & _reaches_block(*(v[src] for v in ellipse), bx, by, cfg)
+        used = used & _reaches_block(*(v[src] for v in ellipse), bx, by, cfg)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     tile = jnp.where(used, by * tiles_x + bx, num_tiles)  # sentinel sorts after every tile
 
     with jax.named_scope("splat_sort"):

@@ -87,7 +87,7 @@ def _running(
     for x in xs:
         out.append(jnp.full_like(x, identity) if total is None else total)
         total = x if total is None else op(total, x)
-    return out, total
+    return out, total  # pyright: ignore[reportReturnType] -- total is set whenever xs is not empty
 
 
 def _cumulative(
@@ -398,7 +398,7 @@ def _composite_fwd(height, width, cfg, geometry, opacities, features, gaussian_i
 def _composite_bwd(height, width, cfg, res, cotangents):
     g_feat, g_trans = cotangents
     d_geo, d_op, d_feat = _backward_fn(height, width, cfg)(*res, g_feat, g_trans)
-    none_groups = _Groups(None, None, None)
+    none_groups = _Groups(None, None, None)  # pyright: ignore[reportArgumentType] -- the integer tile lists have no cotangent: None
     return d_geo, d_op, d_feat, None, none_groups
 
 

@@ -127,7 +127,7 @@ def _check_shapes(
 
 def _check_values(c2w: ArrayLike, intrinsics: ArrayLike, **arrays: ArrayLike) -> None:
     """Value checks for concrete (non-traced) inputs; under jit the masking rule applies."""
-    if any(isinstance(x, jax.core.Tracer) for x in (c2w, intrinsics, *arrays.values())):
+    if any(isinstance(x, jax.core.Tracer) for x in (c2w, intrinsics, *arrays.values())):  # pyright: ignore[reportAttributeAccessIssue] -- jax.core is loaded with jax; Tracer is the type of traced values
         return
     for name, x in arrays.items():
         bad = ~np.isfinite(np.asarray(x))
@@ -211,7 +211,7 @@ def _check_inputs(
     elif features is None:
         raise ValueError(f"render_mode {render_mode!r} needs features; depth alone is render_mode 'D' or 'ED'")
     elif colour == "F":
-        per_gaussian["features"] = (features, ("N", "*"))
+        per_gaussian["features"] = (features, ("N", "*"))  # pyright: ignore[reportArgumentType] -- an axis spec names its axes with str or int
     else:
         m = _shape(features, "features")
         if len(m) != 3 or m[2] != 3:
@@ -226,7 +226,7 @@ def _check_inputs(
             )
         if sh_degree is None and num_sh_bases(degree) != m[1]:
             raise ValueError(f"features has sh={m[1]} coefficients, not a square; pass sh_degree")
-        per_gaussian["features"] = (features, ("N", "*", 3))
+        per_gaussian["features"] = (features, ("N", "*", 3))  # pyright: ignore[reportArgumentType] -- as above
     if colour != "RGB" and sh_degree is not None:
         raise ValueError(f"sh_degree is for the 'RGB' render modes, got render_mode {render_mode!r}")
     if background is not None:
@@ -286,7 +286,7 @@ def rasterize(
     degree = _check_inputs(
         means, quats, scales, opacities, features, c2w, intrinsics, height, width, background, render_mode, sh_degree
     )
-    if not any(isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)):
+    if not any(isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)):  # pyright: ignore[reportAttributeAccessIssue] -- jax.core is loaded with jax; Tracer is the type of traced values
         cfg = fit_capacity(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
     return _rasterize_jit(
         means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, render_mode, degree

@@ -74,4 +74,4 @@ def skip_gradient_spikes(
             kept_inner, ema, state.seen + finite.astype(jnp.int32), state.spikes + spike.astype(jnp.int32)
         )
 
-    return optax.GradientTransformation(init, update)
+    return optax.GradientTransformation(init, update)  # pyright: ignore[reportArgumentType] -- optax's update takes params=None; the stub's protocol is stricter

@@ -73,10 +73,10 @@ def saved_view_scene(saved: SavedScene, input_images: Float[np.ndarray, "V H W 3
     to the model, in [0, 1]) become the frustums' thumbnails."""
     return ViewerScene(
         name=os.path.basename(saved.scene_path.rstrip("/")) or "scene",
-        gaussians=Gaussians(*(np.asarray(a)[None] for a in saved.gaussians)),
+        gaussians=Gaussians(*(np.asarray(a)[None] for a in saved.gaussians)),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
         input_c2w=np.asarray(saved.c2w[saved.inputs], np.float32),
         input_intrinsics=np.asarray(saved.intrinsics[saved.inputs], np.float32),
-        input_hw=tuple(saved.image_hw),
+        input_hw=tuple(saved.image_hw),  # pyright: ignore[reportArgumentType] -- an image's two sides
         thumbnails=None if input_images is None else _uint8(input_images),
     )
 

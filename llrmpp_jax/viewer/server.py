@@ -147,7 +147,7 @@ class RenderWorker:
                     return
                 req, self._pending = self._pending, None
             if req is None:  # still for still_seconds after a moving render: full height
-                req, last = last._replace(moving=False), None
+                req, last = last._replace(moving=False), None  # pyright: ignore[reportOptionalMemberAccess] -- the wait times out only when last is set, and a notify sets _pending or _closed
             elif req.moving:
                 last = req
             self._render(req)
@@ -328,7 +328,7 @@ class Viewer:
             compile_s = 0.0
         frame = self.renderer.render(key, req.c2w, intrinsics)
         frame = dataclasses.replace(frame, compile_s=compile_s)
-        client.scene.set_background_image(display_image(frame.image, output), format=self.settings.image_format)
+        client.scene.set_background_image(display_image(frame.image, output), format=self.settings.image_format)  # pyright: ignore[reportArgumentType] -- a str checked against the Literal's values at run time
         compiled = f" (compiled in {compile_s:.1f} s)" if compile_s else ""
         self._report(
             f"**{1e3 * frame.render_s:.0f} ms** per frame at {width}x{height} {output}, "
@@ -355,7 +355,7 @@ class Viewer:
         with self._frame_cond:
             if not self._frame_cond.wait_for(lambda: self._frame_count > after, timeout=timeout):
                 raise TimeoutError(f"no frame after frame {after} within {timeout} s")
-            return self._last
+            return self._last  # pyright: ignore[reportReturnType] -- a frame was counted, so _last is set
 
     def tabs(self) -> dict[int, tuple[int, Frame]]:
         """Open tabs (viser client ids) that have been sent a frame: ``(frames sent, the

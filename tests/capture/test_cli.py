@@ -243,9 +243,10 @@ def test_capture_end_to_end(golden, capture, tmp_path, capsys):
         == 0
     )
     out = capsys.readouterr().out
-    before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))
+    before, after = (float(re.search(rf"PSNR {w} (\d+\.\d\d)\n", out).group(1)) for w in ("before", "after"))  # pyright: ignore[reportOptionalMemberAccess] -- the command prints these lines; a miss fails the test either way
     loss0, loss1 = (
-        float(v) for v in re.search(r"input-view loss (\S+) -> (\S+) \(the first step's views\);", out).groups()
+        float(v)
+        for v in re.search(r"input-view loss (\S+) -> (\S+) \(the first step's views\);", out).groups()  # pyright: ignore[reportOptionalMemberAccess] -- as above
     )
     assert np.isfinite([before, after]).all() and loss1 < loss0  # 3 steps lower the loss on the inputs
     assert load_gs(refined).gaussians.means.shape == saved.gaussians.means.shape

@@ -24,10 +24,11 @@ def test_compare_poses_recovers_a_similarity_and_flags_the_perturbed_frames(requ
     rng = np.random.default_rng(zlib.crc32(request.node.nodeid.encode()))
     n = 24
     reference = {
-        f"{i:04d}.jpg": (Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * 3.0) for i in range(n)
+        f"{i:04d}.jpg": (Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * 3.0)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
+        for i in range(n)
     }
     # The estimate lives in another frame: world_est = (world_ref - t) R / s.
-    s, r, t = 0.37, Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+    s, r, t = 0.37, Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
     estimate = {k: (r.T @ rot, (centre - t) @ r / s) for k, (rot, centre) in reference.items()}
     names = sorted(reference)
     turned, moved = names[:3], names[3:5]

@@ -94,7 +94,7 @@ def test_eager_bad_input_raises(rng):
     with pytest.raises(ValueError, match=re.escape("c2w must have shape (4, 4), got (3, 4)")), unchecked():
         call(c2w=c2w[:3])
     with pytest.raises(ValueError, match="height and width must be >= 1"):
-        rasterize(**args, height=0, width=W)
+        rasterize(**args, height=0, width=W)  # pyright: ignore[reportArgumentType] -- args are the arrays' keywords, not cfg
     with pytest.raises(ValueError, match="max_intersections"):
         dataclasses.replace(SplatConfig(), max_intersections=0)
 
@@ -154,7 +154,7 @@ def test_fit_capacity_takes_the_most_any_camera_needs_with_headroom(rng):
     ]
     assert counts[0][2] == counts[1][2] == 0 and len({c for row in counts for c in row[:2]}) == 4
     stack = [np.stack([s[i] for s in scenes]) for i in range(3)]
-    got = fit_capacity(*stack, np.stack(copies), c2w, intr, H, W, headroom=1.3)
+    got = fit_capacity(*stack, np.stack(copies), c2w, intr, H, W, headroom=1.3)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     assert got.max_intersections == _next_size(int(np.ceil(1.3 * np.max(counts))))
     one = fit_capacity(*scenes[1][:3], copies[1], c2w[1], intr[1], H, W)
     assert one.max_intersections == _next_size(max(counts[1]))
@@ -180,21 +180,21 @@ def test_expected_depth_mode_is_the_oracles_depth_over_alpha(rng):
         np.eye(4),
         np.array([40.0, 40.0, W / 2, H / 2]),
     ]
-    feats, trans, depth = oracle_render(*scene, H, W)
+    feats, trans, depth = oracle_render(*scene, H, W)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     alpha = 1.0 - trans
     drawn = alpha > 0
     assert 0 < drawn.mean() < 1 and alpha[drawn].min() >= 1.0 / 255.0 - 1e-12
     want = np.where(drawn, depth / np.where(drawn, alpha, 1.0), 0.0)
     geometry = (*scene[:4], None, *scene[5:])
-    ed = rasterize(*geometry, H, W, render_mode="ED")
+    ed = rasterize(*geometry, H, W, render_mode="ED")  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     np.testing.assert_allclose(np.asarray(ed.depth), want, rtol=1e-9, atol=1e-9)
     assert ed.features.shape == (H, W, 0)
-    both = rasterize(*scene, H, W, render_mode="F+ED")
+    both = rasterize(*scene, H, W, render_mode="F+ED")  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     np.testing.assert_allclose(np.asarray(both.depth), want, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(np.asarray(both.features), feats, atol=1e-9)
-    np.testing.assert_allclose(np.asarray(rasterize(*geometry, H, W, render_mode="D").depth), depth, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(rasterize(*geometry, H, W, render_mode="D").depth), depth, atol=1e-9)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     background = rng.normal(size=F)
-    under = rasterize(*scene, H, W, background=background)
+    under = rasterize(*scene, H, W, background=background)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     np.testing.assert_allclose(np.asarray(under.features), feats + trans[..., None] * background, atol=1e-9)
 
 

@@ -38,7 +38,7 @@ def _scenes(rng):
     opac[rng.random((S, N)) < 0.2] = 1.0
     feats = rng.normal(size=(S, N, F))
     feats[..., 0] = 1.0  # this channel renders sum_i w_i, which must equal 1 - T
-    rot = Rotation.random(S, random_state=rng).as_matrix()
+    rot = Rotation.random(S, random_state=rng).as_matrix()  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
     c2w = np.tile(np.eye(4), (S, 1, 1))
     c2w[:, :3, :3], c2w[:, :3, 3] = rot, rng.normal(size=(S, 3))
     means = np.einsum("sij,snj->sni", rot, means_c) + c2w[:, None, :3, 3]

@@ -31,7 +31,7 @@ def test_grads_match_reference_autodiff_float64(rng):
     _, got = value_and_grad(*args, *camera, cot)
 
     def ref_loss(*a):
-        out = render_features_reference(*a, jnp.asarray(c2w), jnp.asarray(intr), H, W)
+        out = render_features_reference(*a, jnp.asarray(c2w), jnp.asarray(intr), H, W)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
         return sum(jnp.sum(x * g) for x, g in zip(out, cot))
 
     exp = jax.jit(jax.grad(ref_loss, argnums=tuple(range(5))))(*args)
@@ -84,7 +84,7 @@ def test_value_and_grad_value_matches_forward_and_reference_at_16k_gaussians(rng
     u, v = rng.uniform(-0.1 * w, 1.1 * w, n), rng.uniform(-0.1 * h, 1.1 * h, n)
     means_c = np.stack([(u - intr[2]) / intr[0] * z, (v - intr[3]) / intr[1] * z, z], -1)
     c2w = np.eye(4)
-    c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+    c2w[:3, :3], c2w[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)  # pyright: ignore[reportCallIssue] -- scipy still takes random_state; its stubs name only rng
     means = means_c @ c2w[:3, :3].T + c2w[:3, 3]
     scales = np.exp(rng.uniform(-5.0, -2.5, (n, 3)))
     scales[rng.random((n, 3)) < 0.1] = 0.3
@@ -99,7 +99,7 @@ def test_value_and_grad_value_matches_forward_and_reference_at_16k_gaussians(rng
         return sum(jnp.sum(x * g) for x, g in zip(out[:3], cot))
 
     def ref_loss(*scene):
-        out = render_features_reference(*(a.astype(jnp.float64) for a in scene), h, w)
+        out = render_features_reference(*(a.astype(jnp.float64) for a in scene), h, w)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
         return sum(jnp.sum(x * g.astype(jnp.float64)) for x, g in zip(out, cot))
 
     plain = float(jax.jit(loss)(*scene32))

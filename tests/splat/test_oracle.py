@@ -23,7 +23,7 @@ def test_oracle_single_and_stacked_gaussians_by_hand(rng):
     px, py = 5.5, 7.5  # centre of pixel (5, 7)
     means = np.array([[(px - 12) / 30 * z, (py - 10) / 30 * z, z] for z in (z2, z1)])  # far first
     feats = rng.normal(size=(2, 3))
-    out, trans, depth = oracle_render(
+    out, trans, depth = oracle_render(  # pyright: ignore[reportAssignmentType] -- with_margin=False: three values
         means, np.tile([1.0, 0, 0, 0], (2, 1)), np.full((2, 3), 0.05), [o2, o1], feats, np.eye(4), intr, height, width
     )
     np.testing.assert_allclose(out[7, 5], o1 * feats[1] + (1 - o1) * o2 * feats[0], atol=1e-12)
@@ -35,7 +35,7 @@ def test_oracle_stops_before_transmittance_limit():
     """Two alpha-0.999 Gaussians: the second would take T to 1e-6 <= 1e-4, so it is not used."""
     intr = np.array([30.0, 30.0, 8.5, 8.5])  # the means project onto the centre of pixel (8, 8)
     means = np.array([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0]])
-    out, trans, _ = oracle_render(
+    out, trans, _ = oracle_render(  # pyright: ignore[reportAssignmentType] -- as above
         means,
         np.tile([1.0, 0, 0, 0], (2, 1)),
         np.full((2, 3), 0.1),

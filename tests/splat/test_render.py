@@ -25,7 +25,7 @@ def _n(height, width):
 
 
 def _compare(scene, out, height, width, atol, band_margin):
-    *expected, margin = oracle_render(*scene, height, width, with_margin=True)
+    *expected, margin = oracle_render(*scene, height, width, with_margin=True)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     band = margin < band_margin
     assert band.mean() < 0.01, band.sum()
     for got, exp in zip((out.features, out.transmittance, out.depth), expected):
@@ -58,7 +58,7 @@ def test_matches_oracle_float32(rng, f, height, width):
         np.asarray(a, np.float32).astype(np.float64)
         for a in random_scene(rng, _n(height, width), f, height, width, conditioned=True)
     ]
-    out = rasterize(*(np.asarray(a, np.float32) for a in scene), height, width)
+    out = rasterize(*(np.asarray(a, np.float32) for a in scene), height, width)  # pyright: ignore[reportCallIssue] -- the unpacked tuple holds the other arguments
     assert out.features.shape == (height, width, f) and out.features.dtype == np.float32
     _compare(scene, out, height, width, atol=1e-5, band_margin=1e-4)
 

@@ -37,7 +37,7 @@ def test_rgb_mode_matches_oracle(rng, sh_degree):
     rgb = rasterize(*args, render_mode="RGB", background=background, sh_degree=sh_degree).features
     colors = oracle_colors(means, coeffs, c2w, 3 if sh_degree is None else sh_degree)
     assert np.any(colors == 0.0) and np.any(colors > 0.5)  # the clamp at 0 is exercised
-    feats, trans, depth = oracle_render(means, quats, scales, opac, colors, c2w, intr, H, W)
+    feats, trans, depth = oracle_render(means, quats, scales, opac, colors, c2w, intr, H, W)  # pyright: ignore[reportAssignmentType] -- with_margin=False: three values
     np.testing.assert_allclose(np.asarray(out.features), feats, atol=1e-8)
     np.testing.assert_allclose(np.asarray(rgb), feats + trans[..., None] * background, atol=1e-8)
     np.testing.assert_allclose(np.asarray(out.depth), depth, atol=1e-8)

@@ -154,7 +154,7 @@ def test_check_gaussians(demo, rng):
 def test_gaussian_centres_colours(rng):
     n = 300
     sh = rng.normal(size=(1, n, 12)).astype(np.float32)  # degree 1
-    g = Gaussians(rng.normal(size=(1, n, 3)), np.zeros((1, n, 4)), np.ones((1, n, 3)), np.ones((1, n)), sh)
+    g = Gaussians(rng.normal(size=(1, n, 3)), np.zeros((1, n, 4)), np.ones((1, n, 3)), np.ones((1, n)), sh)  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
     colour = replace(C.long_lrm(), head=replace(C.long_lrm().head, sh_degree=1))
     pts, cols = gaussian_centres(colour, g, 1000, rng)
     np.testing.assert_array_equal(pts, g.means[0].astype(np.float32))
@@ -258,7 +258,7 @@ def _screen_vs_render(shot: np.ndarray, rgb: np.ndarray) -> float:
     """Correlation of the screenshot with a render stretched (bilinear, as the page's
     texture) over the whole page, which the 3D canvas fills, in the rows of ``BAND``."""
     stretched = resize(rgb, (*shot.shape[:2], 3), order=1, anti_aliasing=False)
-    return _grey_corr(shot[BAND], stretched[BAND])
+    return _grey_corr(shot[BAND], stretched[BAND])  # pyright: ignore[reportArgumentType] -- NumPy arrays
 
 
 def _wait_for_view(driver, path, rgb, others, deadline_s=30.0) -> tuple[np.ndarray, float]:
@@ -465,14 +465,14 @@ def _saved_scene(rng, cfg, feature_dim: int):
     n, v = 64, 3
     g = Gaussians(
         rng.normal(size=(n, 3)).astype(np.float32),
-        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
-        np.full((n, 3), 0.05, np.float32),
-        np.full((n,), 0.5, np.float32),
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        np.full((n, 3), 0.05, np.float32),  # pyright: ignore[reportArgumentType] -- a NumPy array where jax.Array is annotated: both work
+        np.full((n,), 0.5, np.float32),  # pyright: ignore[reportArgumentType] -- as above
         rng.normal(size=(n, feature_dim)).astype(np.float32),
     )
     c2w = np.tile(np.eye(4, dtype=np.float32), (v, 1, 1))
     c2w[:, 2, 3] = -3.0 - np.arange(v)
-    intr = np.float32([32, 32, 16, 16]) * np.arange(1, v + 1, dtype=np.float32)[:, None]
+    intr = np.float32([32, 32, 16, 16]) * np.arange(1, v + 1, dtype=np.float32)[:, None]  # pyright: ignore[reportArgumentType] -- a list of four numbers makes a float32 array
     return SavedScene(
         g,
         cfg,
@@ -598,8 +598,8 @@ def test_cli_serves_the_page_to_this_machine_only(tmp_path):
     try:
         line = ""
         while not line.startswith("llrmpp view:"):  # after viser's own banner
-            line = proc.stdout.readline()
-            assert line, proc.stderr.read()
+            line = proc.stdout.readline()  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
+            assert line, proc.stderr.read()  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
         assert "1,024 feature-mode Gaussians" in line and "anyone" not in line, line
         url = line.split(" at ")[1].split(" ")[0]
         port = int(url.rsplit(":", 1)[1].strip("/"))
@@ -623,12 +623,12 @@ def test_cli_shared_on_the_network_says_so_first(after_s):
 
     proc = _view("--host", "0.0.0.0")
     try:
-        first = proc.stdout.readline()
+        first = proc.stdout.readline()  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
         assert first.startswith("llrmpp view: serving on 0.0.0.0: anyone who can reach port"), first
         assert "sees the scene and its photos" in first
         time.sleep(after_s)
     finally:
         proc.send_signal(signal.SIGINT)
         status = proc.wait(timeout=30)
-    err = proc.stderr.read()
+    err = proc.stderr.read()  # pyright: ignore[reportOptionalMemberAccess] -- Popen(..., stdout/stderr=PIPE): the stream is set
     assert status == 130 and err.endswith("llrmpp: interrupted\n") and "Traceback" not in err, (status, err)
