@@ -29,6 +29,7 @@ from typing import NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+from flax.linen.dtypes import promote_dtype
 
 from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.config import GaussianHeadConfig
@@ -240,5 +241,5 @@ class _ChannelMajorLinear(nn.Module):
     @nn.compact
     def __call__(self, x: Float[ArrayLike, "B L D"]) -> Float[Array, "B C L K"]:
         kernel = self.param("kernel", self.kernel_init, (jnp.shape(x)[-1], self.k * self.channels), jnp.float32)
-        x, kernel = nn.dtypes.promote_dtype(x, kernel, dtype=None)
+        x, kernel = promote_dtype(x, kernel, dtype=None)
         return jnp.einsum("bld,dkc->bclk", x, kernel.reshape(-1, self.k, self.channels))
