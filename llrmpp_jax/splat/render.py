@@ -336,10 +336,10 @@ _rasterize_jit = jax.jit(_rasterize, static_argnames=("height", "width", "cfg", 
 
 
 def fit_capacity(
-    means: Float[ArrayLike, "*B N 3"],
-    quats: Float[ArrayLike, "*B N 4"],
-    scales: Float[ArrayLike, "*B N 3"],
-    opacities: Float[ArrayLike, "*B N"] | Float[ArrayLike, "*B S N"],
+    means: Float[ArrayLike, "*batch N 3"],
+    quats: Float[ArrayLike, "*batch N 4"],
+    scales: Float[ArrayLike, "*batch N 3"],
+    opacities: Float[ArrayLike, "*batch N"] | Float[ArrayLike, "*batch S N"],
     c2w: Float[ArrayLike, "... 4 4"],
     intrinsics: Float[ArrayLike, "... 4"],
     height: int,
