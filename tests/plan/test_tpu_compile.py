@@ -30,6 +30,17 @@ def test_tiny_programs_compile_and_fit_on_v5e(name):
     assert row["estimate"]["seconds"] >= row["matmul_limit_s"] > 0
 
 
+def test_tiny_train_step_compiles_and_fits_on_v5e():
+    """The trainer's step (loss, gradient, pmean, guarded AdamW) through the TPU compiler. Its
+    matrix products are at least the loss's forward and backward (the jaxpr count, no remat)
+    and at most twice that (remat recomputes forwards; XLA may fold a few products)."""
+    row = compile_row(program("tiny_train"), V5E)
+    assert row["program"] == "tiny_train" and row["compiled"], row.get("error")
+    assert row["fits"] and row["memory"]["alias"] > 0  # the donated state is updated in place
+    assert row["model_flops"] * 0.99 <= row["estimate"]["flops"] <= 2.0 * row["model_flops"]
+    assert row["estimate"]["loops"] > 0 and row["estimate"]["seconds"] >= row["matmul_limit_s"]
+
+
 def test_tpu_path_picks_the_blockwise_kernel_and_sequential_scan():
     cfg = C.for_accelerators(C.tiny(), backend="tpu")
     assert cfg.backbone.transformer.attention_impl == "blockwise"
