@@ -197,7 +197,7 @@ def parse_module(text: str) -> tuple[dict[str, list[Instr]], str]:
                 comps[current] = []
                 entry = current if m.group(1) else entry
             continue
-        if line.strip() == "}":
+        if line.startswith("}"):  # "}" or, on TPU, '}, execution_thread="sparsecore"'
             current = None
             continue
         ins = _parse_instr(line)

@@ -109,3 +109,14 @@ def test_a_loop_reading_one_row_a_step_moves_rows_not_the_array():
     # bytes, far below reading the whole table every step.
     assert est.bytes < 0.2 * full_every_step
     assert est.bytes >= rows * width * 4  # every row is read once
+
+
+def test_a_computation_closed_with_attributes_does_not_swallow_the_next():
+    # TPU modules close SparseCore computations with '}, execution_thread="sparsecore"'.
+    text = compiled_text(lambda x: x * 2.0, jnp.ones((3, 5), jnp.float32))
+    extra = (
+        '%offloaded (p: f32[4]) -> f32[4] {\n  ROOT %p = f32[4]{0} parameter(0)\n}, execution_thread="sparsecore"\n\n'
+    )
+    at = text.index("ENTRY")
+    comps, entry = parse_module(text[:at] + extra + text[at:])
+    assert "offloaded" in comps and entry in comps and entry != "offloaded"
