@@ -241,7 +241,7 @@ def _paper_programs() -> dict[str, Callable[[], Program]]:
             def make(recipe=recipe, i=i) -> Program:
                 exp = load_experiment(recipe)
                 stage = exp.stages[i]
-                return train_program(exp, stage, f"train_{recipe}_{stage.name}")
+                return train_program(exp, stage, f"train_{recipe}_{i + 1}")
 
             out[f"train_{recipe}_{i + 1}"] = make
     return out
