@@ -152,14 +152,16 @@ def tile_rects(
     width: int,
     cfg: SplatConfig,
     opacities: Float[Array, " N"] | None = None,
+    extents: tuple[Float[Array, " N"], Float[Array, " N"]] | None = None,
 ) -> tuple[Int[Array, " N"], Int[Array, " N"], Int[Array, " N"], Int[Array, " N"]]:
     """Half-open box ``(x0, x1, y0, y1)`` of compositor blocks for each Gaussian: the blocks
-    of its gsplat tiles that it can reach (:func:`screen_extents`); empty when culled or,
-    given ``opacities``, when it is too faint to be drawn."""
+    of its gsplat tiles that it can reach (:func:`screen_extents`, or the given per-axis
+    half-widths ``extents`` in pixels, as the 2DGS projection computes them); empty when
+    culled or, given ``opacities``, when it is too faint to be drawn."""
     blocks_y, blocks_x = cfg.tile_grid(height, width)
     ts, bs = float(cfg.tile_size), float(cfg.composite_tile)
     r = projected.radii.astype(projected.means2d.dtype)
-    ex, ey = screen_extents(projected, cfg, opacities)
+    ex, ey = screen_extents(projected, cfg, opacities) if extents is None else extents
 
     def axis(m, e, n_blocks):
         lo = jnp.maximum(jnp.floor((m - r) / ts) * ts, m - e)  # gsplat's tiles, cut to reach
@@ -180,10 +182,11 @@ def intersection_counts(
     width: int,
     cfg: SplatConfig,
     opacities: Float[Array, " N"] | None = None,
+    extents: tuple[Float[Array, " N"], Float[Array, " N"]] | None = None,
 ) -> Int[Array, " N"]:
     """Number of compositor blocks each Gaussian enters (0 when culled); without
-    ``opacities`` an upper bound (every block of its tiles)."""
-    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities)
+    ``opacities`` or ``extents`` an upper bound (every block of its tiles)."""
+    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities, extents)
     return (x1 - x0) * (y1 - y0)
 
 
@@ -265,15 +268,18 @@ def bin_gaussians(
     capacity: int,
     cfg: SplatConfig,
     opacities: Float[Array, " N"] | None = None,
+    extents: tuple[Float[Array, " N"], Float[Array, " N"]] | None = None,
 ) -> TileBins:
     """Bin projected Gaussians into depth-sorted per-tile lists of ``capacity`` slots.
 
     ``opacities`` (the largest of any copy that will be composited from these bins) trims
-    each box to where the Gaussian can be drawn (:func:`screen_extents`)."""
+    each box to where the Gaussian can be drawn (:func:`screen_extents`) and drops the
+    blocks its ellipse misses; ``extents`` (per-axis half-widths, pixels) trims the boxes
+    instead, for footprints that are not the conic's ellipse (2DGS)."""
     n = projected.radii.shape[0]
     tiles_y, tiles_x = cfg.tile_grid(height, width)
     num_tiles = tiles_y * tiles_x
-    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities)
+    x0, x1, y0, y1 = tile_rects(projected, height, width, cfg, opacities, extents)
     counts = (x1 - x0) * (y1 - y0)
 
     with jax.named_scope("splat_sort"):

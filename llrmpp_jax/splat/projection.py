@@ -116,6 +116,35 @@ def _rotate(rot: Float[Array, "3 3"], vecs: Float[Array, "N 3"]) -> Float[Array,
     )
 
 
+def sanitise_inputs(
+    means: Float[Array, "N 3"],
+    quats: Float[Array, "N 4"],
+    scales: Float[Array, "N S"],
+    c2w: Float[Array, "4 4"],
+    intrinsics: Float[Array, " 4"],
+    keep: Bool[Array, " N"] | None = None,
+) -> tuple[Bool[Array, " N"], Bool[Array, ""], Array, Array, Array, Array, Array]:
+    """``(finite, camera_ok, means, quats, scales, c2w, intrinsics)``: which Gaussians have
+    finite inputs (and ``keep``), whether the camera is valid, and the inputs with every
+    dropped Gaussian's and an invalid camera's entries replaced by harmless values, so that
+    they cannot produce NaN in gradients."""
+    dtype = means.dtype
+    finite = (
+        jnp.all(jnp.isfinite(means), axis=-1)
+        & jnp.all(jnp.isfinite(quats), axis=-1)
+        & jnp.all(jnp.isfinite(scales), axis=-1)
+    )
+    if keep is not None:
+        finite = finite & keep
+    cam_ok = camera_is_valid(c2w, intrinsics)
+    means = jnp.where(finite[:, None], means, 0.0)
+    quats = jnp.where(finite[:, None], quats, jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype)[None, :])
+    scales = jnp.where(finite[:, None], scales, 0.0)
+    c2w = jnp.where(cam_ok, c2w, jnp.eye(4, dtype=dtype))
+    intrinsics = jnp.where(cam_ok, intrinsics, jnp.asarray([1.0, 1.0, 0.0, 0.0], dtype))
+    return finite, cam_ok, means, quats, scales, c2w, intrinsics
+
+
 def project_gaussians(
     means: Float[Array, "N 3"],
     quats: Float[Array, "N 4"],
@@ -132,22 +161,7 @@ def project_gaussians(
     Computes in ``means.dtype``; the other inputs must share it. ``keep`` (optional) culls
     Gaussians where False. See the module docstring for the exact rules.
     """
-    dtype = means.dtype
-    finite = (
-        jnp.all(jnp.isfinite(means), axis=-1)
-        & jnp.all(jnp.isfinite(quats), axis=-1)
-        & jnp.all(jnp.isfinite(scales), axis=-1)
-    )
-    if keep is not None:
-        finite = finite & keep
-    cam_ok = camera_is_valid(c2w, intrinsics)
-    # Sanitise first, so that culled Gaussians / a bad camera cannot produce NaN in gradients.
-    means = jnp.where(finite[:, None], means, 0.0)
-    quats = jnp.where(finite[:, None], quats, jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype)[None, :])
-    scales = jnp.where(finite[:, None], scales, 0.0)
-    c2w = jnp.where(cam_ok, c2w, jnp.eye(4, dtype=dtype))
-    intrinsics = jnp.where(cam_ok, intrinsics, jnp.asarray([1.0, 1.0, 0.0, 0.0], dtype))
-
+    finite, cam_ok, means, quats, scales, c2w, intrinsics = sanitise_inputs(means, quats, scales, c2w, intrinsics, keep)
     rot_w, trans_w = _world_to_camera(c2w)
     p = _rotate(rot_w, means) + trans_w[None, :]
     x, y, z = p[:, 0], p[:, 1], p[:, 2]

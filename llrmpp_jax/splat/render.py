@@ -35,9 +35,12 @@ from jax import lax
 from llrmpp_jax.array_typing import Array, ArrayLike, Bool, Float, Int
 from llrmpp_jax.splat.binning import SATURATION, bin_gaussians, intersection_counts
 from llrmpp_jax.splat.composite import composite
+from llrmpp_jax.splat.composite_surfel import DEPTH_MODES
 from llrmpp_jax.splat.config import SplatConfig
 from llrmpp_jax.splat.projection import camera_is_valid, project_gaussians
+from llrmpp_jax.splat.render_surfel import render_surfel_copies, surfel_counts
 from llrmpp_jax.splat.sh import MAX_DEGREE, num_sh_bases, sh_colors
+from llrmpp_jax.splat.surfel import project_surfels
 
 
 class SplatStats(NamedTuple):
@@ -54,12 +57,17 @@ class SplatStats(NamedTuple):
 
 
 class SplatOutput(NamedTuple):
-    """A rendered canvas (:func:`rasterize`; a leading S axis with ``[S, N]`` opacities)."""
+    """A rendered canvas (:func:`rasterize`; a leading S axis with ``[S, N]`` opacities).
+
+    The last three are rendered by ``primitive="2dgs"`` only (None for 3DGS)."""
 
     features: Float[Array, "H W C"]  # sum_i w_i f_i (+ transmittance * background if one was given)
     transmittance: Float[Array, "H W"]  # final T = prod_i (1 - alpha_i); alpha = 1 - T
     depth: Float[Array, "H W"]  # camera z: sum_i w_i z_i, or over alpha in the "ED" modes
     stats: SplatStats
+    normals: Float[Array, "H W 3"] | None = None  # 2DGS: sum_i w_i n_i, camera frame
+    median_depth: Float[Array, "H W"] | None = None  # 2DGS: z where T first falls to <= 0.5
+    distortion: Float[Array, "H W"] | None = None  # 2DGS: sum_{j<i} 2 w_i w_j (z_i - z_j)
 
 
 # gsplat's "ED" clamp of the accumulated alpha. A drawn pixel's alpha is at least
@@ -141,10 +149,26 @@ def _check_values(c2w: ArrayLike, intrinsics: ArrayLike, **arrays: ArrayLike) ->
         raise ValueError("c2w has non-finite entries")
 
 
-def _render_copies(means, quats, scales, opacities, features, c2w, intrinsics, height, width, cfg, keep=None):
+def _stats(radii, bins, capacity, attr_ok, geo_ok, c2w, intrinsics) -> SplatStats:
+    return SplatStats(
+        num_visible=jnp.sum(radii > 0, dtype=jnp.int32),
+        num_intersections=bins.num_intersections,
+        capacity=jnp.asarray(capacity, jnp.int32),
+        overflow=bins.overflow,
+        num_dropped=bins.num_dropped,
+        max_tile_intersections=jnp.max(bins.tile_count),
+        num_nonfinite=jnp.sum(~(attr_ok & geo_ok), dtype=jnp.int32),
+        invalid_camera=~camera_is_valid(c2w, intrinsics),
+    )
+
+
+def _render_copies(
+    means, quats, scales, opacities, features, c2w, intrinsics, height, width, cfg, keep=None, primitive="3dgs"
+):
     """Shared core: ``opacities`` is ``[S, N]``; returns an output with a leading S axis.
 
     ``keep`` (optional ``[N]`` bool) drops more Gaussians, counted as non-finite.
+    ``primitive`` is ``"3dgs"`` or ``"2dgs:<depth>"`` (the surfel depth mode).
     """
     dtype = _compute_dtype(means)
     means, quats, scales, opacities, features, c2w, intrinsics = (
@@ -161,6 +185,16 @@ def _render_copies(means, quats, scales, opacities, features, c2w, intrinsics, h
     )
     opacities = jnp.where(attr_ok[None, :], opacities, 0.0)
     features = jnp.where(attr_ok[:, None], features, 0.0)
+    if primitive != "3dgs":
+        capacity = cfg.capacity(n, height, width)
+        surf = render_surfel_copies(
+            means, quats, scales, opacities, features, c2w, intrinsics, height, width, capacity, cfg,
+            primitive.split(":")[1], attr_ok,
+        )  # fmt: skip
+        stats = _stats(surf.radii, surf.bins, capacity, attr_ok, geo_ok, c2w, intrinsics)
+        return SplatOutput(
+            surf.features, surf.transmittance, surf.depth, stats, surf.normals, surf.median_depth, surf.distortion
+        )
 
     with jax.named_scope("splat_project"):
         proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=attr_ok)
@@ -176,24 +210,30 @@ def _render_copies(means, quats, scales, opacities, features, c2w, intrinsics, h
         return composite(proj.means2d, proj.quad_form, op, feats_z, bins, height, width, cfg)
 
     canvas, trans = jax.vmap(one)(opacities)
-    stats = SplatStats(
-        num_visible=jnp.sum(proj.radii > 0, dtype=jnp.int32),
-        num_intersections=bins.num_intersections,
-        capacity=jnp.asarray(capacity, jnp.int32),
-        overflow=bins.overflow,
-        num_dropped=bins.num_dropped,
-        max_tile_intersections=jnp.max(bins.tile_count),
-        num_nonfinite=jnp.sum(~(attr_ok & geo_ok), dtype=jnp.int32),
-        invalid_camera=~camera_is_valid(c2w, intrinsics),
-    )
+    stats = _stats(proj.radii, bins, capacity, attr_ok, geo_ok, c2w, intrinsics)
     return SplatOutput(canvas[..., :f], trans, canvas[..., f], stats)
 
 
 RENDER_MODES = ("F", "F+ED", "RGB", "RGB+ED", "D", "ED")
+PRIMITIVES = ("3dgs", "2dgs")
+
+
+def _check_primitive(primitive: str, surfel_depth: str | None) -> str:
+    """The static primitive key of the core: ``"3dgs"`` or ``"2dgs:<depth>"``."""
+    if primitive not in PRIMITIVES:
+        raise ValueError(f"primitive must be one of {PRIMITIVES}, got {primitive!r}")
+    if primitive == "3dgs":
+        if surfel_depth is not None:
+            raise ValueError(f"surfel_depth is for primitive '2dgs', got primitive {primitive!r}")
+        return primitive
+    depth = "center" if surfel_depth is None else surfel_depth
+    if depth not in DEPTH_MODES:
+        raise ValueError(f"surfel_depth must be one of {DEPTH_MODES}, got {surfel_depth!r}")
+    return f"2dgs:{depth}"
 
 
 def _check_inputs(
-    means, quats, scales, opacities, features, c2w, intrinsics, height, width, background, render_mode, sh_degree
+    means, quats, scales, opacities, features, c2w, intrinsics, height, width, background, render_mode, sh_degree, kind
 ) -> int | None:
     """The entry point's checks: ``ValueError`` naming the bad argument. Returns the SH
     degree of an "RGB" mode (None otherwise)."""
@@ -201,8 +241,17 @@ def _check_inputs(
         raise ValueError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     colour = render_mode.split("+")[0]
     opac_shape = ("N",) if len(_shape(opacities, "opacities")) == 1 else ("*", "N")
+    n_scales = 3 if kind == "3dgs" else 2
+    if kind != "3dgs" and len(_shape(scales, "scales")) == 2 and _shape(scales, "scales")[1] != 2:
+        raise ValueError(
+            f"scales must have shape (N, 2) for primitive '2dgs' (two tangent scales of a planar disk), "
+            f"got {_shape(scales, 'scales')}"
+        )
     per_gaussian = dict(
-        means=(means, ("N", 3)), quats=(quats, ("N", 4)), scales=(scales, ("N", 3)), opacities=(opacities, opac_shape)
+        means=(means, ("N", 3)),
+        quats=(quats, ("N", 4)),
+        scales=(scales, ("N", n_scales)),
+        opacities=(opacities, opac_shape),
     )
     degree = None
     if colour in ("D", "ED"):
@@ -241,7 +290,7 @@ def _check_inputs(
 def rasterize(
     means: Float[ArrayLike, "N 3"],
     quats: Float[ArrayLike, "N 4"],
-    scales: Float[ArrayLike, "N 3"],
+    scales: Float[ArrayLike, "N 3"] | Float[ArrayLike, "N 2"],
     opacities: Float[ArrayLike, " N"] | Float[ArrayLike, "S N"],
     features: Float[ArrayLike, "N F"] | Float[ArrayLike, "N sh 3"] | None,
     c2w: Float[ArrayLike, "4 4"],
@@ -253,6 +302,8 @@ def rasterize(
     render_mode: str = "F",
     background: Float[ArrayLike, " C"] | None = None,
     sh_degree: int | None = None,
+    primitive: str = "3dgs",
+    surfel_depth: str | None = None,
 ) -> SplatOutput:
     """Render N Gaussians for one camera (gsplat's ``rasterization`` with its render modes).
 
@@ -278,23 +329,31 @@ def rasterize(
     but ``stats`` then has a leading S axis, and a Gaussian whose opacity is non-finite in
     any copy is dropped from all (under jit).
 
+    ``primitive="2dgs"`` renders 2D Gaussians (surfels, 2DGS; :mod:`.surfel` and
+    :mod:`.composite_surfel` state the rules): ``scales [N, 2]`` are the two tangent
+    scales, the normal is R(q)'s third column; ``out.normals`` (camera frame, alpha
+    weighted), ``out.median_depth`` and ``out.distortion`` are rendered too. Its depth
+    ``surfel_depth`` is ``"center"`` (default: each surfel's centre z, as gsplat's
+    ``rasterization_2dgs`` composites, and what Long-LRM's gsplat-based 2DGS baseline
+    rendered) or ``"intersection"`` (the ray-splat intersection's z, as the 2DGS paper's
+    rasterizer: per-pixel depth on a tilted surfel); median depth and distortion use the
+    same depth.
+
     Computes in float32 (float64 if ``means`` is float64). Differentiable w.r.t. means,
     quats, scales, opacities and features; ``jax.vmap``-able over cameras and scenes.
     Called outside ``jit`` with ``cfg.max_intersections`` unset, the buffer is sized from
     this scene (:func:`fit_capacity`).
     """
-    degree = _check_inputs(
-        means, quats, scales, opacities, features, c2w, intrinsics, height, width, background, render_mode, sh_degree
-    )
+    key = _check_primitive(primitive, surfel_depth)
+    scene = (means, quats, scales, opacities, features, c2w, intrinsics)
+    degree = _check_inputs(*scene, height, width, background, render_mode, sh_degree, primitive)
     if not any(isinstance(x, jax.core.Tracer) for x in (means, quats, scales, opacities, c2w, intrinsics)):  # pyright: ignore[reportAttributeAccessIssue] -- jax.core is loaded with jax; Tracer is the type of traced values
-        cfg = fit_capacity(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
-    return _rasterize_jit(
-        means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, render_mode, degree
-    )
+        cfg = fit_capacity(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg, primitive=primitive)
+    return _rasterize_jit(*scene, background, height, width, cfg, render_mode, degree, key)
 
 
 def _rasterize(
-    means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, mode, degree
+    means, quats, scales, opacities, features, c2w, intrinsics, background, height, width, cfg, mode, degree, key
 ):
     dtype = _compute_dtype(means)
     copies = opacities.ndim == 2
@@ -320,25 +379,26 @@ def _rasterize(
         width,
         cfg,
         keep=keep,
+        primitive=key,
     )
     if not copies:
-        out = SplatOutput(out.features[0], out.transmittance[0], out.depth[0], out.stats)
+        out = jax.tree.map(lambda x: x[0], out._replace(stats=None))._replace(stats=out.stats)
     canvas, depth = out.features, out.depth
     if background is not None:
         under = background.astype(dtype).reshape((1,) * (canvas.ndim - 1) + (-1,))
         canvas = canvas + out.transmittance[..., None] * under
     if mode.endswith("ED"):
         depth = _expected_depth(depth, out.transmittance)
-    return SplatOutput(canvas, out.transmittance, depth, out.stats)
+    return out._replace(features=canvas, depth=depth)
 
 
-_rasterize_jit = jax.jit(_rasterize, static_argnames=("height", "width", "cfg", "mode", "degree"))
+_rasterize_jit = jax.jit(_rasterize, static_argnames=("height", "width", "cfg", "mode", "degree", "key"))
 
 
 def fit_capacity(
     means: Float[ArrayLike, "*batch N 3"],
     quats: Float[ArrayLike, "*batch N 4"],
-    scales: Float[ArrayLike, "*batch N 3"],
+    scales: Float[ArrayLike, "*batch N 3"] | Float[ArrayLike, "*batch N 2"],
     opacities: Float[ArrayLike, "*batch N"] | Float[ArrayLike, "*batch S N"],
     c2w: Float[ArrayLike, "... 4 4"],
     intrinsics: Float[ArrayLike, "... 4"],
@@ -348,6 +408,7 @@ def fit_capacity(
     *,
     headroom: float = 1.0,
     minimum: int = 0,
+    primitive: str = "3dgs",
 ) -> SplatConfig:
     """``cfg`` with its capacity (``max_intersections``) sized for rendering these Gaussians
     at these cameras on ``height x width`` canvases.
@@ -359,7 +420,7 @@ def fit_capacity(
     at least ``minimum``. One scene (``means [N, 3]``, cameras ``[T, 4, 4]`` / ``[T, 4]``
     or a single ``[4, 4]`` / ``[4]``) or B (a leading B axis on all). A ``cfg`` that sets
     the capacity keeps it. Eager (returns a static config); the count is a projection per
-    camera, no sort and no composite.
+    camera, no sort and no composite. ``primitive="2dgs"`` counts surfels (``scales [N, 2]``).
     """
     if cfg.max_intersections is not None:
         return cfg
@@ -384,15 +445,21 @@ def fit_capacity(
             for name, x, shape in zip(
                 ("means", "quats", "scales", "opacities"),
                 scenes,
-                (("N", 3), ("N", 4), ("N", 3), ("N",) if scenes[3].ndim == 2 else ("*", "N")),
+                (
+                    ("N", 3),
+                    ("N", 4),
+                    ("N", 3 if primitive == "3dgs" else 2),
+                    ("N",) if scenes[3].ndim == 2 else ("*", "N"),
+                ),
             )
         },
     )
-    needed = int(jnp.max(_count_jit(*scenes, *cams, height, width, cfg)))
+    _check_primitive(primitive, None)
+    needed = int(jnp.max(_count_jit(*scenes, *cams, height, width, cfg, primitive)))
     return dataclasses.replace(cfg, max_intersections=max(_round_capacity(math.ceil(headroom * needed)), minimum))
 
 
-def _count(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg):
+def _count(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg, primitive="3dgs"):
     """Slots one scene's render fills at one camera (saturating at 2**30 - 1)."""
     dtype = _compute_dtype(means)
     means, quats, scales, c2w, intrinsics = (
@@ -401,20 +468,24 @@ def _count(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg)
     opacities = jnp.max(opacities.reshape(-1, opacities.shape[-1]), axis=0)  # the most opaque copy
     keep = jnp.isfinite(opacities)
     opacities = jnp.where(keep, opacities, 0.0).astype(dtype)
-    proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=keep)
-    counts = intersection_counts(proj, height, width, cfg, opacities)
+    if primitive == "3dgs":
+        proj = project_gaussians(means, quats, scales, c2w, intrinsics, height, width, cfg, keep=keep)
+        counts = intersection_counts(proj, height, width, cfg, opacities)
+    else:
+        proj = project_surfels(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg, keep=keep)
+        counts = surfel_counts(proj, height, width, cfg)
     return lax.reduce(counts, jnp.int32(0), lambda a, b: jnp.minimum(a + b, SATURATION), (0,))
 
 
-def _count_views(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg):
+def _count_views(means, quats, scales, opacities, c2w, intrinsics, height, width, cfg, primitive):
     """``[B, T]`` slots of B scenes at each of their T cameras."""
-    per_camera = jax.vmap(_count, (None, None, None, None, 0, 0, None, None, None))
-    return jax.vmap(per_camera, (0, 0, 0, 0, 0, 0, None, None, None))(
-        means, quats, scales, opacities, c2w, intrinsics, height, width, cfg
+    per_camera = jax.vmap(_count, (None, None, None, None, 0, 0, None, None, None, None))
+    return jax.vmap(per_camera, (0, 0, 0, 0, 0, 0, None, None, None, None))(
+        means, quats, scales, opacities, c2w, intrinsics, height, width, cfg, primitive
     )
 
 
-_count_jit = jax.jit(_count_views, static_argnames=("height", "width", "cfg"))
+_count_jit = jax.jit(_count_views, static_argnames=("height", "width", "cfg", "primitive"))
 
 
 def _round_capacity(needed: int) -> int:
