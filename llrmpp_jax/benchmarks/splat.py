@@ -18,6 +18,12 @@ in [0.25, 4] pixels on a 256-pixel-wide canvas (Long-LRM++'s Gaussians are ~1 px
 random rotations and features. So the work (intersections x 256 pixels) grows with N and
 with the pixel count.
 
+Primitive: ``--primitive 2dgs`` times the 2DGS splatter (``rasterize(..., primitive="2dgs")``)
+on the same scene, each Gaussian's first two scales as its tangent scales, its fwd+bwd loss a
+random linear function of all six outputs (features, transmittance, depth, normals, median
+depth, distortion); ``both`` times the two splatters side by side. The brute-force 2DGS
+reference is not timed (its distortion's pair sum is O(N^2 x pixels)).
+
 Capacity: ``--capacity default`` uses ``SplatConfig``'s trace-time buffer (8 slots per
 Gaussian), ``fitted`` sizes it from the scene as eager renders and ``refine`` do
 (:func:`llrmpp_jax.splat.fit_capacity`); ``both`` (the default) times the two.
@@ -35,6 +41,7 @@ Quick run (2-core CPU):    python -m llrmpp_jax.benchmarks.splat --quick
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -102,25 +109,38 @@ def bench_one(
     oracle_max_bytes: float,
     seed: int,
     fitted: bool = False,
+    primitive: str = "3dgs",
 ) -> dict:
     rng = np.random.default_rng(seed)
     means, quats, scales, opac, feats, c2w, intr = make_scene(rng, n, f, height, width)
+    if primitive == "2dgs":
+        scales = scales[:, :2]
     if fitted:
-        cfg = fit_capacity(means, quats, scales, opac, c2w, intr, height, width, cfg)
-    cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in ((height, width, f), (height, width), (height, width))]
+        cfg = fit_capacity(means, quats, scales, opac, c2w, intr, height, width, cfg, primitive=primitive)
+    planes = (
+        (height, width, f),
+        (height, width),
+        (height, width),
+        (height, width, 3),
+        (height, width),
+        (height, width),
+    )
+    cot = [jnp.asarray(rng.normal(size=s), jnp.float32) for s in planes]
 
     def forward(m, q, s, o, x):
-        return rasterize(m, q, s, o, x, c2w, intr, height, width, cfg)
+        return rasterize(m, q, s, o, x, c2w, intr, height, width, cfg, primitive=primitive)
 
     def loss(m, q, s, o, x):
         out = forward(m, q, s, o, x)
-        return sum(jnp.sum(a * b) for a, b in zip(out[:3], cot))
+        outs = [x for x in (*out[:3], out.normals, out.median_depth, out.distortion) if x is not None]
+        return sum(jnp.sum(a * b) for a, b in zip(outs, cot))
 
     fwd_bwd = jax.value_and_grad(loss, argnums=(0, 1, 2, 3, 4))
     args = (means, quats, scales, opac, feats)
     fwd_compile_s, fwd_s, out = _time(forward, args, repeats)
     stats = out.stats
     row = {
+        "primitive": primitive,
         "capacity_rule": "fitted" if fitted else "default",
         "n": n,
         "width": width,
@@ -139,7 +159,7 @@ def bench_one(
     row["fwd_bwd_memory"] = _memory(fwd_bwd, args)
     row["device_peak_bytes"] = _device_peak()
 
-    if n * width * height <= oracle_max_work:
+    if primitive == "3dgs" and n * width * height <= oracle_max_work:
 
         def oracle(m, q, s, o, x):
             return render_features_reference(m, q, s, o, x, c2w, intr, height, width, cfg)
@@ -209,6 +229,7 @@ def main() -> None:
         default="both",
         help="intersection buffer: SplatConfig's default, fitted to the scene, or both",
     )
+    parser.add_argument("--primitive", choices=("3dgs", "2dgs", "both"), default="3dgs", help="splatter(s) to time")
     parser.add_argument("--oracle-max-work", type=float, default=2e8, help="largest N x pixels for the oracle")
     parser.add_argument("--oracle-max-bytes", type=float, default=2e9, help="largest oracle fwd+bwd residuals")
     parser.add_argument("--quick", action="store_true", help="N in {1e4, 1e5}, canvases 128x128 and 256x256")
@@ -225,31 +246,37 @@ def main() -> None:
         chunk_size=args.chunk_size, tiles_per_group=args.tiles_per_group, composite_tile=args.composite_tile
     )
     rules = {"default": [False], "fitted": [True], "both": [False, True]}[args.capacity]
+    primitives = ["3dgs", "2dgs"] if args.primitive == "both" else [args.primitive]
 
     def sweep() -> list[dict]:
         rows = []
         for canvas in args.canvas:
             width, height = (int(v) for v in canvas.lower().split("x"))
-            for n in args.n:
-                for fitted in rules:
-                    row = bench_one(
-                        int(n),
-                        width,
-                        height,
-                        args.features,
-                        cfg,
-                        args.repeats,
-                        args.oracle_max_work,
-                        args.oracle_max_bytes,
-                        args.seed,
-                        fitted,
-                    )
-                    rows.append(row)
-                    print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
+            for n, fitted, primitive in itertools.product(args.n, rules, primitives):
+                row = bench_one(
+                    int(n),
+                    width,
+                    height,
+                    args.features,
+                    cfg,
+                    args.repeats,
+                    args.oracle_max_work,
+                    args.oracle_max_bytes,
+                    args.seed,
+                    fitted,
+                    primitive,
+                )
+                rows.append(row)
+                print(json.dumps({k: v for k, v in row.items() if not isinstance(v, dict)}), flush=True)
         return rows
 
     rows = median_rows([sweep() for _ in range(args.rounds)])
 
+    exponents_by = {
+        p: {key: fit_exponents([r for r in rows if r["primitive"] == p], key) for key in ("fwd_s", "fwd_bwd_s")}
+        for p in primitives
+    }
+    exponents = exponents_by[primitives[0]]
     result = {
         "device": str(jax.devices()[0]),
         "backend": jax.default_backend(),
@@ -258,7 +285,7 @@ def main() -> None:
         "cpu_count": os.cpu_count(),
         "config": vars(args) | {"splat": repr(cfg)},
         "rows": rows,
-        "exponents": {"fwd_s": fit_exponents(rows, "fwd_s"), "fwd_bwd_s": fit_exponents(rows, "fwd_bwd_s")},
+        "exponents": exponents if len(primitives) == 1 else {"by_primitive": exponents_by},
     }
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as fh:
