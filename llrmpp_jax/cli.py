@@ -176,7 +176,7 @@ def _reconstruct(args):
         scene_format=kind,
     )
     print(
-        f"reconstruct: compile {rec.compile_s:.2f} s, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
+        f"reconstruct: compile {rec.compile_note}, run {rec.run_s:.3f} s (median of {len(rec.runs_s)} "
         f"synced runs), {rec.saved.gaussians.means.shape[0]:,} Gaussians",
         flush=True,
     )
@@ -707,7 +707,7 @@ def cmd_refine(args) -> int:
     save_gs(args.out, result.scene)
     info = result.info
     print(
-        f"{info.steps} steps of {info.views_per_step} views (compile {info.compile_s:.0f} s, "
+        f"{info.steps} steps of {info.views_per_step} views (compile {info.compile_note}, "
         f"{info.step_s:.2f} s a step); input-view loss {info.losses[0]:.5f} -> {info.losses[-1]:.5f} "
         f"(the first step's views); wrote {args.out}"
     )
@@ -966,6 +966,7 @@ class Verb(NamedTuple):
     add_options: Callable[[argparse.ArgumentParser], None] | None
     command: Callable[[argparse.Namespace], int]
     description: str | None = None
+    compile_cache: bool = True
 
 
 VERBS: tuple[Verb, ...] = (
@@ -1005,12 +1006,14 @@ VERBS: tuple[Verb, ...] = (
         "training-step benchmarks at one scale, as JSON",
         bench_options,
         cmd_bench,
+        compile_cache=False,
     ),
     Verb(
         "plan",
         "compile programs for a TPU chip without one: HBM fit, compile time, FLOPs and a time estimate (JSON)",
         plan_options,
         cmd_plan,
+        compile_cache=False,
     ),
     Verb("doctor", "versions and devices, then kernel-vs-reference checks on this device", None, cmd_doctor),
     Verb(
@@ -1031,8 +1034,58 @@ def build_parser() -> argparse.ArgumentParser:
         verb_parser = verbs.add_parser(verb.name, help=verb.help, description=verb.description)
         if verb.add_options is not None:
             verb.add_options(verb_parser)
-        verb_parser.set_defaults(fn=verb.command)
+        _compile_cache_options(verb_parser, verb.compile_cache)
+        verb_parser.set_defaults(fn=verb.command, cache_by_default=verb.compile_cache)
     return parser
+
+
+def _compile_cache_options(parser: argparse.ArgumentParser, by_default: bool) -> None:
+    group = parser.add_argument_group("compile cache (llrmpp_jax.compile_cache)")
+    where = "default: JAX_COMPILATION_CACHE_DIR, else the user's cache folder llrmpp_jax/xla"
+    group.add_argument(
+        "--compile-cache",
+        metavar="DIR",
+        help=f"keep compiled programs under DIR so a second run starts in seconds ({where})"
+        if by_default
+        else "load and keep compiled programs under DIR (off by default: this command measures compile time)",
+    )
+    group.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="compile everything afresh and keep nothing (also JAX_ENABLE_COMPILATION_CACHE=0)",
+    )
+
+
+def _run_reporting_compiles(args: argparse.Namespace) -> int:
+    """``args.fn(args)``; with ``LLRMPP_COMPILE_REPORT=FILE`` in the environment, also the
+    command's compiles (programs, those from the cache, their seconds, the wall time) as JSON
+    in FILE, for benchmarks of the compile cache."""
+    import time
+
+    from llrmpp_jax.compile_cache import CompileWatch, state
+
+    report = os.environ.get("LLRMPP_COMPILE_REPORT")
+    if not report:
+        return args.fn(args)
+    t0 = time.perf_counter()
+    with CompileWatch() as watch:
+        status = args.fn(args)
+    wall = time.perf_counter() - t0
+    counts = {"programs": watch.programs, "from_cache": watch.hits, "compile_s": watch.seconds}
+    _write_json(report, {"command": args.command, "status": status, "wall_s": wall, **counts, "cache": state().path})
+    return status
+
+
+def _use_compile_cache(args: argparse.Namespace) -> None:
+    """Turn JAX's persistent compilation cache on or off for this command (before any compile)."""
+    from llrmpp_jax import compile_cache
+
+    if args.no_compile_cache:
+        compile_cache.disable()
+    elif args.compile_cache or args.cache_by_default:
+        compile_cache.enable(args.compile_cache)
+    else:
+        compile_cache.disable(f"off ({args.command} measures compile time; --compile-cache DIR to use one)")
 
 
 # Write failures that say nothing about our code: a full disk or quota, a file-size limit,
@@ -1048,8 +1101,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.argv = argv
+    _use_compile_cache(args)
     try:
-        return args.fn(args)
+        return _run_reporting_compiles(args)
     except UserError as e:
         print(f"llrmpp: error: {e}", file=sys.stderr)
         return e.exit_status

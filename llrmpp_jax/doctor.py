@@ -25,10 +25,14 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+if TYPE_CHECKING:
+    from llrmpp_jax.compile_cache import CompileWatch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -168,6 +172,21 @@ def environment_lines() -> list[str]:
     ]
 
 
+def cache_line(watch: CompileWatch | None = None) -> str:
+    """Where the persistent compilation cache is, how much it holds, and (with ``watch``, a
+    :class:`~llrmpp_jax.compile_cache.CompileWatch` over this run) how many programs came from it."""
+    from llrmpp_jax import compile_cache
+
+    st = compile_cache.state()
+    if st.path is None:
+        return f"compile cache: {st.reason}"
+    entries, size = compile_cache.usage(st.path)
+    line = f"compile cache: {st.path} ({st.reason}): {entries} programs, {size / 2**20:.1f} MiB"
+    if watch is not None:
+        line += f"; this run loaded {watch.hits} of {watch.programs} programs from it"
+    return line
+
+
 def precision_diagnosis(name: str, fn: Callable[[], float], tol: float) -> str:
     """Rerun a failed check at matmul precision ``"highest"``; one line saying whether the
     kernel or the device's default precision is to blame."""
@@ -185,8 +204,19 @@ def precision_diagnosis(name: str, fn: Callable[[], float], tol: float) -> str:
 def run_checks(emit: Callable[[str], None] = print) -> list[CheckResult]:
     """Print the environment, then run every check in :data:`CHECKS`, printing one line
     each as it finishes. A check that raises counts as failed (error ``nan``)."""
+    from llrmpp_jax.compile_cache import CompileWatch
+
     for line in environment_lines():
         emit(line)
+    with CompileWatch() as watch:
+        results = _run_each(emit)
+    emit(cache_line(watch))
+    failed = [r.name for r in results if not r.ok]
+    emit(f"doctor: {'all checks passed' if not failed else 'FAILED: ' + ', '.join(failed)}")
+    return results
+
+
+def _run_each(emit: Callable[[str], None]) -> list[CheckResult]:
     results = []
     for name, (fn, tol) in CHECKS.items():
         t0 = time.perf_counter()
@@ -200,6 +230,4 @@ def run_checks(emit: Callable[[str], None] = print) -> list[CheckResult]:
         if not res.ok and np.isfinite(err) and tol > 0 and jax.config.jax_default_matmul_precision != "highest":  # pyright: ignore[reportAttributeAccessIssue] -- jax.config's options are made at run time; its stub lists none
             emit("     " + precision_diagnosis(name, fn, tol))
         results.append(res)
-    failed = [r.name for r in results if not r.ok]
-    emit(f"doctor: {'all checks passed' if not failed else 'FAILED: ' + ', '.join(failed)}")
     return results

@@ -56,6 +56,7 @@ import optimistix as optx
 from tqdm.auto import tqdm
 
 from llrmpp_jax.array_typing import Array, ArrayLike, Float, KeyArray
+from llrmpp_jax.compile_cache import CompileWatch
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
@@ -130,6 +131,7 @@ class RefineInfo(NamedTuple):
     capacity: int = 0  # the splat buffer the fit used (slots per rendered view)
     compile_s: float = 0.0  # wall time to compile the step
     step_s: float = 0.0  # median wall time of one update after the first
+    compile_note: str = ""  # the compile's seconds and whether it came from the compile cache
 
 
 def to_unconstrained(gaussians: Gaussians, cfg: ModelConfig) -> dict[str, Array]:
@@ -301,8 +303,10 @@ def refine(
     losses, dropped, taken, times = [], 0, 0, []
     with tqdm(total=steps, desc="refine (compiling)", disable=not progress, dynamic_ncols=True) as bar:
         t0 = time.perf_counter()
-        step_fn = _step.lower(y, state, args, key, jnp.int32(0), cfg, rc).compile()
+        with CompileWatch() as watch:
+            step_fn = _step.lower(y, state, args, key, jnp.int32(0), cfg, rc).compile()
         compile_s = time.perf_counter() - t0
+        compile_note = watch.describe(compile_s)
         bar.set_description("refine")
         for i in range(steps):
             t0 = time.perf_counter()
@@ -315,7 +319,7 @@ def refine(
                 bar.write(
                     f"refine: {steps} updates of {rc.views_per_step}/{num_views} views at {h}x{w}, "
                     f"~{times[0]:.1f} s each: about {steps * times[0]:.0f} s "
-                    f"(compiled in {compile_s:.0f} s)"
+                    f"(compiled: {compile_note})"
                 )
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.5f}", psnr=f"{float(aux['psnr']):.2f}")
@@ -333,6 +337,7 @@ def refine(
         int(cfg.splat.max_intersections),  # pyright: ignore[reportArgumentType] -- fit_capacity above sets the capacity
         compile_s,
         float(np.median(times[1:])) if len(times) > 1 else (times[0] if times else 0.0),
+        compile_note,
     )
     return from_unconstrained(y), info
 

@@ -43,6 +43,7 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 import jaxtyping  # noqa: E402
 import numpy as np  # noqa: E402
+import platformdirs  # noqa: E402
 import pytest  # noqa: E402
 
 if "llrmpp_jax" in sys.modules:  # a plugin imported it first: its functions would go unchecked
@@ -54,6 +55,17 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_default_matmul_precision", "highest")
+
+# The suite's compiled programs persist between runs (JAX's persistent cache: a warm suite
+# compiles little). The folder is outside the checkout and its own (the tests' XLA flags differ
+# from a user's, so nothing would be shared anyway); in the environment, so the commands the
+# tests start in subprocesses use it too. Results must not depend on it: an entry is the same
+# executable a fresh compile gives (tests/test_compile_cache.py), and an empty or stale folder
+# only costs time.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(platformdirs.user_cache_dir("llrmpp_jax"), "xla-tests"))
+from llrmpp_jax import compile_cache  # noqa: E402
+
+compile_cache.enable()
 
 
 @pytest.fixture(autouse=True, scope="module")

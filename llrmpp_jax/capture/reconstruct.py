@@ -19,6 +19,7 @@ import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.capture.scene_file import SavedScene
+from llrmpp_jax.compile_cache import CompileWatch
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.data.preprocess import ViewGeometry, crop_box, load_views, output_size, resized_size
 from llrmpp_jax.data.scene import Scene
@@ -162,6 +163,7 @@ class Reconstruction:
     compile_s: float
     run_s: float  # median of the synced runs
     runs_s: tuple[float, ...]
+    compile_note: str = ""  # the compile's seconds and whether it came from the compile cache
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))
@@ -218,7 +220,8 @@ def reconstruct_scene(
         jax.numpy.asarray(in_k[None], np.float32),
     )
     t0 = time.perf_counter()
-    compiled = _reconstruct.lower(params, cfg, *args).compile()
+    with CompileWatch() as watch:
+        compiled = _reconstruct.lower(params, cfg, *args).compile()
     compile_s = time.perf_counter() - t0
     runs = []
     for _ in range(repeats):
@@ -240,4 +243,6 @@ def reconstruct_scene(
         scene_path=scene_path,
         scene_format=scene_format,
     )
-    return Reconstruction(saved, in_img, tg_img, compile_s, float(np.median(runs)), tuple(runs))
+    return Reconstruction(
+        saved, in_img, tg_img, compile_s, float(np.median(runs)), tuple(runs), watch.describe(compile_s)
+    )

@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.capture.scene_file import SavedScene
+from llrmpp_jax.compile_cache import announce
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
@@ -145,21 +146,31 @@ def render_views(
     entry is dropped."""
     h, w = saved.image_hw
     g = Gaussians(*(jnp.asarray(x) for x in saved.gaussians))
-    cfg = fit_capacity(
-        params,
-        saved.model,
-        jax.tree.map(lambda x: x[None], g),
-        jnp.asarray(c2w, jnp.float32)[None],
-        jnp.asarray(intrinsics, jnp.float32)[None],
-        h,
-        w,
-    )
     rgb, dep = [], []
-    for i in tqdm(range(len(c2w)), desc="render", disable=not progress, dynamic_ncols=True):
+
+    def frame(i: int, cfg: ModelConfig) -> None:
         cam = jnp.asarray(c2w[i], jnp.float32), jnp.asarray(intrinsics[i], jnp.float32)
         rgb.append(np.clip(np.asarray(_render_rgb(params, cfg, g, *cam, h, w)), 0.0, 1.0))
         if depth:
             dep.append(np.asarray(_render_depth(g, cfg, *cam, h, w)) / saved.scene_scale)
+
+    # The buffer sizing and the first frame compile; say so, and whether the compile cache had them.
+    with announce(f"the renderer for {h}x{w}{' with depth' if depth else ''}", tqdm.write if progress else None):
+        cfg = fit_capacity(
+            params,
+            saved.model,
+            jax.tree.map(lambda x: x[None], g),
+            jnp.asarray(c2w, jnp.float32)[None],
+            jnp.asarray(intrinsics, jnp.float32)[None],
+            h,
+            w,
+        )
+        frame(0, cfg)
+    frames = tqdm(
+        range(1, len(c2w)), desc="render", initial=1, total=len(c2w), disable=not progress, dynamic_ncols=True
+    )
+    for i in frames:
+        frame(i, cfg)
     return RenderedViews(np.stack(rgb), np.stack(dep).astype(np.float32) if depth else None, list(names))
 
 

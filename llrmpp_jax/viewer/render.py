@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.compile_cache import CompileWatch
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.gaussians import Gaussians
@@ -175,6 +176,7 @@ class ViewRenderer:
         self._gaussians = jax.device_put(gaussians)
         self._cameras = cameras
         self._compiled: dict[ViewKey, jax.stages.Compiled] = {}
+        self.compile_notes: dict[ViewKey, str] = {}  # how long each compile took, and whether from the cache
 
     def config_for(self, height: int, width: int) -> ModelConfig:
         """The config a ``height x width`` render compiles with: its splat buffer sized from
@@ -214,11 +216,14 @@ class ViewRenderer:
         t0 = time.perf_counter()
         fn = jax.jit(render_view, static_argnums=(1, 5, 6, 7, 8))
         cam = jax.ShapeDtypeStruct((4, 4), jnp.float32), jax.ShapeDtypeStruct((4,), jnp.float32)
-        cfg = self.config_for(key.height, key.width)
-        self._compiled[key] = fn.lower(
-            self._params, cfg, self._gaussians, *cam, key.height, key.width, key.output, key.partitions
-        ).compile()
-        return time.perf_counter() - t0
+        with CompileWatch() as watch:
+            cfg = self.config_for(key.height, key.width)
+            self._compiled[key] = fn.lower(
+                self._params, cfg, self._gaussians, *cam, key.height, key.width, key.output, key.partitions
+            ).compile()
+        seconds = time.perf_counter() - t0
+        self.compile_notes[key] = watch.describe(seconds)
+        return seconds
 
     def render(self, key: ViewKey, c2w: np.ndarray, intrinsics: np.ndarray) -> Frame:
         """Render the camera ``(c2w [4, 4], intrinsics [4])`` at ``key`` (compiling on first use)."""

@@ -329,7 +329,7 @@ class Viewer:
         frame = self.renderer.render(key, req.c2w, intrinsics)
         frame = dataclasses.replace(frame, compile_s=compile_s)
         client.scene.set_background_image(display_image(frame.image, output), format=self.settings.image_format)  # pyright: ignore[reportArgumentType] -- a str checked against the Literal's values at run time
-        compiled = f" (compiled in {compile_s:.1f} s)" if compile_s else ""
+        compiled = f" (compiled: {self.renderer.compile_notes[key]})" if compile_s else ""
         self._report(
             f"**{1e3 * frame.render_s:.0f} ms** per frame at {width}x{height} {output}, "
             f"S={partitions}{' (moving)' if req.moving else ''}{compiled}"

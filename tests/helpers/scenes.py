@@ -18,3 +18,21 @@ def orbit_scene(key, b, v, h, w):
     )
     intr = jnp.broadcast_to(jnp.array([w, w, w / 2, h / 2], jnp.float32), (b, v, 4))
     return images, c2w, intr
+
+
+def orbit_batch(key, inputs: int, targets: int, size: int, depth: bool = False) -> dict:
+    """A training batch of one :func:`orbit_scene`: ``inputs`` input and ``targets`` target views
+    of ``size`` x ``size``, and with ``depth`` random ground-truth depths in [0.5, 4]."""
+    k_scene, k_depth = jax.random.split(key)
+    images, c2w, intr = orbit_scene(k_scene, 1, inputs + targets, size, size)
+    batch = {
+        "input_images": images[:, :inputs],
+        "input_c2w": c2w[:, :inputs],
+        "input_intrinsics": intr[:, :inputs],
+        "target_images": images[:, inputs:],
+        "target_c2w": c2w[:, inputs:],
+        "target_intrinsics": intr[:, inputs:],
+    }
+    if depth:
+        batch["target_depth"] = jax.random.uniform(k_depth, (1, targets, size, size), jnp.float32, 0.5, 4.0)
+    return batch
