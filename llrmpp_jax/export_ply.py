@@ -49,6 +49,8 @@ import plyfile
 from llrmpp_jax.array_typing import ArrayLike, Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
+from llrmpp_jax.file_kinds import check_ply
+from llrmpp_jax.finite import check_finite
 from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
 from llrmpp_jax.splat.sh import num_sh_bases, sh_basis
 
@@ -285,14 +287,23 @@ def _header(comments: list[str]) -> tuple[str | None, np.ndarray | None]:
 def read_ply(path: str) -> PlyGaussians:
     """Read a PLY written by :func:`export_ply` or a standard 3DGS PLY (module docstring).
 
-    Raises ValueError naming the file and the first missing property.
+    Raises ``UserError`` (a ``ValueError``) naming the file: not a PLY (what it looks like),
+    a header or body plyfile cannot parse, the first missing property, or the first property
+    holding NaN or infinity (and how many values do).
     """
-    data = plyfile.PlyData.read(path)
+    check_ply(path)
+    try:
+        data = plyfile.PlyData.read(path)
+    except (plyfile.PlyParseError, ValueError, EOFError, OSError) as e:
+        raise UserError(f"{path}: truncated or corrupt PLY file ({type(e).__name__}: {e})") from None
     if "vertex" not in data:
         raise UserError(f"{path}: no 'vertex' element")
     v = data["vertex"].data
     names = set(v.dtype.names)
-    header_mode, wfs = _header(list(data.comments))
+    try:
+        header_mode, wfs = _header(list(data.comments))
+    except ValueError as e:  # a world_from_scene comment that is not 16 numbers
+        raise UserError(f"{path}: damaged llrmpp comment in the PLY header ({e})") from None
     mode = header_mode or ("color" if "f_dc_0" in names else "feature")
     if mode == "color":
         n_rest = sum(1 for k in names if k.startswith("f_rest_"))
@@ -305,6 +316,7 @@ def read_ply(path: str) -> PlyGaussians:
     missing = [k for k in want if k not in names]
     if missing:
         raise UserError(f"{path}: {mode}-mode PLY lacks property {missing[0]!r} ({len(missing)} missing)")
+    check_finite(path, {k: v[k] for k in want}, "property ")
     col = lambda *ks: np.stack([np.asarray(v[k], np.float32) for k in ks], axis=-1)  # noqa: E731
     n = len(v)
     if mode == "color":

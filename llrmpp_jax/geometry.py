@@ -324,7 +324,10 @@ def validate_cameras(
         bad = ~np.isfinite(arr).reshape(n, -1).all(axis=1)
         if bad.any():
             i = int(np.argmax(bad))
-            raise UserError(f"{frame(i)}: {field} has non-finite values: {arr[i].tolist()}")
+            raise UserError(
+                f"{frame(i)}: {field} has non-finite values: {arr[i].tolist()} "
+                f"({int((~np.isfinite(arr)).sum())} non-finite value(s) in {int(bad.sum())} of {n} frames)"
+            )
     c2w = c2w.astype(np.float64)
     bottom_err = np.abs(c2w[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
     rot = c2w[:, :3, :3]

@@ -19,7 +19,8 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from llrmpp_jax.config import ModelConfig, from_dict
-from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.errors import UserError
+from llrmpp_jax.file_kinds import check_folder, read_json
 from llrmpp_jax.model import check_params_fit, expected_shapes, flatten_params
 from llrmpp_jax.pretrained import PREFIX, load_pretrained
 
@@ -57,10 +58,16 @@ def _load_params_folder(path: str, cfg: ModelConfig | None) -> tuple[dict, Model
     if cfg is None:
         if not os.path.isfile(meta_path):
             raise UserError(f"{path}: bare params folder without {PARAMS_META}; pass --config")
-        with open(meta_path) as f:
-            cfg = from_dict(ModelConfig, json.load(f)["model"])
+        meta = read_json(meta_path, f"the params folder's {PARAMS_META} (JSON)")
+        try:
+            cfg = from_dict(ModelConfig, meta["model"])
+        except (KeyError, TypeError, AttributeError) as e:
+            raise UserError(f"{meta_path}: no model config in it ({type(e).__name__}: {e})") from None
     with ocp.StandardCheckpointer() as ckptr:
-        saved = ckptr.metadata(path).item_metadata.tree
+        found = ckptr.metadata(path).item_metadata
+        if found is None:  # llrmpp_params.json without the arrays orbax writes beside it
+            raise UserError(f"{path}: a params folder without its orbax checkpoint (no _METADATA); convert it again")
+        saved = found.tree
         check_params_fit(saved, cfg, path)  # pyright: ignore[reportArgumentType] -- cfg is read above when not given
         target = jax.tree.map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype), saved)
         params = ckptr.restore(path, target)
@@ -112,8 +119,7 @@ def load_params(path: str, cfg: ModelConfig | None = None) -> tuple[dict, ModelC
     """
     if path.startswith(PREFIX):
         return load_pretrained(path[len(PREFIX) :], cfg)
-    if not os.path.isdir(path):
-        raise MissingInputError(f"checkpoint folder not found: {path}")
+    check_folder(path, "a checkpoint folder (a training workdir or a params folder)")
     if is_params_folder(path):
         return _load_params_folder(os.path.abspath(path), cfg)
     return _load_workdir(path, cfg)

@@ -112,7 +112,7 @@ def load_pretrained(
         diff = _first_difference(_config_json(shipped_cfg), _config_json(cfg))
         if diff:
             raise UserError(f"{npz_path}: weights are for another model config: {diff}")
-    with np.load(npz_path) as z:
+    with np.load(npz_path, allow_pickle=False) as z:
         params = unflatten_dict({k: z[k].astype(np.float32) for k in z.files}, sep="/")
     check_params_fit(params, shipped_cfg, npz_path)
     return jax.tree.map(np.asarray, params), shipped_cfg

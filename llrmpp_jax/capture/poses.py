@@ -52,6 +52,7 @@ from llrmpp_jax.capture.pose_check import continuity_breaks
 from llrmpp_jax.data.formats.colmap import import_pycolmap
 from llrmpp_jax.data.image_io import image_size, write_image
 from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.file_kinds import check_video
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".bmp", ".webp")
 # Camera models the capture readers undistort (llrmpp_jax.data.formats.colmap).
@@ -165,9 +166,9 @@ def extract_frames(video: str, out_dir: str, fps: float, progress: Callable[[str
 
     if not os.path.isfile(video):
         raise MissingInputError(f"--video: file not found: {video}")
+    check_video(video)  # a photo or a text file named .mp4: one line, before ffmpeg runs
     if not fps > 0:
         raise UserError(f"--fps must be > 0, got {fps}")
-    os.makedirs(out_dir, exist_ok=True)
     try:
         reader = imageio_ffmpeg.read_frames(video, output_params=["-vf", f"fps={fps}"])
         meta = next(reader)
@@ -175,6 +176,7 @@ def extract_frames(video: str, out_dir: str, fps: float, progress: Callable[[str
         raise UserError(
             f"--video {video}: not a video ffmpeg can read ({str(e).splitlines()[0] if str(e) else e})"
         ) from e
+    os.makedirs(out_dir, exist_ok=True)  # only once ffmpeg reads it: a refused video leaves nothing
     w, h = meta["size"]
     expected = int(meta.get("duration", 0) * fps) or None
     progress(
@@ -270,6 +272,10 @@ def estimate_poses(
         seconds["frames"] = time.perf_counter() - t
     else:
         names = list_images(images)  # pyright: ignore[reportArgumentType] -- exactly one of images and video is given (checked above)
+        if len(names) < cfg.min_registered:
+            raise UserError(f"{len(names)} images; poses need at least {cfg.min_registered}")
+        for n in names:  # each photo opens (text named .jpg is one line naming it) before anything is written
+            image_size(os.path.join(images, n))  # pyright: ignore[reportCallIssue, reportArgumentType] -- as above
         _copy_images(images, names, image_dir)  # pyright: ignore[reportArgumentType] -- as above
     if len(names) < cfg.min_registered:
         raise UserError(f"{len(names)} images; poses need at least {cfg.min_registered}")

@@ -23,7 +23,9 @@ import numpy as np
 
 from llrmpp_jax.array_typing import Float, Int
 from llrmpp_jax.config import ModelConfig, from_dict
-from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.errors import UserError
+from llrmpp_jax.file_kinds import check_npz
+from llrmpp_jax.finite import check_finite
 from llrmpp_jax.gaussians import Gaussians
 
 GS_FORMAT = "llrmpp-gaussians"
@@ -99,32 +101,87 @@ def save_gs(path: str, scene: SavedScene) -> None:
 
 
 def load_gs(path: str) -> SavedScene:
-    """Read a ``.gs`` file. ``ValueError`` (one line naming the file) if it is truncated,
-    not a ``.gs`` file, or of another version; ``FileNotFoundError`` if absent."""
+    """Read a ``.gs`` file. One-line ``UserError`` naming the file if it is not a ``.gs``
+    archive (what it looks like instead), truncated, of another version, inconsistent in its
+    shapes, or holds a NaN or an infinity (the field and how many); ``MissingInputError`` if
+    absent."""
+    check_npz(path, "an llrmpp .gs file (from llrmpp reconstruct or refine)", ("header", *_ARRAYS))
     try:
         with np.load(path, allow_pickle=False) as z:
             header = json.loads(bytes(z["header"]).decode())
-            if header.get("format") != GS_FORMAT:
-                raise UserError(f"{path}: not an llrmpp .gs file (format {header.get('format')!r})")
+            if not isinstance(header, dict) or header.get("format") != GS_FORMAT:
+                found = header.get("format") if isinstance(header, dict) else header
+                raise UserError(f"{path}: not an llrmpp .gs file (format {found!r})")
             if header.get("version") != GS_VERSION:
                 raise UserError(f"{path}: .gs version {header.get('version')}, this llrmpp reads version {GS_VERSION}")
             arrays = {k: z[k] for k in _ARRAYS}
-    except FileNotFoundError:
-        raise MissingInputError(f".gs file not found: {path}") from None
-    except (zipfile.BadZipFile, EOFError, KeyError, OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except UserError:
+        raise
+    except (zipfile.BadZipFile, EOFError, KeyError, OSError, ValueError, UnicodeDecodeError) as e:
+        # ValueError: an object array (allow_pickle=False) or a damaged .npy header
         raise UserError(f"{path}: truncated or corrupt .gs file ({type(e).__name__}: {e})") from None
-    return SavedScene(
-        gaussians=Gaussians(**{k: arrays[k] for k in Gaussians._fields}),
-        model=from_dict(ModelConfig, header["model"]),
-        c2w=arrays["c2w"],
-        intrinsics=arrays["intrinsics"],
-        world_from_scene=arrays["world_from_scene"],
-        frame_names=tuple(header["frame_names"]),
-        inputs=arrays["inputs"],
-        targets=arrays["targets"],
-        image_hw=tuple(header["image_hw"]),
-        resized_hw=tuple(header["resized_hw"]),
-        crop_box=tuple(header["crop_box"]),
-        scene_path=header["scene_path"],
-        scene_format=header["scene_format"],
-    )
+    _check_arrays(path, arrays)
+    try:
+        return SavedScene(
+            gaussians=Gaussians(**{k: arrays[k] for k in Gaussians._fields}),
+            model=from_dict(ModelConfig, header["model"]),
+            c2w=arrays["c2w"],
+            intrinsics=arrays["intrinsics"],
+            world_from_scene=arrays["world_from_scene"],
+            frame_names=tuple(str(n) for n in header["frame_names"]),
+            inputs=arrays["inputs"],
+            targets=arrays["targets"],
+            image_hw=_hw(header["image_hw"]),
+            resized_hw=_hw(header["resized_hw"]),
+            crop_box=_box(header["crop_box"]),
+            scene_path=str(header["scene_path"]),
+            scene_format=str(header["scene_format"]),
+        )
+    except UserError as e:
+        raise UserError(f"{path}: {e}") from None
+    except (KeyError, TypeError, AttributeError, ValueError) as e:
+        raise UserError(f"{path}: damaged .gs header ({type(e).__name__}: {e})") from None
+
+
+def _ints(values, n: int) -> tuple[int, ...]:
+    """``values`` as ``n`` non-negative ints (a header's sizes and crop box)."""
+    out = tuple(int(v) for v in values)
+    if len(out) != n or min(out) < 0:
+        raise ValueError(f"expected {n} non-negative integers, got {values!r}")
+    return out
+
+
+def _hw(values) -> tuple[int, int]:
+    h, w = _ints(values, 2)
+    return h, w
+
+
+def _box(values) -> tuple[int, int, int, int]:
+    top, left, h, w = _ints(values, 4)
+    return top, left, h, w
+
+
+def _check_arrays(path: str, a: dict[str, np.ndarray]) -> None:
+    """One line naming ``path`` unless the arrays are one scene's: N Gaussians, M frames,
+    input and target indices among the frames, and every value finite."""
+    n = a["means"].shape[0] if a["means"].ndim == 2 else -1
+    m = a["c2w"].shape[0] if a["c2w"].ndim == 3 else -1
+    want = {
+        "means": (n, 3),
+        "quats": (n, 4),
+        "scales": (n, 3),
+        "opacities": (n,),
+        "c2w": (m, 4, 4),
+        "intrinsics": (m, 4),
+        "world_from_scene": (4, 4),
+    }
+    for name, shape in want.items():
+        if a[name].shape != shape or a[name].dtype.kind not in "fi":
+            raise UserError(f"{path}: .gs field {name!r} has shape {a[name].shape} ({a[name].dtype}), expected {shape}")
+    if a["features"].ndim != 2 or a["features"].shape[0] != n or a["features"].dtype.kind not in "fi":
+        raise UserError(f"{path}: .gs field 'features' has shape {a['features'].shape}, expected ({n}, F)")
+    for name in ("inputs", "targets"):
+        idx = a[name]
+        if idx.ndim != 1 or idx.dtype.kind not in "iu" or (idx.size and (idx.min() < 0 or idx.max() >= m)):
+            raise UserError(f"{path}: .gs field {name!r} must be frame indices in [0, {m}), got {idx.tolist()[:8]}")
+    check_finite(path, {k: a[k] for k in _ARRAYS}, "field ")

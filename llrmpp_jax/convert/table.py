@@ -21,6 +21,7 @@ import numpy as np
 from flax.traverse_util import flatten_dict, unflatten_dict
 
 from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.file_kinds import check_torch_file
 
 Transform = Callable[[np.ndarray], np.ndarray]
 
@@ -141,12 +142,13 @@ def load_torch_state_dict(path: str) -> dict[str, np.ndarray]:
             raise UserError(f"{path}: a damaged zip archive ({e}); expected a .npz or a torch .pt") from None
     if names is not None and any(n.endswith(".npy") for n in names):
         try:
-            with np.load(path) as z:
+            with np.load(path, allow_pickle=False) as z:
                 return {k: z[k] for k in z.files}
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as e:
             raise UserError(f"{path}: a damaged .npz archive ({e})") from None
     if names is None and path.endswith(".npz"):
         raise UserError(f"{path}: not a .npz archive (not a zip file: truncated or another format)")
+    check_torch_file(path)  # a photo or a text file is named as such, before torch unpickles it
     try:
         import torch
     except ImportError as e:  # pragma: no cover - depends on the environment

@@ -17,17 +17,23 @@ import OpenImageIO as oiio
 
 from llrmpp_jax.array_typing import Float
 from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.file_kinds import looks_like
 
 _INT_RANGES = {"uint8": 255.0, "uint16": 65535.0}
+
+
+def _one_line(err: str) -> str:
+    """OpenImageIO's message on one line (its readers report several problems a line each)."""
+    return "; ".join(x.strip() for x in err.splitlines() if x.strip())
 
 
 def _open(path: str) -> oiio.ImageInput:
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        err = oiio.geterror()
+        err = _one_line(oiio.geterror())
         if not os.path.exists(path):
             raise MissingInputError(f"image file not found: {path}")
-        raise UserError(f"cannot open image file {path}: {err}")
+        raise UserError(f"cannot open image file {path}: {err} (it looks like {looks_like(path)})")
     return inp
 
 
@@ -40,7 +46,7 @@ def _read(path: str) -> tuple[np.ndarray, str]:
         fmt = kind if kind in _INT_RANGES else "float"
         pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if pixels is None or inp.has_error:
-            raise UserError(f"cannot decode image file {path} (corrupt or truncated): {inp.geterror()}")
+            raise UserError(f"cannot decode image file {path} (corrupt or truncated): {_one_line(inp.geterror())}")
     finally:
         inp.close()
     if pixels.ndim == 2:

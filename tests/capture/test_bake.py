@@ -115,25 +115,9 @@ def test_export_bake_writes_the_standard_layout_close_to_the_model(feature_scene
 
 def test_bad_bake_input_is_one_line(feature_scene, tmp_path, capsys):
     capsys.readouterr()
-    assert (
-        main(
-            [
-                "export",
-                "--gaussians",
-                feature_scene,
-                "--checkpoint",
-                "pretrained:small",
-                "--ply",
-                str(tmp_path / "x.ply"),
-                "--bake",
-                "--sh-degree",
-                "4",
-            ]
-        )
-        == 2
-    )
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--sh-degree must be in 0..3" in err[0], err
+    # --sh-degree 4: the parser's (tests/test_bad_inputs.py); BakeConfig's own check:
+    with pytest.raises(UserError, match=r"--sh-degree must be in 0\.\.3, got 4"):
+        BakeConfig(sh_degree=4)
     assert main(["export", "--gaussians", feature_scene, "--ply", str(tmp_path / "x.ply"), "--bake"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "needs --checkpoint" in err[0], err

@@ -20,6 +20,7 @@ from llrmpp_jax.cli import main
 from llrmpp_jax.data.formats import read_scene
 from llrmpp_jax.data.image_io import write_image
 from llrmpp_jax.errors import MissingInputError, UserError
+from tests.helpers.bad_inputs import error_line, run_cli
 from tests.helpers.environment import shared_path
 from tests.helpers.photos import FOX, fox_photos, fox_video
 
@@ -83,23 +84,26 @@ def test_photos_that_share_nothing_fail_in_one_line(tmp_path, rng, capsys):
         (["--images", "/nonexistent/photos"], "--images: folder not found"),
         (["--video", "/nonexistent/walk.mp4"], "--video: file not found"),
         (["--images", "{empty}"], "no images"),
-        (["--images", "{empty}", "--max-image-size", "8"], "--max-image-size must be >= 64"),
-        (["--images", "{empty}", "--threads", "0"], "--threads must be >= 1"),
-        (["--images", "{empty}", "--seed", "-1"], "--seed must be >= 0"),
+        (["--images", "{empty}", "--max-image-size", "8"], "argument --max-image-size: must be an integer in [64,"),
+        (["--images", "{empty}", "--threads", "0"], "argument --threads: must be an integer in [1, 4,096] (or -1)"),
+        (["--images", "{empty}", "--seed", "-1"], "argument --seed: must be an integer in [0,"),
         (["--images", "{empty}", "--seed", "2", "--threads", "4"], "--seed repeats a run only on one thread"),
     ],
 )
 def test_bad_input_is_one_line(tmp_path, capsys, args, message):
     (tmp_path / "empty").mkdir()
     args = [a.format(empty=tmp_path / "empty") for a in args]
-    assert main(["poses", *args, "--out", str(tmp_path / "capture")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and message in err[0], err
+    status, err = run_cli(["poses", *args, "--out", str(tmp_path / "capture")])
+    assert status == 2 and message in error_line(err), err
 
 
 def test_not_a_video_is_one_line(tmp_path):
     fake = tmp_path / "walk.mp4"
-    fake.write_bytes(b"not a video")
+    fake.write_bytes(b"not a video")  # text: refused before ffmpeg runs, no frames folder made
+    with pytest.raises(UserError, match=r"walk\.mp4: looks like text, expected a video file"):
+        extract_frames(str(fake), str(tmp_path / "frames"), 2.0, progress=lambda _: None)
+    assert not (tmp_path / "frames").exists()
+    fake.write_bytes(np.random.default_rng(0).bytes(256))  # unrecognised bytes: ffmpeg's verdict
     with pytest.raises(UserError, match="not a video ffmpeg can read"):
         extract_frames(str(fake), str(tmp_path / "frames"), 2.0, progress=lambda _: None)
     with pytest.raises(MissingInputError):
@@ -141,10 +145,9 @@ def test_too_few_photos_and_a_bad_fps_are_one_line(tmp_path, rng, capsys):
     video.write_bytes(b"whatever")
     for args, message in (
         (["--images", str(two)], "2 images; poses need at least 3"),
-        (["--video", str(video), "--fps", "0"], "--fps must be > 0, got 0.0"),
+        (["--video", str(video), "--fps", "0"], "argument --fps: must be a finite number > 0, got '0'"),
     ):
         out = tmp_path / f"capture_{args[0][2:]}"
-        assert main(["poses", *args, "--out", str(out)]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and message in err[0], err
+        status, err = run_cli(["poses", *args, "--out", str(out)])
+        assert status == 2 and message in error_line(err), err
         assert not (out / "sparse").exists()

@@ -19,23 +19,14 @@ import numpy as np
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.scene import Scene
 from llrmpp_jax.data.selection import checked_inputs
-from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.errors import UserError
+from llrmpp_jax.file_kinds import read_json
 
 SCENE_JSON = "opencv_cameras.json"
 
 
-def _read_json(path: str, what: str):
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except FileNotFoundError:
-        raise MissingInputError(f"{what} not found: {path}") from None
-    except json.JSONDecodeError as e:
-        raise UserError(f"{path}: not valid JSON ({e})") from None
-
-
 def _load(path: str) -> dict:
-    data = _read_json(path, "Long-LRM scene file")
+    data = read_json(path, "a Long-LRM scene file (JSON)")
     if isinstance(data, list):  # LaCT: bare list of frames
         data = {"scene_name": os.path.basename(os.path.dirname(os.path.abspath(path))), "frames": data}
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list):
@@ -118,7 +109,7 @@ def cached_kmeans_inputs(json_path: str, every: int, num_inputs: int, num_frames
 def read_kmeans_index(path: str) -> dict[str, dict]:
     """Long-LRM's file of precomputed evaluation inputs (``data/dl3dv_fold_8_kmeans_input_idx.json``:
     a list of ``{"scene_name", "fold_8_kmeans_<n>_input": [...]}``) keyed by scene name."""
-    entries = _read_json(path, "k-means index file")
+    entries = read_json(path, "a k-means index file (JSON)")
     if not isinstance(entries, list) or not all(isinstance(e, dict) and "scene_name" in e for e in entries):
         raise UserError(f"{path}: expected a list of objects with a 'scene_name' (Long-LRM's k-means index)")
     return {e["scene_name"]: e for e in entries}

@@ -22,7 +22,8 @@ import numpy as np
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.image_io import image_size
 from llrmpp_jax.data.scene import Scene
-from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.errors import UserError
+from llrmpp_jax.file_kinds import read_json
 from llrmpp_jax.geometry import opencv_to_opengl, opengl_to_opencv
 
 TRANSFORMS_JSON = "transforms.json"
@@ -55,13 +56,9 @@ def read_nerfstudio_scene(
         DL3DV's 4x downscaled frames); intrinsics are rescaled to the real image size.
     """
     json_path = os.path.join(path, TRANSFORMS_JSON) if os.path.isdir(path) else path
-    try:
-        with open(json_path) as f:
-            top = json.load(f)
-    except FileNotFoundError:
-        raise MissingInputError(f"nerfstudio transforms file not found: {json_path}") from None
-    except json.JSONDecodeError as e:
-        raise UserError(f"{json_path}: not valid JSON ({e})") from None
+    top = read_json(json_path, "a nerfstudio transforms file (JSON)")
+    if not isinstance(top, dict):
+        raise UserError(f"{json_path}: expected a JSON object with a 'frames' list, got {type(top).__name__}")
     base = os.path.dirname(os.path.abspath(json_path))
     model = str(top.get("camera_model", "OPENCV")).upper()
     if model not in _PINHOLE_MODELS:

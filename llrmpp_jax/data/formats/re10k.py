@@ -21,20 +21,15 @@ import numpy as np
 from llrmpp_jax.data.formats.common import Missing, files_scene, resolve, write_frames
 from llrmpp_jax.data.image_io import image_size
 from llrmpp_jax.data.scene import Scene
-from llrmpp_jax.errors import MissingInputError, UserError
+from llrmpp_jax.errors import UserError
+from llrmpp_jax.file_kinds import read_json
 
 Units = Literal["auto", "pixels", "normalized"]
 
 
 def read_re10k_scene(json_path: str, intrinsics_units: Units = "auto", missing: Missing = "skip") -> Scene:
     """Read one converted RE10K scene JSON into a :class:`Scene`."""
-    try:
-        with open(json_path) as f:
-            data = json.load(f)
-    except FileNotFoundError:
-        raise MissingInputError(f"RE10K scene file not found: {json_path}") from None
-    except json.JSONDecodeError as e:
-        raise UserError(f"{json_path}: not valid JSON ({e})") from None
+    data = read_json(json_path, "an RE10K scene file (JSON)")
     base = os.path.dirname(os.path.abspath(json_path))
     frames = data.get("frames") if isinstance(data, dict) else None
     if not isinstance(frames, list):
