@@ -262,3 +262,21 @@ def test_what_the_fuzzing_found_in_captures(tmp_path, rng):
         f"cannot open image file {photos / '1.jpg'}",
         "it looks like text",
     )
+
+
+@pytest.mark.parametrize("verb", ("eval", "reconstruct"))
+def test_a_nan_pose_in_a_capture_is_refused_by_eval_and_reconstruct(tmp_path, rng, verb):
+    """The capture's cameras are checked where they are read: the same line (file, frame,
+    field, how many values) from both commands, before any weights load."""
+    capture = tiny_capture(str(tmp_path / "in_capture"), rng)
+    meta = json.load(open(tmp_path / "in_capture" / "transforms.json"))
+    meta["frames"][2]["transform_matrix"][0][3] = float("nan")
+    json.dump(meta, open(tmp_path / "in_capture" / "transforms.json", "w"))
+    out = str(tmp_path / "out")
+    argv = {
+        "eval": ["eval", "--config", "small", "--checkpoint", "pretrained:small", "--data", capture, "--out", out],
+        "reconstruct": ["reconstruct", "--scene", capture, "--checkpoint", "pretrained:small", "--out", out],
+    }[verb]
+    _refused(
+        tmp_path, argv, "transforms.json, frame 2", "has non-finite values (1 non-finite value(s) in 1 of 6 frames)"
+    )

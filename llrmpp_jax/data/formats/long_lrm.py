@@ -58,7 +58,7 @@ def read_long_lrm_scene(json_path: str, missing: Missing = "skip", depth_scale: 
             if w2c.shape != (4, 4):
                 raise UserError(f"w2c must be 4x4, got shape {w2c.shape}")
             if not np.isfinite(w2c).all():
-                raise UserError(f"w2c has non-finite values: {w2c.tolist()}")
+                raise UserError(f"w2c has {int((~np.isfinite(w2c)).sum())} non-finite value(s): {w2c.tolist()}")
             c2w.append(np.linalg.inv(w2c))
             intr.append([float(fr[key]) for key in ("fx", "fy", "cx", "cy")])
             hw.append([float(fr["h"]), float(fr["w"])])

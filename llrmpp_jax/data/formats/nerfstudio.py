@@ -109,7 +109,11 @@ def read_nerfstudio_scene(
     c2w = np.asarray(c2w).reshape(-1, 4, 4)
     if not np.isfinite(c2w).all():
         k = int(np.argmax(~np.isfinite(c2w).reshape(len(c2w), -1).all(axis=1)))
-        raise UserError(f"{json_path}, frame {k} ({images[k]}): transform_matrix has non-finite values")
+        bad = ~np.isfinite(c2w).reshape(len(c2w), -1)
+        raise UserError(
+            f"{json_path}, frame {k} ({images[k]}): transform_matrix has non-finite values "
+            f"({int(bad.sum())} non-finite value(s) in {int(bad.any(axis=1).sum())} of {len(c2w)} frames)"
+        )
     c2w = opengl_to_opencv(c2w)
     if dl3dv_world_remap:
         c2w = _DL3DV_WORLD[None] @ c2w
