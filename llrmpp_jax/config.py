@@ -26,6 +26,8 @@ InterChunkSetting = Literal["auto", "associative", "sequential", "fused"]  # see
 AttentionImpl = Literal["xla", "cudnn", "blockwise"]
 HeadMode = Literal["feature", "color"]  # see GaussianHeadConfig
 Anchors = Literal["centre", "grid"]  # see GaussianHeadConfig
+Primitive = Literal["3dgs", "2dgs"]  # see GaussianHeadConfig
+SurfelDepth = Literal["center", "intersection"]  # see GaussianHeadConfig
 Output = Literal["rgb", "depth"]  # the decoder's heads (ModelConfig.outputs)
 
 
@@ -173,6 +175,13 @@ class GaussianHeadConfig:
     offset from the patch centre, a distance along its ray, quaternion (wxyz), opacity
     and log-scale. ``mode="color"`` (Long-LRM): one Gaussian per pixel with SH colour of
     degree ``sh_degree``, positioned on its own pixel ray.
+
+    ``primitive="2dgs"`` (colour mode only): the Long-LRM 2DGS row of the paper's Table 7
+    ("Long-LRM with a 2D Gaussian head", Huang et al. 2024): the same colour head with two
+    log-scales per Gaussian instead of three, rendered as planar disks by the 2DGS splatter
+    (``splat.rasterize(..., primitive="2dgs")``), whose depth is each surfel's centre z
+    (``surfel_depth`` None or ``"center"``, gsplat's ``rasterization_2dgs``) or the ray-splat
+    intersection's z (``"intersection"``, the 2DGS paper's rasterizer).
     """
 
     mode: HeadMode = "feature"
@@ -208,10 +217,13 @@ class GaussianHeadConfig:
     # the CPU models (64) 0.02 is 8x smaller, and the chain of linear maps from head through
     # splat to decoder output learns slowly (docs/lab-notes.md, "Second round").
     init_std: float | None = 0.02
+    primitive: Primitive = "3dgs"  # "2dgs": two scales, planar disks (colour mode; class doc)
+    surfel_depth: SurfelDepth | None = None  # 2dgs: "center" (None) or "intersection"
 
     def __post_init__(self) -> None:
         if self.mode not in typing.get_args(HeadMode):
             raise UserError(f"GaussianHeadConfig.mode must be 'feature' or 'color', got {self.mode!r}")
+        self._check_primitive()
         if self.anchors not in typing.get_args(Anchors):
             raise UserError(f"GaussianHeadConfig.anchors must be 'centre' or 'grid', got {self.anchors!r}")
         if self.anchors == "grid" and math.isqrt(self.gaussians_per_token) ** 2 != self.gaussians_per_token:
@@ -228,6 +240,41 @@ class GaussianHeadConfig:
             raise UserError(
                 f"GaussianHeadConfig: pruning is Long-LRM's colour-mode recipe; mode={self.mode!r} needs prune_ratio=0"
             )
+
+    def _check_primitive(self) -> None:
+        """One line naming the setting that a 2D Gaussian head cannot honour."""
+        if self.primitive not in typing.get_args(Primitive):
+            raise UserError(f"GaussianHeadConfig.primitive must be '3dgs' or '2dgs', got {self.primitive!r}")
+        if self.primitive == "3dgs":
+            if self.surfel_depth is not None:
+                raise UserError(
+                    f"GaussianHeadConfig.surfel_depth={self.surfel_depth!r} is for primitive='2dgs'; "
+                    "primitive='3dgs' needs surfel_depth=None"
+                )
+            return
+        if self.surfel_depth not in (None, *typing.get_args(SurfelDepth)):
+            raise UserError(
+                f"GaussianHeadConfig.surfel_depth must be 'center', 'intersection' or None, got {self.surfel_depth!r}"
+            )
+        if self.mode != "color":
+            raise UserError(
+                f"GaussianHeadConfig: primitive='2dgs' is Long-LRM's colour head with 2D Gaussians; "
+                f"mode={self.mode!r} needs primitive='3dgs'"
+            )
+        if not 0 <= self.sh_degree <= 3:
+            raise UserError(f"GaussianHeadConfig: primitive='2dgs' supports sh_degree 0..3, got {self.sh_degree}")
+
+    @property
+    def num_scales(self) -> int:
+        """Scales per Gaussian: 3 (3D Gaussians) or 2 (2D Gaussians' tangent axes)."""
+        return 2 if self.primitive == "2dgs" else 3
+
+    @property
+    def splat_surfel_depth(self) -> str | None:
+        """``surfel_depth`` of :func:`llrmpp_jax.splat.rasterize` for this head's Gaussians
+        (with ``primitive=self.primitive``): None for 3D Gaussians, else ``"center"`` unless
+        ``"intersection"`` was asked for."""
+        return None if self.primitive == "3dgs" else (self.surfel_depth or "center")
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,11 @@ colour-mode files):
 ``partition_0..S-1``          feature mode: partition logits, ``features @ W_partition``; the
                               opacity of copy s is ``opacity * softmax(logits)_s``
 ``opacity``                   ``logit(opacity)``, opacity clipped to ``[2^-24, 1 - 2^-24]``
-``scale_0..2``                ``log(scale)`` in world units
+``scale_0..2``                ``log(scale)`` in world units; 2D Gaussians (``primitive="2dgs"``)
+                              as flat 3D ones: ``scale_2`` is ``log`` of
+                              ``gaussians.SURFEL_THICKNESS`` x the smaller tangent scale (the
+                              standard 3DGS layout, which common viewers read; the 2DGS
+                              paper's own files drop ``scale_2``, which those viewers cannot)
 ``rot_0..3``                  unit quaternion ``(w, x, y, z)``, Gaussian-to-world rotation
 ============================  ===============================================================
 
@@ -51,7 +55,7 @@ from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
 from llrmpp_jax.file_kinds import check_ply
 from llrmpp_jax.finite import check_finite
-from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians
+from llrmpp_jax.gaussians import OPACITY_LOGIT_EPS, Gaussians, surfel_scales_3d
 from llrmpp_jax.splat.sh import num_sh_bases, sh_basis
 
 _TAG = "llrmpp-jax"
@@ -205,6 +209,8 @@ def ply_fields(
       world_from_scene: 4x4 similarity, scene frame -> capture's world frame.
       partition_logits: feature mode only, required: ``model.partition_logits(params, cfg, g)``.
     """
+    if cfg.head.primitive == "2dgs":  # 2D Gaussians as flat 3D ones (module docstring)
+        gaussians = gaussians._replace(scales=surfel_scales_3d(gaussians.scales))
     g = _unbatched(gaussians)
     n = g.means.shape[0]
     s, rot, t = split_similarity(world_from_scene)

@@ -17,11 +17,40 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from llrmpp_jax.array_typing import Array, Float
+from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.losses import depth_loss
-from llrmpp_jax.splat import rasterize
+from llrmpp_jax.splat import SplatOutput, rasterize
+
+
+def splat_depth_view(
+    g: Gaussians,
+    cfg: ModelConfig,
+    camera: tuple[Float[ArrayLike, "4 4"], Float[ArrayLike, " 4"]],
+    size: tuple[int, int],
+) -> SplatOutput:
+    """One scene's Gaussians (no batch axis, ``means [N, 3]``) splatted for depth at one
+    ``camera = (c2w, intrinsics)`` on a ``size = (height, width)`` canvas (``splat.rasterize``
+    in "ED" mode): ``out.depth [H, W]`` the expected camera z (0 where nothing was drawn),
+    ``out.transmittance``. 3D or 2D Gaussians as the model's head predicts them
+    (``cfg.head.primitive``, ``surfel_depth``)."""
+    (c2w, intrinsics), (height, width) = camera, size
+    return rasterize(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        None,
+        c2w,
+        intrinsics,
+        height,
+        width,
+        cfg.splat,
+        render_mode="ED",
+        primitive=cfg.head.primitive,
+        surfel_depth=cfg.head.splat_surfel_depth,
+    )
 
 
 def splatted_depth(
@@ -35,12 +64,11 @@ def splatted_depth(
     """Expected camera z (scene units) and accumulated alpha of the Gaussians at each target
     camera, ``height x width`` pixels (``intrinsics`` given at that size)."""
 
-    def one(means, quats, scales, opac, cam, k):
-        out = rasterize(means, quats, scales, opac, None, cam, k, height, width, cfg.splat, render_mode="ED")
+    def one(g, cam, k):
+        out = splat_depth_view(g, cfg, (cam, k), (height, width))
         return out.depth, 1.0 - out.transmittance
 
-    per_target = jax.vmap(one, (None, None, None, None, 0, 0))
-    return jax.vmap(per_target)(g.means, g.quats, g.scales, g.opacities, c2w, intrinsics)
+    return jax.vmap(jax.vmap(one, (None, 0, 0)))(g, c2w, intrinsics)
 
 
 def gaussian_depth_loss(

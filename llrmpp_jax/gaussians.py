@@ -13,7 +13,10 @@ measurable difference (docs/lab-notes.md, "The Gaussians' offset bound").
 Colour mode (Long-LRM, facts §1.6): the head predicts ``p_out**2`` Gaussians per token, one
 per pixel, channels ``[xyz 3 | SH (deg+1)^2*3 | log-scale 3 | quaternion 4 | opacity 1]``;
 the distance is ``sigmoid(mean(xyz_raw)) * max_dist`` along the pixel's own ray (centre
-``+0.5``), SH coefficients are used raw (gsplat adds 0.5 when evaluating).
+``+0.5``), SH coefficients are used raw (gsplat adds 0.5 when evaluating). With
+``primitive="2dgs"`` (2D Gaussians, Long-LRM 2DGS) the log-scale group has two channels, the
+surfel's two tangent scales: ``[xyz 3 | SH | log-scale 2 | quaternion 4 | opacity 1]``; the
+normal is the rotation's third column (the splatter's rule), everything else is unchanged.
 
 Activations (both modes, Long-LRM defaults): distance ``sigmoid(raw) * max_dist``,
 log-scale ``min(raw + scale_bias, scale_max)`` (hard clamp, zero gradient above),
@@ -29,10 +32,12 @@ from typing import NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax.linen.dtypes import promote_dtype
 
 from llrmpp_jax.array_typing import Array, ArrayLike, Float
 from llrmpp_jax.config import GaussianHeadConfig
+from llrmpp_jax.errors import UserError
 from llrmpp_jax.nn.initializers import linear_init
 from llrmpp_jax.nn.norms import LayerNorm
 
@@ -50,14 +55,31 @@ class Gaussians(NamedTuple):
 
     means: Float[Array, "B N 3"]
     quats: Float[Array, "B N 4"]  # unit, wxyz
-    scales: Float[Array, "B N 3"]  # linear (exp of the clamped log-scale)
+    scales: Float[Array, "B N 3"] | Float[Array, "B N 2"]  # linear (exp of the clamped log-scale); 2 for 2DGS
     opacities: Float[Array, "B N"]  # in (0, 1)
     features: Float[Array, "B N F"]
 
 
+# A 2D Gaussian stored where three scales are expected (a 3DGS PLY, for viewers that know only
+# 3D Gaussians): its third axis, along the normal, is this fraction of its smaller tangent
+# scale: a disk at any zoom a viewer reaches, and a covariance still invertible in float32
+# (its smallest eigenvalue 1e-6 of the next).
+SURFEL_THICKNESS = 1e-3
+
+
+def surfel_scales_3d(scales: Float[ArrayLike, "*batch N 2"]) -> Float[np.ndarray, "*batch N 3"]:
+    """2D Gaussians' tangent scales ``[..., N, 2]`` as three scales of flat 3D Gaussians: the
+    third is :data:`SURFEL_THICKNESS` times the smaller tangent scale (the rotation's third
+    column, the surfel's normal, is the thin axis). ``UserError`` unless the last axis is 2."""
+    s = np.asarray(scales)
+    if s.ndim < 2 or s.shape[-1] != 2:
+        raise UserError(f"2D Gaussians' scales must be [..., N, 2], got shape {s.shape}")
+    return np.concatenate([s, SURFEL_THICKNESS * np.min(s, axis=-1, keepdims=True)], axis=-1)
+
+
 def _channels(cfg: GaussianHeadConfig) -> int:
     if cfg.mode == "color":
-        return 3 + 3 * (cfg.sh_degree + 1) ** 2 + 3 + 4 + 1
+        return 3 + 3 * (cfg.sh_degree + 1) ** 2 + cfg.num_scales + 4 + 1
     return cfg.feature_dim + 2 + 1 + 4 + 1 + 3
 
 
@@ -151,8 +173,9 @@ def decode_channel_major(
     cols = (jnp.arange(w, dtype=raw.dtype) * s).reshape(1, 1, 1, w, 1)
     if cfg.mode == "color":
         nsh = 3 * (cfg.sh_degree + 1) ** 2
+        e = 3 + nsh + cfg.num_scales  # end of the log-scales (2 of them for 2D Gaussians)
         xyz, feat = raw[:, :3], raw[:, 3 : 3 + nsh]
-        logs, quat, opac = raw[:, 3 + nsh : 6 + nsh], raw[:, 6 + nsh : 10 + nsh], raw[:, 10 + nsh : 11 + nsh]
+        logs, quat, opac = raw[:, 3 + nsh : e], raw[:, e : e + 4], raw[:, e + 4 : e + 5]
         dist_raw = jnp.mean(xyz, axis=1)
         sub = jnp.arange(k, dtype=raw.dtype).reshape(1, 1, 1, 1, k)
         u = jnp.broadcast_to(cols + sub % s + 0.5, (b, v, h, w, k))  # pixel centres

@@ -10,6 +10,9 @@ The pure API (``cfg`` is a static :class:`~llrmpp_jax.config.ModelConfig`):
   is the expected camera z, ``sum_i w_i z_i / sum_i w_i`` (the accumulated z normalised
   by the accumulated alpha, gsplat's "ED" render mode), so the paper's depth losses train
   it like the feature model's depth head: the colour-Gaussian depth rows of Tables 2 and 7.
+  With ``head.primitive="2dgs"`` the colour Gaussians are 2D (two scales) and splatted by the
+  2DGS splatter (``splat.rasterize(..., primitive="2dgs")``), the same expected depth of
+  their ``head.surfel_depth`` (Table 7's Long-LRM 2DGS row).
   (Long-LRM's own depth term supervises its Gaussian centres instead, facts §2.2.)
 * :func:`partition_logits` -- feature mode: the S partition logits of each Gaussian.
 
@@ -121,6 +124,8 @@ class LongLRMPP(nn.Module):
                     cfg.splat,
                     render_mode="RGB+ED",
                     background=bg,
+                    primitive=cfg.head.primitive,
+                    surfel_depth=cfg.head.splat_surfel_depth,
                 )
                 return {"rgb": out.features, "depth": out.depth[..., None]}, out.stats.num_dropped
 
@@ -245,6 +250,7 @@ def fit_capacity(
         cfg.splat,
         headroom=headroom,
         minimum=minimum,
+        primitive=cfg.head.primitive,
     )
     return dataclasses.replace(cfg, splat=fitted)
 

@@ -50,6 +50,15 @@ class LossWeights:
     0.1 each). ``gaussian_depth``: the Gaussians' splatted depth against the target (0: off).
     ``opacity``: Long-LRM's regulariser, the mean opacity of the (pruned) Gaussians (its 0.1;
     0: off).
+
+    2D Gaussians (``head.primitive="2dgs"``, Table 7's Long-LRM 2DGS row) train with these
+    same terms and no others. The paper names none for that row: Table 7 compares "Long-LRM
+    with a 3D Gaussian head, Long-LRM with a 2D Gaussian head [2DGS], and Long-LRM++", and
+    its Long-LRM baselines are trained with "the same training stages and training objectives"
+    as Long-LRM++. So the 2DGS paper's own regularisers (depth distortion, ``sum_ij w_i w_j
+    |z_i - z_j|``, and normal consistency, ``sum_i w_i (1 - n_i . N)`` against the depth
+    map's normal) are not terms here; the splatter renders both ingredients
+    (``SplatOutput.distortion``, ``SplatOutput.normals``) should a row want them.
     """
 
     perceptual: float = 0.0

@@ -33,9 +33,9 @@ from llrmpp_jax.capture.scene_file import SavedScene
 from llrmpp_jax.compile_cache import announce
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
+from llrmpp_jax.gaussian_depth import splat_depth_view
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import fit_capacity, render
-from llrmpp_jax.splat import rasterize
 
 PATHS = ("targets", "inputs", "spline", "orbit")
 
@@ -125,9 +125,7 @@ def _render_rgb(params, cfg: ModelConfig, g: Gaussians, c2w, k, height: int, wid
 
 @functools.partial(jax.jit, static_argnames=("cfg", "height", "width"))
 def _render_depth(g: Gaussians, cfg: ModelConfig, c2w, k, height: int, width: int):
-    return rasterize(
-        g.means, g.quats, g.scales, g.opacities, None, c2w, k, height, width, cfg.splat, render_mode="ED"
-    ).depth
+    return splat_depth_view(g, cfg, (c2w, k), (height, width)).depth  # 3D or 2D Gaussians, as cfg.head says
 
 
 def render_views(

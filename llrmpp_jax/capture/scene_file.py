@@ -5,8 +5,8 @@ Layout: an uncompressed NumPy ``.npz`` archive. ``header`` holds UTF-8 JSON with
 ``format = "llrmpp-gaussians"``, ``version`` (:data:`GS_VERSION`; another version is
 refused), the model config, the scene's path and format, the frame names, the input and
 target frame lists and the view size and crop; the arrays are the Gaussians (one scene, no batch
-axis: ``means [N, 3]``, ``quats [N, 4]`` wxyz, ``scales [N, 3]`` linear, ``opacities [N]``,
-``features [N, F]``), the cameras of every frame in the normalised scene frame
+axis: ``means [N, 3]``, ``quats [N, 4]`` wxyz, ``scales [N, 3]`` linear (``[N, 2]`` for a 2D
+Gaussian model), ``opacities [N]``, ``features [N, F]``), the cameras of every frame in the normalised scene frame
 (``c2w [M, 4, 4]`` OpenCV, ``intrinsics [M, 4]`` pixels at the view size) and
 ``world_from_scene [4, 4]``: the similarity taking normalised-scene points back to the
 capture's world (its scale ``1 / s`` turns scene units back into capture units).
@@ -67,6 +67,14 @@ class SavedScene:
     crop_box: tuple[int, int, int, int]  # (top, left, height, width) resized to image_hw
     scene_path: str
     scene_format: str
+
+    def __post_init__(self) -> None:
+        got, want = self.gaussians.scales.shape[-1], self.model.head.num_scales
+        if got != want:
+            raise UserError(
+                f"scales have {got} axes per Gaussian but the model config's head.primitive="
+                f"{self.model.head.primitive!r} has {want}"
+            )
 
     @property
     def scene_scale(self) -> float:
@@ -169,7 +177,7 @@ def _check_arrays(path: str, a: dict[str, np.ndarray]) -> None:
     want = {
         "means": (n, 3),
         "quats": (n, 4),
-        "scales": (n, 3),
+        "scales": (n, 2 if a["scales"].shape[1:] == (2,) else 3),  # 2: 2D Gaussians (SavedScene checks the model's)
         "opacities": (n,),
         "c2w": (m, 4, 4),
         "intrinsics": (m, 4),

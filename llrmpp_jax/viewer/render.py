@@ -37,9 +37,9 @@ from llrmpp_jax.array_typing import Array, Float
 from llrmpp_jax.compile_cache import CompileWatch
 from llrmpp_jax.config import ModelConfig
 from llrmpp_jax.errors import UserError
+from llrmpp_jax.gaussian_depth import splat_depth_view
 from llrmpp_jax.gaussians import Gaussians
 from llrmpp_jax.model import fit_capacity, render
-from llrmpp_jax.splat import rasterize
 
 OUTPUTS = ("rgb", "depth")
 # A browser camera can come closer than any input camera: room for this many times the most
@@ -110,10 +110,7 @@ def render_view(
         out = render(p, c, gaussians, c2w[None, None], intrinsics[None, None], height, width, (output,))
         return out.images[output][0, 0]
     g = jax.tree.map(lambda a: a[0], gaussians)
-    out = rasterize(
-        g.means, g.quats, g.scales, g.opacities, None, c2w, intrinsics, height, width, cfg.splat, render_mode="ED"
-    )
-    return out.depth[:, :, None]
+    return splat_depth_view(g, cfg, (c2w, intrinsics), (height, width)).depth[:, :, None]
 
 
 def display_image(image: Float[np.ndarray, "H W C"], output: str) -> np.ndarray:
