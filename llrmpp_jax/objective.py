@@ -56,7 +56,7 @@ class LossWeights:
     with a 3D Gaussian head, Long-LRM with a 2D Gaussian head [2DGS], and Long-LRM++", and
     its Long-LRM baselines are trained with "the same training stages and training objectives"
     as Long-LRM++. So the 2DGS paper's own regularisers (depth distortion, ``sum_ij w_i w_j
-    |z_i - z_j|``, and normal consistency, ``sum_i w_i (1 - n_i . N)`` against the depth
+    abs(z_i - z_j)``, and normal consistency, ``sum_i w_i (1 - n_i . N)`` against the depth
     map's normal) are not terms here; the splatter renders both ingredients
     (``SplatOutput.distortion``, ``SplatOutput.normals``) should a row want them.
     """
