@@ -38,7 +38,7 @@ NOTEBOOKS = {
     "table4_feature_splat": ("tb:featsplat", ("K", "F", "canvas"), "4"),  # canvas 1.0: r = 1
     "table5_decoder": ("tb:decoder", ("splat", "blocks", "dim"), "0"),  # colour Gaussians
     "table6_partitions": ("tb:featsplit", ("S",), "0"),  # S = 1
-    "table7_depth_losses": ("tb:dep_ab", ("method",), "0,3"),  # a row that cannot run + depth
+    "table7_depth_losses": ("tb:dep_ab", ("method",), "0,3"),  # Long-LRM 2DGS (2D colour Gaussians) + Ours
 }
 # Paper columns in .tex order (Table 7's method names are LaTeX; its label is compared by order).
 PAPER_KEYS = {
