@@ -1055,10 +1055,18 @@ VERBS: tuple[Verb, ...] = (
 )
 
 
+class _OneLineErrors(argparse.ArgumentParser):
+    """argparse whose errors are one line, ``llrmpp VERB: error: MESSAGE (llrmpp VERB --help)``,
+    without the usage block above it; exit status 2 as argparse's."""
+
+    def error(self, message: str):  # pyright: ignore[reportIncompatibleMethodOverride] -- exits, as argparse's does
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``llrmpp`` parser: one subparser per entry of :data:`VERBS`; a parsed command
-    carries its verb's function as ``args.fn``."""
-    parser = argparse.ArgumentParser(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
+    """The ``llrmpp`` parser: one subparser per entry of :data:`VERBS` (which inherit its
+    one-line errors); a parsed command carries its verb's function as ``args.fn``."""
+    parser = _OneLineErrors(prog="llrmpp", description="Long-LRM++ in JAX: train, evaluate, render.")
     verbs = parser.add_subparsers(dest="command", required=True)
     for verb in VERBS:
         verb_parser = verbs.add_parser(verb.name, help=verb.help, description=verb.description)
