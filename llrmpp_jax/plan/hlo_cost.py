@@ -23,6 +23,10 @@ This module reads the scheduled HLO module (``compiled.as_text()``) instead:
   and async wrappers their callee.
 * **custom calls** (cuDNN, Pallas kernels) cost their memory traffic, or, where the call's
   backend config carries a cost estimate (a Pallas ``pl.CostEstimate``), its flops and bytes.
+  The Pallas splash-attention kernels carry none; they are given their matrix products from
+  their q and k operands ``[heads, L, hd]``: ``c x heads x Lq x Lk x hd`` FLOPs with c = 4
+  (forward: q k^T and p v), 6 (dq: logits, dp, dq) and 8 (dkv: logits, dv, dp, dk), over the
+  padded lengths the kernel runs.
 * **collectives** (all-reduce, all-gather, reduce-scatter, collective-permute, all-to-all)
   cost ``2 x bytes / ici_bytes_per_s`` (a ring's send and receive).
 
@@ -68,7 +72,11 @@ _ARRAY = re.compile(r"([a-z][a-z0-9]*)\[([0-9,]*)\](\{[^}]*\})?")
 _INSTR = re.compile(r"^\s*(?:ROOT\s+)?%([^\s=]+)\s*=\s*(.*)$")
 _HEADER = re.compile(r"^(ENTRY\s+)?%([^\s(]+)\s*\(")
 _CALLS = re.compile(r"(?:calls|to_apply|body|condition)=%([^\s,)}]+)")
+_CLOSE = re.compile(r'^\}(\s*,\s*execution_thread="[^"]*")?\s*$')
 _BRANCHES = re.compile(r"branch_computations=\{([^}]*)\}")
+# Pallas splash-attention kernels by name, and their matmul FLOPs per (head, query, key, hd).
+_SPLASH = re.compile(r"^splash_m[hq]a_(fwd|dq|dkv)")
+_SPLASH_FLOPS = {"fwd": 4, "dq": 6, "dkv": 8}
 _COLLECTIVES = ("all-reduce", "all-gather", "reduce-scatter", "collective-permute", "all-to-all")
 _FREE = {
     "parameter",
@@ -197,12 +205,16 @@ def parse_module(text: str) -> tuple[dict[str, list[Instr]], str]:
                 comps[current] = []
                 entry = current if m.group(1) else entry
             continue
-        if line.startswith("}"):  # "}" or, on TPU, '}, execution_thread="sparsecore"'
+        if _CLOSE.match(line):  # "}" or, on TPU, '}, execution_thread="sparsecore"'
             current = None
             continue
         ins = _parse_instr(line)
         if ins is not None:
             comps[current].append(ins)
+        elif comps[current]:
+            # An instruction's attributes may span lines (a Pallas kernel's metadata holds
+            # newlines, and a continuation line can start with "}}"): they stay its own.
+            comps[current][-1].attrs += "\n" + line
     if not entry:
         raise ValueError("HLO text has no ENTRY computation")
     return comps, entry
@@ -233,6 +245,17 @@ def _matmul_flops(ins: Instr, shapes: dict[str, str]) -> float:
     if ins.opcode == "convolution" and len(ins.operands) > 1:
         return _conv_flops(ins, _dims(shapes.get(ins.operands[0], "")), _dims(shapes.get(ins.operands[1], "")), out)
     return 0.0
+
+
+def _splash_flops(ins: Instr, shapes: dict[str, str]) -> float:
+    """Matrix-product FLOPs of a splash-attention kernel (module docstring); 0 for any other call."""
+    m = _SPLASH.match(ins.name)
+    if not m or len(ins.operands) < 4:
+        return 0.0
+    q, k = (_dims(shapes.get(o, "")) for o in ins.operands[2:4])  # after the two prefetched mask arrays
+    if len(q) != 3 or len(k) != 3:
+        return 0.0
+    return float(_SPLASH_FLOPS[m.group(1)] * q[0] * q[1] * k[1] * q[2])
 
 
 def _window(attrs: str, key: str, n: int, default: int) -> list[int]:
@@ -410,6 +433,7 @@ class _Costing:
                 flops, gathered, scattered = flops + f, gathered + g, scattered + s
         if code == "custom-call":
             est = re.search(r'"cost_estimate":\s*(\{[^}]*\})', ins.attrs)
+            flops = _splash_flops(ins, shapes)
             if est:
                 try:
                     ce = json.loads(est.group(1))

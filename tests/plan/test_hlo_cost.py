@@ -120,3 +120,16 @@ def test_a_computation_closed_with_attributes_does_not_swallow_the_next():
     at = text.index("ENTRY")
     comps, entry = parse_module(text[:at] + extra + text[at:])
     assert "offloaded" in comps and entry in comps and entry != "offloaded"
+
+
+def test_an_instruction_spanning_lines_stays_in_its_computation():
+    # A Pallas kernel's custom call carries metadata with newlines; a continuation line may
+    # start with "}}". The instructions after it still belong to the computation.
+    text = compiled_text(lambda x: (x * 2.0) @ x.T, jnp.ones((3, 5), jnp.float32))
+    at = text.index("ENTRY")
+    body = text.index("\n", at) + 1
+    extra = '  %kernel = f32[4]{0} custom-call(), custom_call_target="k", frontend_attributes={m={"a":1\n}}, x=1\n'
+    comps, entry = parse_module(text[:body] + extra + text[body:])
+    names = [i.name for i in comps[entry]]
+    assert names[0] == "kernel" and len(names) > 2 and "x=1" in comps[entry][0].attrs
+    assert estimate_hlo(text[:body] + extra + text[body:], CHIP).flops == 2 * 3 * 3 * 5
