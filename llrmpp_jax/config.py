@@ -23,7 +23,7 @@ from llrmpp_jax.splat.config import SplatConfig
 
 InterChunkSetting = Literal["auto", "associative", "sequential", "fused"]  # see Mamba2Config
 # Global-attention kernels (nn.attention.multi_head_attention): see TransformerConfig.
-AttentionImpl = Literal["xla", "cudnn", "blockwise"]
+AttentionImpl = Literal["xla", "cudnn", "blockwise", "splash"]
 HeadMode = Literal["feature", "color"]  # see GaussianHeadConfig
 Anchors = Literal["centre", "grid"]  # see GaussianHeadConfig
 Primitive = Literal["3dgs", "2dgs"]  # see GaussianHeadConfig
@@ -100,15 +100,18 @@ class TransformerConfig:
     # Global-attention kernel (nn.attention.multi_head_attention): "blockwise" is
     # FlashAttention-2 in pure JAX (any backend and dtype, memory linear in L, the default);
     # "cudnn" the cuDNN flash kernel (NVIDIA GPU; computes in bf16, wider inputs are cast;
-    # for_accelerators picks it there); "xla" materialises [nh, L, L] logits (quadratic memory: short L only).
+    # for_accelerators picks it there); "splash" the Pallas TPU splash-attention kernel (TPU, or
+    # Pallas's interpret mode elsewhere; for_accelerators picks it on TPU); "xla" materialises
+    # [nh, L, L] logits (quadratic memory: short L only).
     attention_impl: AttentionImpl = "blockwise"
-    attention_block_q: int = 512  # blockwise: queries per block
-    attention_block_k: int = 512  # blockwise: keys per block (logits block [nh, bq, bk])
+    attention_block_q: int = 512  # blockwise, splash: queries per block (splash: rounded up to 128s)
+    attention_block_k: int = 512  # blockwise, splash: keys per block (logits block [nh, bq, bk])
 
     def __post_init__(self) -> None:
         if self.attention_impl not in typing.get_args(AttentionImpl):
             raise UserError(
-                f"TransformerConfig.attention_impl must be 'xla', 'cudnn' or 'blockwise', got {self.attention_impl!r}"
+                f"TransformerConfig.attention_impl must be 'xla', 'cudnn', 'blockwise' or 'splash', "
+                f"got {self.attention_impl!r}"
             )
         if self.attention_block_q < 1 or self.attention_block_k < 1:
             raise UserError(
@@ -358,15 +361,16 @@ def for_accelerators(model: ModelConfig, backend: str | None = None) -> ModelCon
     ``backend`` (default ``jax.default_backend()``): on ``"gpu"`` the cuDNN flash kernel
     (``attention_impl="cudnn"``, meant for bf16 runs: it computes in bf16, casting float32
     q, k, v; much faster than the blockwise kernel: docs/results.md, "Global attention on
-    one H200"), anywhere else (TPU, CPU) the pure-JAX blockwise kernel, which needs no vendor
-    library and works in any dtype. XLA's plain attention would hold [heads, L, L] scores
-    (L = 261K backbone tokens at stage 4: over a TiB per block).
+    one H200"), on ``"tpu"`` the Pallas splash-attention kernel (``"splash"``, written for the
+    TPU's matrix unit; bf16 or float32), anywhere else (CPU) the pure-JAX blockwise kernel,
+    which needs no vendor library and works in any dtype. XLA's plain attention would hold
+    [heads, L, L] scores (L = 261K backbone tokens at stage 4: over a TiB per block).
     """
     if backend is None:
         import jax
 
         backend = jax.default_backend()
-    model = with_attention(model, "cudnn" if backend == "gpu" else "blockwise")
+    model = with_attention(model, {"gpu": "cudnn", "tpu": "splash"}.get(backend, "blockwise"))
     return dataclasses.replace(
         model,
         backbone=dataclasses.replace(

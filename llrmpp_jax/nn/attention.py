@@ -22,6 +22,7 @@ from llrmpp_jax.config import AttentionImpl
 from llrmpp_jax.nn.blockwise_attention import blockwise_attention
 from llrmpp_jax.nn.initializers import DENSE_INIT
 from llrmpp_jax.nn.norms import RMSNorm
+from llrmpp_jax.nn.splash_attention import splash_attention
 
 # Global-attention kernels of multi_head_attention (TransformerConfig.attention_impl).
 ATTENTION_IMPLEMENTATIONS: tuple[str, ...] = typing.get_args(AttentionImpl)
@@ -55,6 +56,10 @@ def multi_head_attention(
     * ``"cudnn"`` -- the library's cuDNN flash kernel (NVIDIA GPU). The kernel takes only
       bf16/fp16/fp8: wider inputs (float32 q and k after the float32 QK-norm, as in a bf16
       training step) are cast to bfloat16 for the kernel and its output back to q's dtype.
+    * ``"splash"`` -- :func:`~llrmpp_jax.nn.splash_attention.splash_attention`, the Pallas
+      TPU splash-attention kernel (TPU; elsewhere only in Pallas's TPU interpret mode); blocks
+      of ``block_q`` x ``block_k`` rounded up to multiples of 128; no ``bias`` or ``mask``
+      (the model's global attention has neither).
 
     Precision: logits and softmax in ``promote(dtype, float32)`` (blockwise) or softmax
     always in float32 (library), so float64 inputs are accurate to ~1e-7 with the latter.
@@ -90,6 +95,10 @@ def multi_head_attention(
     bias4, mask4 = to_4d(bias, "bias"), to_4d(mask, "mask")
     if implementation == "blockwise":
         out = blockwise_attention(q4, k4, v4, bias=bias4, mask=mask4, block_q=block_q, block_k=block_k)
+    elif implementation == "splash":
+        if bias4 is not None or mask4 is not None:
+            raise ValueError("multi_head_attention: implementation='splash' takes no bias or mask")
+        out = splash_attention(q4, k4, v4, block_q=block_q, block_k=block_k)
     else:
         if implementation == "cudnn" and jnp.dtype(q.dtype).itemsize > 2:  # the kernel's 16-bit inputs
             q4, k4, v4, bias4 = (None if a is None else a.astype(jnp.bfloat16) for a in (q4, k4, v4, bias4))

@@ -190,6 +190,16 @@ def _backward(q, k, v, bias, mask, o, stats, do, bq, bk, lk):
     return dq.astype(q.dtype), dk.astype(k.dtype), dv.astype(v.dtype), dbias
 
 
+def check_qkv(who: str, q: ArrayLike, k: ArrayLike, v: ArrayLike) -> None:
+    """ValueError naming ``who`` unless q is ``[B, Lq, nh, hd]``, k = v ``[B, Lk, nh, hd]``, one dtype."""
+    if q.ndim != 4 or k.ndim != 4 or v.shape != k.shape or q.shape[0] != k.shape[0] or q.shape[2:] != k.shape[2:]:
+        raise ValueError(
+            f"{who}: expected q [B, Lq, nh, hd] and k = v [B, Lk, nh, hd], got q {q.shape}, k {k.shape}, v {v.shape}"
+        )
+    if not q.dtype == k.dtype == v.dtype:
+        raise ValueError(f"{who}: q, k, v dtypes differ: {q.dtype}, {k.dtype}, {v.dtype}")
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7))
 def _attention(q, k, v, bias, mask, bq, bk, lk):
     return _forward(q, k, v, bias, mask, bq, bk, lk)[0]
@@ -229,13 +239,7 @@ def blockwise_attention(
     """
     if block_q < 1 or block_k < 1:
         raise ValueError(f"blockwise_attention: block sizes must be >= 1, got block_q={block_q}, block_k={block_k}")
-    if q.ndim != 4 or k.ndim != 4 or v.shape != k.shape or q.shape[0] != k.shape[0] or q.shape[2:] != k.shape[2:]:
-        raise ValueError(
-            f"blockwise_attention: expected q [B, Lq, nh, hd] and k = v [B, Lk, nh, hd], got "
-            f"q {q.shape}, k {k.shape}, v {v.shape}"
-        )
-    if not q.dtype == k.dtype == v.dtype:
-        raise ValueError(f"blockwise_attention: q, k, v dtypes differ: {q.dtype}, {k.dtype}, {v.dtype}")
+    check_qkv("blockwise_attention", q, k, v)
     b, lq, nh, _ = q.shape
     lk = k.shape[1]
     for name, a in (("bias", bias), ("mask", mask)):

@@ -41,7 +41,7 @@ class TransformerBlock(nn.Module):
     ``attention="global"`` attends over all L tokens; ``attention="local"`` needs
     ``grid=(h, w)`` with ``L = h*w`` (row-major) and attends to ``num_neighbours``
     nearest grid tokens (:class:`LocalAttention`). ``cfg.attention_impl`` selects the
-    global-attention kernel (``"blockwise"``, ``"xla"``, or ``"cudnn"`` on GPU, in bf16).
+    global-attention kernel (``"blockwise"``, ``"xla"``, ``"cudnn"`` on GPU, in bf16, or ``"splash"`` on TPU).
     ``dtype`` is the compute dtype of the Dense layers (None: from input and params);
     the residual stream keeps the dtype of ``x``.
 

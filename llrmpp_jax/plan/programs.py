@@ -5,7 +5,7 @@ jitted function and its arguments as ``jax.ShapeDtypeStruct`` s carrying their s
 parameters and optimizer state replicated, images and cameras split over ``"batch"``.
 Nothing is allocated, so paper-size programs are planned on a laptop. The model is the
 recipe's, with :func:`llrmpp_jax.config.for_accelerators` for the target's backend (on TPU
-the blockwise attention kernel and the sequential SSD recurrence), parameters in bf16 where
+the Pallas splash attention kernel and the sequential SSD recurrence), parameters in bf16 where
 the recipe computes in bf16, as the trainer's step casts them.
 
 Programs (per device, one scene each unless the recipe's stage says otherwise):

@@ -191,7 +191,7 @@ def test_bad_input_one_line():
         (lambda: multi_head_attention(q, q, q, mask=jnp.ones((NH, 5, 6), bool)), r"mask has shape \(2, 5, 6\)"),
         (
             lambda: multi_head_attention(q, q, q, implementation="flash"),  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
-            r"implementation must be one of \('xla', 'cudnn', 'blockwise'\), got 'flash'",
+            r"implementation must be one of \('xla', 'cudnn', 'blockwise', 'splash'\), got 'flash'",
         ),
         (lambda: TransformerConfig(attention_impl="pallas"), r"attention_impl must be .* got 'pallas'"),  # pyright: ignore[reportArgumentType] -- a bad value on purpose: the test wants its error
         (lambda: TransformerConfig(attention_block_q=0), r"attention block sizes must be >= 1"),
@@ -202,7 +202,7 @@ def test_bad_input_one_line():
         assert "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("backend,impl", [("gpu", "cudnn"), ("tpu", "blockwise"), ("cpu", "blockwise")])
+@pytest.mark.parametrize("backend,impl", [("gpu", "cudnn"), ("tpu", "splash"), ("cpu", "blockwise")])
 def test_for_accelerators_picks_the_kernel_per_backend(backend, impl):
     from llrmpp_jax import config as C
 

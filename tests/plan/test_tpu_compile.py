@@ -3,7 +3,8 @@ it compiles, fits, takes the TPU kernels, and the estimate's FLOPs match an inde
 
 Oracle for the FLOPs: ``benchmarks.measure.matmul_flops`` counts the matrix products of the
 traced program (jaxpr, before XLA); the estimate counts them in the TPU compiler's optimised
-HLO, where batched products have become convolutions. The two must agree to 1%.
+HLO, where batched products have become convolutions, and the splash attention kernels by
+their products over their 128-token blocks. The two must agree to 1%, plus that padding.
 """
 
 import jax
@@ -25,7 +26,9 @@ def test_tiny_programs_compile_and_fit_on_v5e(name):
     row = compile_row(program(name), V5E)
     assert row["program"] == name and row["compiled"], row.get("error")
     assert row["fits"] and 0 < row["hbm_needed_bytes"] < 2**30
-    assert row["estimate"]["flops"] == pytest.approx(row["model_flops"], rel=0.01)
+    # The splash attention kernels also multiply the padding of their 128-token blocks (the
+    # tiny model's short sequences: a few percent of its products).
+    assert row["model_flops"] * 0.99 <= row["estimate"]["flops"] <= 1.1 * row["model_flops"]
     assert row["estimate"]["seconds"] >= row["matmul_limit_s"] > 0
 
 
@@ -40,10 +43,10 @@ def test_tiny_train_step_compiles_and_fits_on_v5e():
     assert row["estimate"]["loops"] > 0 and row["estimate"]["seconds"] >= row["matmul_limit_s"]
 
 
-def test_tpu_path_picks_the_blockwise_kernel_and_sequential_scan():
+def test_tpu_path_picks_the_splash_kernel_and_sequential_scan():
     cfg = C.for_accelerators(C.tiny(), backend="tpu")
-    assert cfg.backbone.transformer.attention_impl == "blockwise"
-    assert cfg.decoder.transformer.attention_impl == "blockwise"
+    assert cfg.backbone.transformer.attention_impl == "splash"
+    assert cfg.decoder.transformer.attention_impl == "splash"
     assert cfg.backbone.mamba.inter_chunk == "sequential"
     assert C.for_accelerators(C.tiny(), backend="gpu").backbone.transformer.attention_impl == "cudnn"
 
