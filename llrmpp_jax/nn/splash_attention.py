@@ -141,8 +141,11 @@ def _typed_kernel(kernel: SplashAttentionKernel, segments, q: Array, k: Array, v
         return kernel(q, k, v, segment_ids=segments)
 
     @jax.custom_vjp
-    def run(kernel, segments, q, k, v):
-        return _fwd(kernel, segments, q, k, v)[0]
+    def run(kernel, segments, q, k, v):  # without a gradient: the kernel that saves no residuals
+        zero = lax.full_like(q, 0, q.dtype, ())
+        with untyped():
+            out = apply(kernel, segments, q * 1, k * 1, v * 1)
+        return out + zero
 
     def untyped():
         """Typing off; for bfloat16 operands the backend's own matmul precision (Mosaic refuses a
