@@ -25,14 +25,13 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-if TYPE_CHECKING:
-    from llrmpp_jax.compile_cache import CompileWatch
+from llrmpp_jax import compile_cache
+from llrmpp_jax.compile_cache import CompileWatch
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,8 +174,6 @@ def environment_lines() -> list[str]:
 def cache_line(watch: CompileWatch | None = None) -> str:
     """Where the persistent compilation cache is, how much it holds, and (with ``watch``, a
     :class:`~llrmpp_jax.compile_cache.CompileWatch` over this run) how many programs came from it."""
-    from llrmpp_jax import compile_cache
-
     st = compile_cache.state()
     if st.path is None:
         return f"compile cache: {st.reason}"
@@ -204,8 +201,6 @@ def precision_diagnosis(name: str, fn: Callable[[], float], tol: float) -> str:
 def run_checks(emit: Callable[[str], None] = print) -> list[CheckResult]:
     """Print the environment, then run every check in :data:`CHECKS`, printing one line
     each as it finishes. A check that raises counts as failed (error ``nan``)."""
-    from llrmpp_jax.compile_cache import CompileWatch
-
     for line in environment_lines():
         emit(line)
     with CompileWatch() as watch:
