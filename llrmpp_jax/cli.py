@@ -1062,6 +1062,14 @@ class _OneLineErrors(argparse.ArgumentParser):
     def error(self, message: str):  # pyright: ignore[reportIncompatibleMethodOverride] -- exits, as argparse's does
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
+    def parse_known_args(self, args=None, namespace=None):  # pyright: ignore[reportIncompatibleMethodOverride] -- argparse's signature
+        # argparse drops a value of "--" given as --flag=--, leaving the flag a list [] that no
+        # type check sees (Python 3.11); the verb's parser refuses it, as any other bad value.
+        for arg in (sys.argv[1:] if args is None else args) if self._subparsers is None else ():
+            if isinstance(arg, str) and arg.startswith("--") and arg.endswith("=--"):
+                self.error(f"argument {arg[:-3]}: expected a value, got '--'")
+        return super().parse_known_args(args, namespace)
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``llrmpp`` parser: one subparser per entry of :data:`VERBS` (which inherit its

@@ -170,6 +170,9 @@ PARSER_CASES = [
     (["view", "--gaussians", _GS, "--height", "0"], "--height: must be an integer in [1, 16,384]"),
     (["view", "--gaussians", _GS, "--moving-height", "x"], "--moving-height: must be an integer"),
     (["view", "--procedural", "-1"], "--procedural: must be an integer in [0, "),
+    # argparse turns a value "--" into [] (found by the fuzz): refused before any command sees it
+    (["plan", "--programs=--"], "--programs: expected a value, got '--'"),
+    (["render", "--gaussians", _GS, "--path=--", "--out", "o"], "--path: expected a value, got '--'"),
 ]
 
 
