@@ -92,3 +92,10 @@ def key(request) -> jax.Array:
 def rng(request) -> np.random.Generator:
     """A NumPy generator seeded from the test's id, for oracle-side random data."""
     return np.random.default_rng(_seed(request))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """``LLRMPP_SUITE_PROFILE=DIR``: where each test's time goes (``tests/helpers/suite_profile.py``)."""
+    from tests.helpers import suite_profile
+
+    suite_profile.register(config)
